@@ -1,0 +1,1 @@
+"""Stable-Baselines3 training, evaluation and rerun rollouts (``heml_gym.agents``)."""

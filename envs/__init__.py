@@ -1,0 +1,1 @@
+"""Gymnasium retraction environments (``heml_gym.envs``), built on the HEML backend."""

@@ -1,0 +1,22 @@
+"""heml-gym: fast HEML (Hyper-Elastic Mass-Links) soft-tissue physics.
+
+The physics backend depends only on numpy, numba, scipy and meshio (gmsh for the
+procedural organs). Units are SI throughout: metres, seconds, pascals, kilograms.
+"""
+
+from . import materials
+from .forces import FemForce, ForceField, HemlForce
+from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "TetMesh",
+    "box_mesh",
+    "load_mesh",
+    "save_mesh",
+    "materials",
+    "ForceField",
+    "HemlForce",
+    "FemForce",
+]

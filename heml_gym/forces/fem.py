@@ -1,0 +1,33 @@
+"""Textbook F-based P1 finite elements: the independent cross-check of HEML."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kernels_fem
+from .base import ForceField
+
+
+class FemForce(ForceField):
+    """P1 FEM with ``F = Ds Dm^-1``, ``P = dPsi/dF`` and ``f = -V0 P Dm^-T`` per tet.
+
+    Stresses come from each law's textbook formula in ``F`` (see
+    :mod:`heml_gym.forces.kernels_fem`), not from the invariant derivatives HEML uses.
+    """
+
+    name = "F-FEM"
+
+    def __init__(self, mesh, material):
+        super().__init__(mesh, material)
+        x = mesh.vertices[mesh.tets]
+        dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)
+        self.dm_inv = np.ascontiguousarray(np.linalg.inv(dm))
+        self.vol = np.ascontiguousarray(mesh.volumes)
+        self._law = np.int64(material.law_id)
+        self._params = np.ascontiguousarray(material.params, dtype=np.float64)
+
+    def _energy(self, x):
+        return kernels_fem.fem_energy(x, self.mesh.tets, self.dm_inv, self.vol, self._law, self._params)
+
+    def _add_forces(self, x, buf):
+        kernels_fem.fem_forces(x, self.mesh.tets, self.dm_inv, self.vol, self._law, self._params, buf)

@@ -1,0 +1,91 @@
+"""HEML: the P1 hyperelastic force field written on the mesh edges.
+
+``C = F^T F`` of a P1 tet is linear in its six squared edge lengths ``s_k``:
+``C = sum_k s_k A_k`` with constant ``A_k = Dm^-T E_k Dm^-1``, where ``E_k`` places
+``s_k`` in the Gram matrix ``G = Ds^T Ds`` (``G_aa = s_0a``,
+``G_ab = (s_0a + s_0b - s_ab) / 2``). Hence ``I1 = a . s`` and ``I2 = s^T Q s / 2`` with
+``a_k = tr A_k`` and ``Q_kl = a_k a_l - tr(A_k A_l)`` precomputed per tet, and ``J`` is
+the signed volume ratio. The force is a set of edge forces plus one volume term; see
+:mod:`heml_gym.forces.kernels_heml`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..mesh import EDGE_PAIRS
+from . import kernels_heml
+from .base import ForceField
+
+# Upper-triangle (k <= l) index pairs of a 6x6 symmetric matrix, row by row: 21 entries.
+Q_UPPER = np.array([(k, l) for k in range(6) for l in range(k, 6)], dtype=np.int64)
+
+
+def gram_coefficients() -> np.ndarray:
+    """``(6, 3, 3)`` matrices ``E_k`` with ``G = Ds^T Ds = sum_k s_k E_k``."""
+    e = np.zeros((6, 3, 3))
+    for k, (a, b) in enumerate(EDGE_PAIRS):
+        if a == 0:  # s_0b sits on the diagonal G_bb and in half of each G_bc
+            i = b - 1
+            e[k, i, i] = 1.0
+            for j in range(3):
+                if j != i:
+                    e[k, i, j] += 0.5
+                    e[k, j, i] += 0.5
+        else:  # s_ab enters G_ab with -1/2
+            e[k, a - 1, b - 1] = e[k, b - 1, a - 1] = -0.5
+    return e
+
+
+def edge_tensors(rest_edges: np.ndarray) -> np.ndarray:
+    """``A_k`` per tet, ``(m, 6, 3, 3)``, from rest edge matrices ``Dm`` ``(m, 3, 3)``."""
+    dm_inv = np.linalg.inv(rest_edges)
+    return np.einsum("tia,kab,tbj->tkij", dm_inv.transpose(0, 2, 1), gram_coefficients(), dm_inv)
+
+
+def heml_coefficients(vertices: np.ndarray, tets: np.ndarray, with_q: bool):
+    """Per-tet HEML constants: ``coef (m, 8) = (V0, 1/(6 V0), a_0..a_5)`` and ``q (m, 21)``.
+
+    ``q`` holds the upper triangle of ``Q``; it is ``(1, 21)`` zeros when not needed.
+    """
+    x = vertices[tets]
+    dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)  # columns X_a - X_0
+    det = np.linalg.det(dm)
+    a_mats = edge_tensors(dm)
+    a = np.einsum("tkii->tk", a_mats)
+    coef = np.empty((len(tets), 8))
+    coef[:, 0] = det / 6.0
+    coef[:, 1] = 1.0 / det
+    coef[:, 2:] = a
+    if with_q:
+        tr_aa = np.einsum("tkij,tlji->tkl", a_mats, a_mats)
+        q_full = a[:, :, None] * a[:, None, :] - tr_aa
+        q = np.ascontiguousarray(q_full[:, Q_UPPER[:, 0], Q_UPPER[:, 1]])
+    else:
+        q = np.zeros((1, 21))
+    return coef, q
+
+
+class HemlForce(ForceField):
+    """Hyper-Elastic Mass-Links force field for any law of :mod:`heml_gym.materials`.
+
+    Exactly P1 finite elements (it agrees with :class:`heml_gym.FemForce` to rounding),
+    evaluated as state-dependent edge springs plus one volume term per tet.
+    """
+
+    name = "HEML"
+
+    def __init__(self, mesh, material):
+        super().__init__(mesh, material)
+        self.use_q = bool(material.needs_i2)
+        self.coef, self.q = heml_coefficients(mesh.vertices, mesh.tets, self.use_q)
+        self._law = np.int64(material.law_id)
+        self._params = np.ascontiguousarray(material.params, dtype=np.float64)
+
+    def _energy(self, x):
+        m = self.mesh
+        return kernels_heml.heml_energy(x, m.tets, self.coef, self.q, self.use_q, self._law, self._params)
+
+    def _add_forces(self, x, buf):
+        m = self.mesh
+        kernels_heml.heml_forces(x, m.tets, self.coef, self.q, self.use_q, self._law, self._params, buf)
