@@ -5,7 +5,7 @@ procedural organs). Units are SI throughout: metres, seconds, pascals, kilograms
 """
 
 from . import materials
-from .forces import FemForce, ForceField, HemlForce
+from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
 
 __version__ = "0.1.0"
@@ -19,4 +19,6 @@ __all__ = [
     "ForceField",
     "HemlForce",
     "FemForce",
+    "MassTensorForce",
+    "MassSpringForce",
 ]

@@ -3,5 +3,7 @@
 from .base import ForceField
 from .fem import FemForce
 from .heml import HemlForce
+from .mass_tensor import MassTensorForce
+from .mass_spring import MassSpringForce
 
-__all__ = ["ForceField", "HemlForce", "FemForce"]
+__all__ = ["ForceField", "HemlForce", "FemForce", "MassSpringForce", "MassTensorForce"]

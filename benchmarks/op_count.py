@@ -1,0 +1,153 @@
+"""Exact floating-point operation counts of a force evaluation, by running the kernel.
+
+The force kernels are plain scalar Python under ``NUMBA_DISABLE_JIT=1``. This module runs
+them on a whole mesh with every float input replaced by :class:`Counted`, a float that
+counts each ``+ - * /`` it takes part in, and each call of ``log exp sqrt pow``. So the
+count is of the very code that runs compiled, on the very mesh, not an estimate.
+
+Import this module before anything imports numba (it sets ``NUMBA_DISABLE_JIT``); the
+op-count benchmark runs it in a subprocess for that reason.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import types
+from dataclasses import dataclass
+
+os.environ["NUMBA_DISABLE_JIT"] = "1"
+
+import numpy as np  # noqa: E402
+
+
+@dataclass
+class OpTally:
+    add: int = 0  # additions and subtractions
+    mul: int = 0  # multiplications
+    div: int = 0  # divisions
+    func: int = 0  # log, exp, sqrt, pow
+
+    @property
+    def add_mul(self) -> int:
+        """Additions plus multiplications (the seed's "+ x" count); divisions counted as x."""
+        return self.add + self.mul + self.div
+
+    def reset(self):
+        self.add = self.mul = self.div = self.func = 0
+
+
+TALLY = OpTally()
+
+
+class Counted(float):
+    """A float that tallies the arithmetic it takes part in."""
+
+    __slots__ = ()
+
+    def __add__(self, o):
+        TALLY.add += 1
+        return Counted(float(self) + float(o))
+
+    __radd__ = __add__
+
+    def __sub__(self, o):
+        TALLY.add += 1
+        return Counted(float(self) - float(o))
+
+    def __rsub__(self, o):
+        TALLY.add += 1
+        return Counted(float(o) - float(self))
+
+    def __mul__(self, o):
+        TALLY.mul += 1
+        return Counted(float(self) * float(o))
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, o):
+        TALLY.div += 1
+        return Counted(float(self) / float(o))
+
+    def __rtruediv__(self, o):
+        TALLY.div += 1
+        return Counted(float(o) / float(self))
+
+    def __neg__(self):  # a sign flip, not an arithmetic operation
+        return Counted(-float(self))
+
+    def __pow__(self, o):
+        TALLY.func += 1
+        return Counted(float(self) ** float(o))
+
+
+def _counting_function(fn):
+    def wrapped(*args):
+        TALLY.func += 1
+        return Counted(fn(*(float(a) for a in args)))
+
+    return wrapped
+
+
+counting_math = types.SimpleNamespace(
+    log=_counting_function(math.log),
+    exp=_counting_function(math.exp),
+    sqrt=_counting_function(math.sqrt),
+    inf=math.inf,
+    nan=math.nan,
+)
+
+
+def counted_array(a) -> np.ndarray:
+    """An object array of :class:`Counted` with the values of ``a``."""
+    a = np.asarray(a, dtype=np.float64)
+    out = np.empty(a.shape, dtype=object)
+    flat = out.reshape(-1)
+    for i, v in enumerate(a.reshape(-1)):
+        flat[i] = Counted(v)
+    return out
+
+
+def _patch_math():
+    import heml_gym.forces.kernels_mass_spring as ms
+    import heml_gym.laws as laws
+
+    laws.math = counting_math
+    ms.math = counting_math
+
+
+def count_forces(field, x: np.ndarray) -> OpTally:
+    """Run ``field``'s force kernel once at ``x`` with counting scalars; return the tally."""
+    if os.environ.get("NUMBA_DISABLE_JIT") != "1":  # pragma: no cover
+        raise RuntimeError("op counting needs NUMBA_DISABLE_JIT=1 set before numba is imported")
+    _patch_math()
+    from heml_gym.forces import HemlForce, MassSpringForce, MassTensorForce
+
+    n = field.mesh.n_vertices
+    buf = np.empty((1, n, 3), dtype=object)
+    buf.fill(0.0)
+    xc = counted_array(x)
+    TALLY.reset()
+    if isinstance(field, HemlForce):
+        from heml_gym.forces import kernels_heml as k
+
+        k.heml_forces(xc, field.mesh.tets, counted_array(field.coef), counted_array(field.q),
+                      field.use_q, int(field._law), counted_array(field._params), buf)
+    elif isinstance(field, MassSpringForce):
+        from heml_gym.forces import kernels_mass_spring as k
+
+        k.spring_forces(xc, field.edges, counted_array(field.stiffness),
+                        counted_array(field.rest_length), buf)
+    elif isinstance(field, MassTensorForce):
+        from heml_gym.forces import kernels_mass_tensor as k
+
+        u = np.empty((n, 3), dtype=object)
+        m = field.mesh
+        k.mass_tensor_forces(xc, counted_array(m.vertices), m.tets, counted_array(field.K),
+                             counted_array(field.C), counted_array(field.D), u, buf)
+    else:
+        raise TypeError(f"no op counter for {type(field).__name__}")
+    result = OpTally(TALLY.add, TALLY.mul, TALLY.div, TALLY.func)
+    # the counted run must compute the same forces as the compiled one
+    counted = np.array(buf[0], dtype=np.float64)
+    return result, counted
