@@ -124,30 +124,64 @@ def count_forces(field, x: np.ndarray) -> OpTally:
     from heml_gym.forces import HemlForce, MassSpringForce, MassTensorForce
 
     n = field.mesh.n_vertices
-    buf = np.empty((1, n, 3), dtype=object)
-    buf.fill(0.0)
+    f = np.empty((n, 3), dtype=object)
+    f.fill(0.0)
     xc = counted_array(x)
     TALLY.reset()
     if isinstance(field, HemlForce):
         from heml_gym.forces import kernels_heml as k
 
-        k.heml_forces(xc, field.mesh.tets, counted_array(field.coef), counted_array(field.q),
-                      field.use_q, int(field._law), counted_array(field._params), buf)
+        k.heml_forces_chunk(xc, field.mesh.tets, counted_array(field.coef), counted_array(field.q),
+                            field.use_q, int(field._law), counted_array(field._params), f, 0, field.n_elements)
     elif isinstance(field, MassSpringForce):
         from heml_gym.forces import kernels_mass_spring as k
 
-        k.spring_forces(xc, field.edges, counted_array(field.stiffness),
-                        counted_array(field.rest_length), buf)
+        k.spring_forces_chunk(xc, field.edges, counted_array(field.stiffness),
+                              counted_array(field.rest_length), f, 0, field.n_elements)
     elif isinstance(field, MassTensorForce):
         from heml_gym.forces import kernels_mass_tensor as k
 
         u = np.empty((n, 3), dtype=object)
         m = field.mesh
-        k.mass_tensor_forces(xc, counted_array(m.vertices), m.tets, counted_array(field.K),
-                             counted_array(field.C), counted_array(field.D), u, buf)
+        k.displacements(xc, counted_array(m.vertices), u)  # counted: u = x - X
+        k.mass_tensor_forces_chunk(u, m.tets, counted_array(field.K), counted_array(field.C),
+                                   counted_array(field.D), f, 0, field.n_elements)
     else:
         raise TypeError(f"no op counter for {type(field).__name__}")
     result = OpTally(TALLY.add, TALLY.mul, TALLY.div, TALLY.func)
     # the counted run must compute the same forces as the compiled one
-    counted = np.array(buf[0], dtype=np.float64)
+    counted = np.array(f, dtype=np.float64)
     return result, counted
+
+
+def _main():
+    """``python op_count.py MESH.npz``: print the counts of one force evaluation as JSON."""
+    import json
+    import sys
+
+    import heml_gym as hg
+    from heml_gym import materials as M
+
+    data = np.load(sys.argv[1])
+    mesh = hg.TetMesh(data["vertices"], data["tets"])
+    rng = np.random.default_rng(0)
+    x = mesh.vertices * 1.05 + 1e-3 * mesh.min_edge_length * rng.standard_normal(mesh.vertices.shape)
+    fields = {
+        "heml_stvk": hg.HemlForce(mesh, M.StVenantKirchhoff(E=5e3, nu=0.45)),
+        "heml_neo_hookean": hg.HemlForce(mesh, M.NeoHookean(E=5e3, nu=0.45)),
+        "mass_tensor": hg.MassTensorForce(mesh, M.StVenantKirchhoff(E=5e3, nu=0.45)),
+        "mass_spring": hg.MassSpringForce(mesh, M.NeoHookean(E=5e3, nu=0.45)),
+    }
+    out = {}
+    for name, field in fields.items():
+        tally, counted = count_forces(field, x)
+        out[name] = {
+            "add": tally.add, "mul": tally.mul, "div": tally.div, "func": tally.func,
+            "add_mul": tally.add_mul,
+            "max_abs_force": float(np.abs(counted).max()),
+        }
+    json.dump(out, sys.stdout)
+
+
+if __name__ == "__main__":
+    _main()

@@ -7,10 +7,14 @@ procedural organs). Units are SI throughout: metres, seconds, pascals, kilograms
 from . import materials
 from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
+from .simulation import Damping, Simulation, SimulationDiverged
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Simulation",
+    "SimulationDiverged",
+    "Damping",
     "TetMesh",
     "box_mesh",
     "load_mesh",

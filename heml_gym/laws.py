@@ -81,3 +81,49 @@ def law_gradient(law, p, I1, I2, J):
     elif law == STABLE_NEO_HOOKEAN:
         return 0.5 * p[0] * (1.0 - 1.0 / (I1 + 1.0)), 0.0, p[1] * (J - p[2])
     return _NAN, _NAN, _NAN
+
+
+@nb.njit(cache=True, inline="always")
+def law_hessian(law, p, I1, I2, J):
+    """Second derivatives ``(Psi_11, Psi_12, Psi_1J, Psi_22, Psi_2J, Psi_JJ)`` in Pa.
+
+    ``Psi_11 = d2Psi/dI1^2``, ``Psi_12 = d2Psi/dI1 dI2``, ``Psi_1J = d2Psi/dI1 dJ``, and so
+    on. NaN where the law is undefined (``J <= 0`` for the ln J and J^-2/3 laws).
+    """
+    if law == NEO_HOOKEAN:
+        if J <= 0.0:
+            return _NAN, _NAN, _NAN, _NAN, _NAN, _NAN
+        # Psi_J = (lam ln J - mu) / J
+        return 0.0, 0.0, 0.0, 0.0, 0.0, (p[1] * (1.0 - math.log(J)) + p[0]) / (J * J)
+    elif law == ST_VENANT_KIRCHHOFF:
+        # Psi_1 = mu/2 (I1 - 1) + lam/4 (I1 - 3), Psi_2 = -mu/2
+        return 0.5 * p[0] + 0.25 * p[1], 0.0, 0.0, 0.0, 0.0, 0.0
+    elif law == MOONEY_RIVLIN:
+        if J <= 0.0:
+            return _NAN, _NAN, _NAN, _NAN, _NAN, _NAN
+        j23 = J ** (-_TWO_THIRDS)
+        j43 = j23 * j23
+        d1 = p[0] * j23  # Psi_1
+        d2 = p[1] * j43  # Psi_2
+        inv_j = 1.0 / J
+        d1j = -_TWO_THIRDS * d1 * inv_j
+        d2j = -2.0 * _TWO_THIRDS * d2 * inv_j
+        djj = ((10.0 / 9.0) * d1 * I1 + (28.0 / 9.0) * d2 * I2) * inv_j * inv_j + p[2]
+        return 0.0, 0.0, d1j, 0.0, d2j, djj
+    elif law == DEMIRAY:
+        if J <= 0.0:
+            return _NAN, _NAN, _NAN, _NAN, _NAN, _NAN
+        # Psi = a/(2b) (exp(b (Ib - 3)) - 1) + kappa/2 (J-1)^2, Ib = J^-2/3 I1
+        j23 = J ** (-_TWO_THIRDS)
+        ib = j23 * I1
+        g = 0.5 * p[0] * math.exp(p[1] * (ib - 3.0))  # dPsi/dIb; d2Psi/dIb2 = b g
+        inv_j = 1.0 / J
+        dib_dj = -_TWO_THIRDS * ib * inv_j
+        d11 = p[1] * g * j23 * j23
+        d1j = g * j23 * (p[1] * dib_dj - _TWO_THIRDS * inv_j)
+        djj = p[1] * g * dib_dj * dib_dj + g * (10.0 / 9.0) * ib * inv_j * inv_j + p[2]
+        return d11, 0.0, d1j, 0.0, 0.0, djj
+    elif law == STABLE_NEO_HOOKEAN:
+        r = 1.0 / (I1 + 1.0)
+        return 0.5 * p[0] * r * r, 0.0, 0.0, 0.0, 0.0, p[1]
+    return _NAN, _NAN, _NAN, _NAN, _NAN, _NAN

@@ -223,3 +223,28 @@ def test_force_field_rejects_bad_positions(small_box):
         field.forces(np.zeros((3, 3)))
     with pytest.raises(TypeError):
         hg.HemlForce(small_box, "neo-hookean")
+
+
+@pytest.mark.parametrize("make", [
+    lambda m: hg.HemlForce(m, M.MooneyRivlin(E=E, nu=NU)),
+    lambda m: hg.FemForce(m, M.NeoHookean(E=E, nu=NU)),
+    lambda m: hg.MassSpringForce(m, M.NeoHookean(E=E, nu=NU)),
+    lambda m: hg.MassTensorForce(m, M.StVenantKirchhoff(E=E, nu=NU)),
+], ids=["heml", "fem", "spring", "tensor"])
+def test_parallel_kernels_match_serial(make, irregular_box):
+    import numba
+
+    field = make(irregular_box)
+    x = random_deformation(irregular_box, seed=5, jacobian=1.2)
+    serial_f, serial_w = field.forces(x), field.energy(x)
+    field.parallel_min_elements = 0  # force the chunked kernels
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        threads = numba.get_num_threads()
+        assert field._threads() == threads
+        par_f, par_w = field.forces(x), field.energy(x)
+    finally:
+        numba.set_num_threads(old)
+    assert rel_diff(par_f, serial_f) <= 1e-13
+    assert par_w == pytest.approx(serial_w, rel=1e-13)

@@ -12,16 +12,21 @@ from ..mesh import TetMesh
 class ForceField:
     """Elastic force field of a tet mesh.
 
-    Subclasses implement :meth:`_energy` and :meth:`_add_forces`. Positions are ``(n, 3)``
-    float64 arrays in metres, energies in joules, forces in newtons. ``forces(x)`` is
-    ``-dW/dx``: the force the tissue exerts on its vertices.
+    Positions are ``(n, 3)`` float64 arrays in metres, energies in joules, forces in
+    newtons. ``forces(x)`` is ``-dW/dx``: the force the tissue exerts on its vertices.
 
-    Forces are accumulated without races: the elements are split into one contiguous
-    chunk per Numba thread, each chunk adds into its own buffer, the buffers are summed.
+    Subclasses provide serial kernels over a range of elements (``_add_forces_range``,
+    ``_energy_range``) and parallel ones (``_add_forces_parallel``, ``_energy_parallel``).
+    The parallel kernels are race-free: elements are split into one contiguous chunk per
+    Numba thread, each chunk adds into its own buffer, the buffers are summed. Meshes
+    smaller than :attr:`parallel_min_elements` use the serial kernels, since waking the
+    threads costs more than it saves there.
     """
 
     #: Short name used in tables and charts.
     name = "force field"
+    #: Below this many elements the serial kernels are used whatever the thread count.
+    parallel_min_elements = 20_000
 
     def __init__(self, mesh: TetMesh, material: Material):
         if not isinstance(mesh, TetMesh):
@@ -36,42 +41,67 @@ class ForceField:
     def n_vertices(self) -> int:
         return self.mesh.n_vertices
 
+    @property
+    def n_elements(self) -> int:
+        """Number of elements the kernels loop over (tets; springs for mass-spring)."""
+        return self.mesh.n_tets
+
     def _positions(self, x) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if x.shape != (self.mesh.n_vertices, 3):
             raise ValueError(f"positions must have shape ({self.mesh.n_vertices}, 3), got {x.shape}")
         return x
 
-    def _chunk_buffer(self) -> np.ndarray:
-        n_chunks = numba.get_num_threads()
-        shape = (n_chunks, self.mesh.n_vertices, 3)
-        if self._buf.shape != shape:
-            self._buf = np.zeros(shape)
-        else:
-            self._buf.fill(0.0)
-        return self._buf
+    def _threads(self) -> int:
+        """Chunks to use: the Numba thread count, or 1 for small meshes."""
+        threads = numba.get_num_threads()
+        return threads if self.n_elements >= self.parallel_min_elements else 1
 
     def energy(self, x) -> float:
         """Elastic energy in joules at positions ``x`` (m)."""
-        return float(self._energy(self._positions(x)))
+        x = self._positions(x)
+        threads = self._threads()
+        if threads == 1:
+            return float(self._energy_range(x, 0, self.n_elements))
+        return float(self._energy_parallel(x, threads))
 
     def forces(self, x, out: np.ndarray | None = None) -> np.ndarray:
         """Elastic forces ``-dW/dx`` in newtons at positions ``x`` (m), shape ``(n, 3)``.
 
-        If ``out`` is given the forces are written there (and returned).
+        If ``out`` (a C-contiguous float64 ``(n, 3)`` array) is given the forces are
+        written there and it is returned.
         """
         x = self._positions(x)
-        buf = self._chunk_buffer()
-        self._add_forces(x, buf)
         if out is None:
-            return buf[0].copy()
-        out[...] = buf[0]
+            out = np.zeros_like(x)
+        else:
+            if out.shape != x.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+                raise ValueError(f"out must be a C-contiguous float64 array of shape {x.shape}")
+            out.fill(0.0)
+        threads = self._threads()
+        if threads == 1:
+            self._add_forces_range(x, out, 0, self.n_elements)
+            return out
+        shape = (threads, self.mesh.n_vertices, 3)
+        if self._buf.shape != shape:
+            self._buf = np.zeros(shape)
+        else:
+            self._buf.fill(0.0)
+        self._add_forces_parallel(x, self._buf)
+        out[...] = self._buf[0]
         return out
 
-    def _energy(self, x: np.ndarray) -> float:  # pragma: no cover - abstract
+    # kernels, per subclass ---------------------------------------------------
+    def _energy_range(self, x, lo, hi):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _add_forces(self, x: np.ndarray, buf: np.ndarray) -> None:  # pragma: no cover
+    def _energy_parallel(self, x, n_chunks):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _add_forces_range(self, x, f, lo, hi):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _add_forces_parallel(self, x, buf):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def __repr__(self) -> str:

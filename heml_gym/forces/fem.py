@@ -26,8 +26,17 @@ class FemForce(ForceField):
         self._law = np.int64(material.law_id)
         self._params = np.ascontiguousarray(material.params, dtype=np.float64)
 
-    def _energy(self, x):
-        return kernels_fem.fem_energy(x, self.mesh.tets, self.dm_inv, self.vol, self._law, self._params)
+    def _args(self):
+        return self.mesh.tets, self.dm_inv, self.vol, self._law, self._params
 
-    def _add_forces(self, x, buf):
-        kernels_fem.fem_forces(x, self.mesh.tets, self.dm_inv, self.vol, self._law, self._params, buf)
+    def _energy_range(self, x, lo, hi):
+        return kernels_fem.fem_energy_chunk(x, *self._args(), lo, hi)
+
+    def _energy_parallel(self, x, n_chunks):
+        return kernels_fem.fem_energy_parallel(x, *self._args(), n_chunks)
+
+    def _add_forces_range(self, x, f, lo, hi):
+        kernels_fem.fem_forces_chunk(x, *self._args(), f, lo, hi)
+
+    def _add_forces_parallel(self, x, buf):
+        kernels_fem.fem_forces_parallel(x, *self._args(), buf)

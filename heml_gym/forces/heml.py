@@ -82,10 +82,17 @@ class HemlForce(ForceField):
         self._law = np.int64(material.law_id)
         self._params = np.ascontiguousarray(material.params, dtype=np.float64)
 
-    def _energy(self, x):
-        m = self.mesh
-        return kernels_heml.heml_energy(x, m.tets, self.coef, self.q, self.use_q, self._law, self._params)
+    def _args(self):
+        return self.mesh.tets, self.coef, self.q, self.use_q, self._law, self._params
 
-    def _add_forces(self, x, buf):
-        m = self.mesh
-        kernels_heml.heml_forces(x, m.tets, self.coef, self.q, self.use_q, self._law, self._params, buf)
+    def _energy_range(self, x, lo, hi):
+        return kernels_heml.heml_energy_chunk(x, *self._args(), lo, hi)
+
+    def _energy_parallel(self, x, n_chunks):
+        return kernels_heml.heml_energy_parallel(x, *self._args(), n_chunks)
+
+    def _add_forces_range(self, x, f, lo, hi):
+        kernels_heml.heml_forces_chunk(x, *self._args(), f, lo, hi)
+
+    def _add_forces_parallel(self, x, buf):
+        kernels_heml.heml_forces_parallel(x, *self._args(), buf)

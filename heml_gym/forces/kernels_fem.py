@@ -161,40 +161,55 @@ def first_piola(law, p, F, K, C, P):
         P[:, :] = math.nan
 
 
+@nb.njit(cache=True)
+def fem_forces_chunk(x, tets, dm_inv, vol, law, p, f, lo, hi):
+    """Add the F-based FEM forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``."""
+    F = np.empty((3, 3))
+    K = np.empty((3, 3))
+    C = np.empty((3, 3))
+    P = np.empty((3, 3))
+    for t in range(lo, hi):
+        deformation_gradient(x, tets, dm_inv, t, F)
+        first_piola(law, p, F, K, C, P)
+        # H = -V0 P Dm^-T: column a is the force on local vertex a + 1
+        for r in range(3):
+            h0 = 0.0
+            for a in range(3):
+                h = -vol[t] * (P[r, 0] * dm_inv[t, a, 0] + P[r, 1] * dm_inv[t, a, 1]
+                               + P[r, 2] * dm_inv[t, a, 2])
+                f[tets[t, a + 1], r] += h
+                h0 += h
+            f[tets[t, 0], r] -= h0
+
+
 @nb.njit(cache=True, parallel=True)
-def fem_forces(x, tets, dm_inv, vol, law, p, buf):
-    """Add the F-based FEM forces (N) into ``buf[0]``; ``buf`` ``(n_chunks, n, 3)`` zero on entry."""
+def fem_forces_parallel(x, tets, dm_inv, vol, law, p, buf):
+    """FEM forces, one chunk of tets per thread, summed into ``buf[0]`` (zero on entry)."""
     n_chunks = buf.shape[0]
     m = tets.shape[0]
     for c in prange(n_chunks):
-        f = buf[c]
-        F = np.empty((3, 3))
-        K = np.empty((3, 3))
-        C = np.empty((3, 3))
-        P = np.empty((3, 3))
-        for t in range(c * m // n_chunks, (c + 1) * m // n_chunks):
-            deformation_gradient(x, tets, dm_inv, t, F)
-            first_piola(law, p, F, K, C, P)
-            # H = -V0 P Dm^-T: column a is the force on local vertex a + 1
-            for r in range(3):
-                h0 = 0.0
-                for a in range(3):
-                    h = -vol[t] * (P[r, 0] * dm_inv[t, a, 0] + P[r, 1] * dm_inv[t, a, 1]
-                                   + P[r, 2] * dm_inv[t, a, 2])
-                    f[tets[t, a + 1], r] += h
-                    h0 += h
-                f[tets[t, 0], r] -= h0
+        fem_forces_chunk(x, tets, dm_inv, vol, law, p, buf[c], c * m // n_chunks, (c + 1) * m // n_chunks)
     reduce_chunks(buf)
 
 
-@nb.njit(cache=True, parallel=True)
-def fem_energy(x, tets, dm_inv, vol, law, p):
-    """Total elastic energy (J): sum over tets of ``V0 Psi(F)``."""
+@nb.njit(cache=True)
+def fem_energy_chunk(x, tets, dm_inv, vol, law, p, lo, hi):
+    """Elastic energy (J) of tets ``lo..hi-1``: sum of ``V0 Psi(F)``."""
+    F = np.empty((3, 3))
+    K = np.empty((3, 3))
+    C = np.empty((3, 3))
     total = 0.0
-    for t in prange(tets.shape[0]):
-        F = np.empty((3, 3))
-        K = np.empty((3, 3))
-        C = np.empty((3, 3))
+    for t in range(lo, hi):
         deformation_gradient(x, tets, dm_inv, t, F)
         total += vol[t] * energy_density(law, p, F, K, C)
+    return total
+
+
+@nb.njit(cache=True, parallel=True)
+def fem_energy_parallel(x, tets, dm_inv, vol, law, p, n_chunks):
+    """Total elastic energy (J), one chunk of tets per thread."""
+    m = tets.shape[0]
+    total = 0.0
+    for c in prange(n_chunks):
+        total += fem_energy_chunk(x, tets, dm_inv, vol, law, p, c * m // n_chunks, (c + 1) * m // n_chunks)
     return total

@@ -11,7 +11,8 @@ At run time, with ``e_k = x_b - x_a`` for edge ``k = (a, b)``:
 * edge weight ``w_k = 2 V0 (Psi_1 a_k + Psi_2 (Q s)_k)``: ``f_a += w_k e_k``, ``f_b -= w_k e_k``,
 * volume term ``f_a -= Psi_J / 6 * d det(Ds) / d x_a`` (cross products of the edges).
 
-Forces are accumulated race-free: tets are split into ``buf.shape[0]`` contiguous
+Each kernel comes as a serial ``*_chunk`` over a range of tets and a ``*_parallel``
+wrapper. The parallel one is race-free: tets are split into ``buf.shape[0]`` contiguous
 chunks, each chunk adds into its own ``(n, 3)`` slice of ``buf``, and the slices are then
 summed into ``buf[0]``.
 """
@@ -37,140 +38,142 @@ def _qs(q, t, s0, s1, s2, s3, s4, s5):
     return qs0, qs1, qs2, qs3, qs4, qs5
 
 
-@nb.njit(cache=True, parallel=True)
-def heml_forces(x, tets, coef, q, use_q, law, p, buf):
-    """Add the HEML elastic forces (N) at positions ``x`` (m) into ``buf[0]``.
+@nb.njit(cache=True)
+def heml_forces_chunk(x, tets, coef, q, use_q, law, p, f, lo, hi):
+    """Add the HEML elastic forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``."""
+    for t in range(lo, hi):
+        i0 = tets[t, 0]
+        i1 = tets[t, 1]
+        i2 = tets[t, 2]
+        i3 = tets[t, 3]
+        x0x = x[i0, 0]
+        x0y = x[i0, 1]
+        x0z = x[i0, 2]
+        x1x = x[i1, 0]
+        x1y = x[i1, 1]
+        x1z = x[i1, 2]
+        x2x = x[i2, 0]
+        x2y = x[i2, 1]
+        x2z = x[i2, 2]
+        x3x = x[i3, 0]
+        x3y = x[i3, 1]
+        x3z = x[i3, 2]
+        # edge vectors e_k = x_b - x_a
+        e01x = x1x - x0x
+        e01y = x1y - x0y
+        e01z = x1z - x0z
+        e02x = x2x - x0x
+        e02y = x2y - x0y
+        e02z = x2z - x0z
+        e03x = x3x - x0x
+        e03y = x3y - x0y
+        e03z = x3z - x0z
+        e12x = x2x - x1x
+        e12y = x2y - x1y
+        e12z = x2z - x1z
+        e13x = x3x - x1x
+        e13y = x3y - x1y
+        e13z = x3z - x1z
+        e23x = x3x - x2x
+        e23y = x3y - x2y
+        e23z = x3z - x2z
+        s0 = e01x * e01x + e01y * e01y + e01z * e01z
+        s1 = e02x * e02x + e02y * e02y + e02z * e02z
+        s2 = e03x * e03x + e03y * e03y + e03z * e03z
+        s3 = e12x * e12x + e12y * e12y + e12z * e12z
+        s4 = e13x * e13x + e13y * e13y + e13z * e13z
+        s5 = e23x * e23x + e23y * e23y + e23z * e23z
+        v0 = coef[t, 0]
+        a0 = coef[t, 2]
+        a1 = coef[t, 3]
+        a2 = coef[t, 4]
+        a3 = coef[t, 5]
+        a4 = coef[t, 6]
+        a5 = coef[t, 7]
+        i_1 = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3 + a4 * s4 + a5 * s5
+        # d det(Ds) / d x_1, x_2, x_3
+        c1x = e02y * e03z - e02z * e03y
+        c1y = e02z * e03x - e02x * e03z
+        c1z = e02x * e03y - e02y * e03x
+        c2x = e03y * e01z - e03z * e01y
+        c2y = e03z * e01x - e03x * e01z
+        c2z = e03x * e01y - e03y * e01x
+        c3x = e01y * e02z - e01z * e02y
+        c3y = e01z * e02x - e01x * e02z
+        c3z = e01x * e02y - e01y * e02x
+        jac = (e01x * c1x + e01y * c1y + e01z * c1z) * coef[t, 1]
+        if use_q:
+            qs0, qs1, qs2, qs3, qs4, qs5 = _qs(q, t, s0, s1, s2, s3, s4, s5)
+            i_2 = 0.5 * (s0 * qs0 + s1 * qs1 + s2 * qs2 + s3 * qs3 + s4 * qs4 + s5 * qs5)
+            d1, d2, dj = law_gradient(law, p, i_1, i_2, jac)
+            v2 = 2.0 * v0
+            w1 = v2 * d1
+            w2 = v2 * d2
+            w01 = w1 * a0 + w2 * qs0
+            w02 = w1 * a1 + w2 * qs1
+            w03 = w1 * a2 + w2 * qs2
+            w12 = w1 * a3 + w2 * qs3
+            w13 = w1 * a4 + w2 * qs4
+            w23 = w1 * a5 + w2 * qs5
+        else:
+            d1, d2, dj = law_gradient(law, p, i_1, 0.0, jac)
+            w1 = 2.0 * v0 * d1
+            w01 = w1 * a0
+            w02 = w1 * a1
+            w03 = w1 * a2
+            w12 = w1 * a3
+            w13 = w1 * a4
+            w23 = w1 * a5
+        g = dj * (1.0 / 6.0)
+        # edge forces: zero-rest-length springs with state-dependent weights
+        e01x *= w01
+        e01y *= w01
+        e01z *= w01
+        e02x *= w02
+        e02y *= w02
+        e02z *= w02
+        e03x *= w03
+        e03y *= w03
+        e03z *= w03
+        e12x *= w12
+        e12y *= w12
+        e12z *= w12
+        e13x *= w13
+        e13y *= w13
+        e13z *= w13
+        e23x *= w23
+        e23y *= w23
+        e23z *= w23
+        c1x *= g
+        c1y *= g
+        c1z *= g
+        c2x *= g
+        c2y *= g
+        c2z *= g
+        c3x *= g
+        c3y *= g
+        c3z *= g
+        f[i0, 0] += e01x + e02x + e03x + c1x + c2x + c3x
+        f[i0, 1] += e01y + e02y + e03y + c1y + c2y + c3y
+        f[i0, 2] += e01z + e02z + e03z + c1z + c2z + c3z
+        f[i1, 0] += e12x + e13x - e01x - c1x
+        f[i1, 1] += e12y + e13y - e01y - c1y
+        f[i1, 2] += e12z + e13z - e01z - c1z
+        f[i2, 0] += e23x - e02x - e12x - c2x
+        f[i2, 1] += e23y - e02y - e12y - c2y
+        f[i2, 2] += e23z - e02z - e12z - c2z
+        f[i3, 0] -= e03x + e13x + e23x + c3x
+        f[i3, 1] -= e03y + e13y + e23y + c3y
+        f[i3, 2] -= e03z + e13z + e23z + c3z
 
-    ``buf`` is ``(n_chunks, n, 3)`` and must be zero on entry.
-    """
+
+@nb.njit(cache=True, parallel=True)
+def heml_forces_parallel(x, tets, coef, q, use_q, law, p, buf):
+    """HEML forces over all tets, one chunk per thread, summed into ``buf[0]`` (zero on entry)."""
     n_chunks = buf.shape[0]
     m = tets.shape[0]
     for c in prange(n_chunks):
-        f = buf[c]
-        for t in range(c * m // n_chunks, (c + 1) * m // n_chunks):
-            i0 = tets[t, 0]
-            i1 = tets[t, 1]
-            i2 = tets[t, 2]
-            i3 = tets[t, 3]
-            x0x = x[i0, 0]
-            x0y = x[i0, 1]
-            x0z = x[i0, 2]
-            x1x = x[i1, 0]
-            x1y = x[i1, 1]
-            x1z = x[i1, 2]
-            x2x = x[i2, 0]
-            x2y = x[i2, 1]
-            x2z = x[i2, 2]
-            x3x = x[i3, 0]
-            x3y = x[i3, 1]
-            x3z = x[i3, 2]
-            # edge vectors e_k = x_b - x_a
-            e01x = x1x - x0x
-            e01y = x1y - x0y
-            e01z = x1z - x0z
-            e02x = x2x - x0x
-            e02y = x2y - x0y
-            e02z = x2z - x0z
-            e03x = x3x - x0x
-            e03y = x3y - x0y
-            e03z = x3z - x0z
-            e12x = x2x - x1x
-            e12y = x2y - x1y
-            e12z = x2z - x1z
-            e13x = x3x - x1x
-            e13y = x3y - x1y
-            e13z = x3z - x1z
-            e23x = x3x - x2x
-            e23y = x3y - x2y
-            e23z = x3z - x2z
-            s0 = e01x * e01x + e01y * e01y + e01z * e01z
-            s1 = e02x * e02x + e02y * e02y + e02z * e02z
-            s2 = e03x * e03x + e03y * e03y + e03z * e03z
-            s3 = e12x * e12x + e12y * e12y + e12z * e12z
-            s4 = e13x * e13x + e13y * e13y + e13z * e13z
-            s5 = e23x * e23x + e23y * e23y + e23z * e23z
-            v0 = coef[t, 0]
-            a0 = coef[t, 2]
-            a1 = coef[t, 3]
-            a2 = coef[t, 4]
-            a3 = coef[t, 5]
-            a4 = coef[t, 6]
-            a5 = coef[t, 7]
-            i_1 = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3 + a4 * s4 + a5 * s5
-            # d det(Ds) / d x_1, x_2, x_3
-            c1x = e02y * e03z - e02z * e03y
-            c1y = e02z * e03x - e02x * e03z
-            c1z = e02x * e03y - e02y * e03x
-            c2x = e03y * e01z - e03z * e01y
-            c2y = e03z * e01x - e03x * e01z
-            c2z = e03x * e01y - e03y * e01x
-            c3x = e01y * e02z - e01z * e02y
-            c3y = e01z * e02x - e01x * e02z
-            c3z = e01x * e02y - e01y * e02x
-            jac = (e01x * c1x + e01y * c1y + e01z * c1z) * coef[t, 1]
-            if use_q:
-                qs0, qs1, qs2, qs3, qs4, qs5 = _qs(q, t, s0, s1, s2, s3, s4, s5)
-                i_2 = 0.5 * (s0 * qs0 + s1 * qs1 + s2 * qs2 + s3 * qs3 + s4 * qs4 + s5 * qs5)
-                d1, d2, dj = law_gradient(law, p, i_1, i_2, jac)
-                v2 = 2.0 * v0
-                w1 = v2 * d1
-                w2 = v2 * d2
-                w01 = w1 * a0 + w2 * qs0
-                w02 = w1 * a1 + w2 * qs1
-                w03 = w1 * a2 + w2 * qs2
-                w12 = w1 * a3 + w2 * qs3
-                w13 = w1 * a4 + w2 * qs4
-                w23 = w1 * a5 + w2 * qs5
-            else:
-                d1, d2, dj = law_gradient(law, p, i_1, 0.0, jac)
-                w1 = 2.0 * v0 * d1
-                w01 = w1 * a0
-                w02 = w1 * a1
-                w03 = w1 * a2
-                w12 = w1 * a3
-                w13 = w1 * a4
-                w23 = w1 * a5
-            g = dj * (1.0 / 6.0)
-            # edge forces: zero-rest-length springs with state-dependent weights
-            e01x *= w01
-            e01y *= w01
-            e01z *= w01
-            e02x *= w02
-            e02y *= w02
-            e02z *= w02
-            e03x *= w03
-            e03y *= w03
-            e03z *= w03
-            e12x *= w12
-            e12y *= w12
-            e12z *= w12
-            e13x *= w13
-            e13y *= w13
-            e13z *= w13
-            e23x *= w23
-            e23y *= w23
-            e23z *= w23
-            c1x *= g
-            c1y *= g
-            c1z *= g
-            c2x *= g
-            c2y *= g
-            c2z *= g
-            c3x *= g
-            c3y *= g
-            c3z *= g
-            f[i0, 0] += e01x + e02x + e03x + c1x + c2x + c3x
-            f[i0, 1] += e01y + e02y + e03y + c1y + c2y + c3y
-            f[i0, 2] += e01z + e02z + e03z + c1z + c2z + c3z
-            f[i1, 0] += e12x + e13x - e01x - c1x
-            f[i1, 1] += e12y + e13y - e01y - c1y
-            f[i1, 2] += e12z + e13z - e01z - c1z
-            f[i2, 0] += e23x - e02x - e12x - c2x
-            f[i2, 1] += e23y - e02y - e12y - c2y
-            f[i2, 2] += e23z - e02z - e12z - c2z
-            f[i3, 0] -= e03x + e13x + e23x + c3x
-            f[i3, 1] -= e03y + e13y + e23y + c3y
-            f[i3, 2] -= e03z + e13z + e23z + c3z
+        heml_forces_chunk(x, tets, coef, q, use_q, law, p, buf[c], c * m // n_chunks, (c + 1) * m // n_chunks)
     reduce_chunks(buf)
 
 
@@ -229,11 +232,21 @@ def tet_invariants(x, tets, coef, q, use_q, t):
     return i_1, i_2, det * coef[t, 1]
 
 
-@nb.njit(cache=True, parallel=True)
-def heml_energy(x, tets, coef, q, use_q, law, p):
-    """Total elastic energy (J) at positions ``x`` (m): sum over tets of ``V0 Psi``."""
+@nb.njit(cache=True)
+def heml_energy_chunk(x, tets, coef, q, use_q, law, p, lo, hi):
+    """Elastic energy (J) of tets ``lo..hi-1`` at positions ``x`` (m): sum of ``V0 Psi``."""
     total = 0.0
-    for t in prange(tets.shape[0]):
+    for t in range(lo, hi):
         i_1, i_2, jac = tet_invariants(x, tets, coef, q, use_q, t)
         total += coef[t, 0] * law_energy(law, p, i_1, i_2, jac)
+    return total
+
+
+@nb.njit(cache=True, parallel=True)
+def heml_energy_parallel(x, tets, coef, q, use_q, law, p, n_chunks):
+    """Total elastic energy (J), one chunk of tets per thread."""
+    m = tets.shape[0]
+    total = 0.0
+    for c in prange(n_chunks):
+        total += heml_energy_chunk(x, tets, coef, q, use_q, law, p, c * m // n_chunks, (c + 1) * m // n_chunks)
     return total

@@ -39,8 +39,21 @@ class MassSpringForce(ForceField):
         edge_volume = np.bincount(idx, weights=np.repeat(mesh.volumes, 6), minlength=len(keys))
         self.stiffness = SPRING_CALIBRATION * material.young_modulus * edge_volume / self.rest_length**2
 
-    def _energy(self, x):
-        return kernels_mass_spring.spring_energy(x, self.edges, self.stiffness, self.rest_length)
+    @property
+    def n_elements(self) -> int:
+        return len(self.edges)
 
-    def _add_forces(self, x, buf):
-        kernels_mass_spring.spring_forces(x, self.edges, self.stiffness, self.rest_length, buf)
+    def _args(self):
+        return self.edges, self.stiffness, self.rest_length
+
+    def _energy_range(self, x, lo, hi):
+        return kernels_mass_spring.spring_energy_chunk(x, *self._args(), lo, hi)
+
+    def _energy_parallel(self, x, n_chunks):
+        return kernels_mass_spring.spring_energy_parallel(x, *self._args(), n_chunks)
+
+    def _add_forces_range(self, x, f, lo, hi):
+        kernels_mass_spring.spring_forces_chunk(x, *self._args(), f, lo, hi)
+
+    def _add_forces_parallel(self, x, buf):
+        kernels_mass_spring.spring_forces_parallel(x, *self._args(), buf)

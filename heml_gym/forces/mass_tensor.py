@@ -102,10 +102,22 @@ class MassTensorForce(ForceField):
         self.memory_bytes = int(self.K.nbytes + self.C.nbytes + self.D.nbytes)
         self._u = np.empty((mesh.n_vertices, 3))
 
-    def _energy(self, x):
-        m = self.mesh
-        return kernels_mass_tensor.mass_tensor_energy(x, m.vertices, m.tets, self.K, self.C, self.D, self._u)
+    def _displacements(self, x):
+        kernels_mass_tensor.displacements(x, self.mesh.vertices, self._u)
+        return self._u
 
-    def _add_forces(self, x, buf):
+    def _energy_range(self, x, lo, hi):
+        u = self._displacements(x)
+        return kernels_mass_tensor.mass_tensor_energy_chunk(u, self.mesh.tets, self.K, self.C, self.D, lo, hi)
+
+    def _energy_parallel(self, x, n_chunks):
+        u = self._displacements(x)
+        return kernels_mass_tensor.mass_tensor_energy_parallel(u, self.mesh.tets, self.K, self.C, self.D, n_chunks)
+
+    def _add_forces_range(self, x, f, lo, hi):
+        u = self._displacements(x)
+        kernels_mass_tensor.mass_tensor_forces_chunk(u, self.mesh.tets, self.K, self.C, self.D, f, lo, hi)
+
+    def _add_forces_parallel(self, x, buf):
         m = self.mesh
-        kernels_mass_tensor.mass_tensor_forces(x, m.vertices, m.tets, self.K, self.C, self.D, self._u, buf)
+        kernels_mass_tensor.mass_tensor_forces_parallel(x, m.vertices, m.tets, self.K, self.C, self.D, self._u, buf)

@@ -1,0 +1,485 @@
+"""Dynamics over any force field: lumped masses, gravity, damping, fixed and grasped vertices.
+
+Equation of motion (SI units: m, s, kg, N)::
+
+    M x'' = f_elastic(x) + f_ext + M g - alpha M x' - beta K(x) x'
+
+with the lumped mass ``M = rho V / 4`` per vertex per incident tet, Rayleigh damping
+``alpha`` (1/s, mass-proportional) and ``beta`` (s, stiffness-proportional), fixed
+(Dirichlet) vertices that never move and kinematic vertices whose positions are driven
+(that is how a gripper holds tissue). Integrators:
+
+* ``"explicit"``: symplectic Euler, sub-stepped automatically below ``safety *
+  critical_dt()``;
+* ``"implicit"``: backward Euler, Newton on the incremental potential with the analytic
+  Hessian (projected per element to be positive semi-definite), a sparse direct solve and
+  a backtracking line search.
+
+A step whose state goes non-finite or explodes raises :class:`SimulationDiverged` and
+leaves the state as it was before the step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .forces.base import ForceField
+
+__all__ = ["Simulation", "SimulationDiverged", "Damping", "StepStats"]
+
+
+class SimulationDiverged(RuntimeError):
+    """A step produced a non-finite or exploding state; the previous state was kept.
+
+    Attributes: ``step`` (index of the failed step), ``elements`` (tets with a non-finite
+    or inverted state, at most 20), ``reason`` (text).
+    """
+
+    def __init__(self, step: int, reason: str, elements=()):
+        self.step = int(step)
+        self.reason = reason
+        self.elements = np.asarray(elements, dtype=np.int64)[:20]
+        where = f"; elements {self.elements.tolist()}" if self.elements.size else ""
+        super().__init__(f"simulation diverged at step {self.step}: {reason}{where}")
+
+
+@dataclass(frozen=True)
+class Damping:
+    """Rayleigh damping ``C = alpha M + beta K``.
+
+    ``alpha`` (1/s) damps every motion, rigid motion included (like drag in a fluid);
+    ``beta`` (s) damps deformation rates only, more at high frequencies.
+    """
+
+    alpha: float = 0.0
+    beta: float = 0.0
+
+    def __post_init__(self):
+        for name in ("alpha", "beta"):
+            v = getattr(self, name)
+            if not math.isfinite(v) or v < 0:
+                raise ValueError(f"Damping.{name} must be finite and >= 0, got {v}")
+
+
+@dataclass
+class StepStats:
+    """What the last :meth:`Simulation.step` did."""
+
+    substeps: int = 0
+    newton_iterations: int = 0
+    residual: float = 0.0
+
+
+class Simulation:
+    """Time integration of a tet mesh under a force field.
+
+    Parameters
+    ----------
+    field : ForceField
+        Elastic forces (e.g. ``HemlForce(mesh, material)``).
+    density : float
+        Mass density in kg/m^3.
+    gravity : (3,) float
+        Gravitational acceleration in m/s^2.
+    fixed : array of int or bool mask, optional
+        Vertices that never move.
+    damping : Damping, float or None
+        Rayleigh damping; a float is taken as ``Damping(alpha=value)``.
+    integrator : {"implicit", "explicit"}
+    safety : float
+        Explicit sub-steps are at most ``safety * critical_dt()`` seconds.
+    newton_tol : float
+        Implicit: Newton stops when the force residual on the free vertices is below
+        ``newton_tol`` times the total weight (or 1e-12 N times the vertex count in
+        zero gravity).
+    max_newton : int
+        Implicit: Newton iterations per step at most.
+    max_speed : float
+        A state with a vertex faster than this (m/s) counts as exploded.
+    """
+
+    def __init__(
+        self,
+        field: ForceField,
+        density: float,
+        gravity=(0.0, 0.0, -9.81),
+        fixed=None,
+        damping: Damping | float | None = None,
+        integrator: str = "implicit",
+        safety: float = 0.9,
+        newton_tol: float = 1e-6,
+        max_newton: int = 20,
+        max_speed: float = 1e3,
+    ):
+        if not isinstance(field, ForceField):
+            raise TypeError(f"field must be a heml_gym ForceField, got {type(field).__name__}")
+        density = float(density)
+        if not math.isfinite(density) or density <= 0:
+            raise ValueError(f"density must be a positive number of kg/m^3, got {density}")
+        if integrator not in ("implicit", "explicit"):
+            raise ValueError(f"integrator must be 'implicit' or 'explicit', got {integrator!r}")
+        if integrator == "implicit" and not hasattr(field, "hessian"):
+            raise ValueError(f"{type(field).__name__} has no Hessian: use integrator='explicit'")
+        gravity = np.asarray(gravity, dtype=np.float64)
+        if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+            raise ValueError(f"gravity must be three finite numbers (m/s^2), got {gravity}")
+        if damping is None:
+            damping = Damping()
+        elif not isinstance(damping, Damping):
+            damping = Damping(alpha=float(damping))
+        if not 0 < safety <= 1:
+            raise ValueError(f"safety must lie in (0, 1], got {safety}")
+
+        self.field = field
+        self.mesh = field.mesh
+        self.density = density
+        self.gravity = gravity
+        self.damping = damping
+        self.integrator = integrator
+        self.safety = float(safety)
+        self.newton_tol = float(newton_tol)
+        self.max_newton = int(max_newton)
+        self.max_speed = float(max_speed)
+
+        n = self.mesh.n_vertices
+        self.mass = density * self.mesh.vertex_volumes  # kg per vertex
+        self.fixed = self._vertex_mask(fixed, "fixed")
+        self.kinematic = np.zeros(n, dtype=bool)
+        self._targets = np.zeros((n, 3))
+        self.external_forces = np.zeros((n, 3))  # N, user-set, applied every step
+        self.time = 0.0
+        self.step_count = 0
+        self.last = StepStats()
+        self._reaction = np.zeros((n, 3))
+        self._critical_dt = None
+        self.reset()
+
+    # ---------------------------------------------------------------- state
+    def reset(self, x=None, v=None) -> None:
+        """Back to rest (or to the given positions / velocities), time 0, nothing attached."""
+        n = self.mesh.n_vertices
+        self.x = np.array(self.mesh.vertices if x is None else x, dtype=np.float64)
+        self.v = np.zeros((n, 3)) if v is None else np.array(v, dtype=np.float64)
+        if self.x.shape != (n, 3) or self.v.shape != (n, 3):
+            raise ValueError(f"positions and velocities must have shape ({n}, 3)")
+        self.kinematic[:] = False
+        self.external_forces[:] = 0.0
+        self._reaction[:] = 0.0
+        self.time = 0.0
+        self.step_count = 0
+
+    def _vertex_mask(self, vertices, what: str) -> np.ndarray:
+        n = self.mesh.n_vertices
+        mask = np.zeros(n, dtype=bool)
+        if vertices is None:
+            return mask
+        arr = np.asarray(vertices)
+        if arr.dtype == bool:
+            if arr.shape != (n,):
+                raise ValueError(f"{what} mask must have shape ({n},), got {arr.shape}")
+            return arr.copy()
+        arr = arr.astype(np.int64).ravel()
+        if arr.size and (arr.min() < 0 or arr.max() >= n):
+            raise ValueError(f"{what} vertex indices must lie in [0, {n})")
+        mask[arr] = True
+        return mask
+
+    @property
+    def free(self) -> np.ndarray:
+        """Mask of the vertices the integrator moves (neither fixed nor kinematic)."""
+        return ~(self.fixed | self.kinematic)
+
+    # -------------------------------------------------------- grasped vertices
+    def attach(self, vertices, targets=None) -> None:
+        """Make ``vertices`` kinematic: from now on they follow :meth:`drive` exactly.
+
+        ``targets`` (m, shape ``(k, 3)``) are their positions at the end of the next step;
+        by default they stay where they are.
+        """
+        idx = np.flatnonzero(self._vertex_mask(vertices, "attached"))
+        if np.any(self.fixed[idx]):
+            raise ValueError("cannot attach fixed vertices")
+        self.kinematic[idx] = True
+        self._targets[idx] = self.x[idx]
+        if targets is not None:
+            self.drive(idx, targets)
+
+    def drive(self, vertices, targets) -> None:
+        """Set where kinematic ``vertices`` are at the end of the next step (m).
+
+        They move along a straight line, at constant speed, during the step.
+        """
+        idx = np.asarray(vertices, dtype=np.int64).ravel()
+        targets = np.asarray(targets, dtype=np.float64).reshape(len(idx), 3)
+        if not np.all(self.kinematic[idx]):
+            raise ValueError("drive() needs attached (kinematic) vertices: call attach() first")
+        if not np.all(np.isfinite(targets)):
+            raise ValueError("kinematic targets must be finite")
+        self._targets[idx] = targets
+
+    def detach(self, vertices=None) -> None:
+        """Release kinematic vertices (all when ``vertices`` is None); they keep their velocity."""
+        if vertices is None:
+            self.kinematic[:] = False
+        else:
+            self.kinematic[self._vertex_mask(vertices, "detached")] = False
+
+    def reaction_forces(self, vertices=None) -> np.ndarray:
+        """Force (N) that the constraints exerted on fixed and kinematic vertices in the last step.
+
+        For a vertex held at rest this balances the elastic force, gravity and external
+        forces on it; summed over a gripper's vertices it is the grasp force on the tissue
+        (with the opposite sign: the force the tissue pulls the gripper with is ``-R``).
+        """
+        if vertices is None:
+            return self._reaction.copy()
+        return self._reaction[np.asarray(vertices, dtype=np.int64)].copy()
+
+    # ------------------------------------------------------------- stepping
+    def critical_dt(self) -> float:
+        """Explicit stability limit in seconds: ``h_min / c``, ``c = sqrt((lam + 2 mu)/rho)``.
+
+        ``h_min`` is the smallest tet altitude. The true limit of an undamped lumped-mass
+        P1 mesh is close to this (tests check that slightly below it is stable).
+        """
+        if self._critical_dt is None:
+            c = self.field.material.wave_speed(self.density)
+            self._critical_dt = self.mesh.min_height / c
+        return self._critical_dt
+
+    def _total_forces(self, x, v) -> np.ndarray:
+        """Elastic + external + gravity + damping forces (N) at state ``(x, v)``."""
+        f_el = self.field.forces(x)
+        f = f_el + self.external_forces + self.mass[:, None] * self.gravity
+        if self.damping.alpha:
+            f -= self.damping.alpha * self.mass[:, None] * v
+        if self.damping.beta:
+            # -beta K v, as a directional difference of the elastic forces along v
+            vmax = np.abs(v).max()
+            if vmax > 0:
+                eps = 1e-7 * self.mesh.min_edge_length / vmax
+                f += self.damping.beta * (self.field.forces(x + eps * v) - f_el) / eps
+        return f
+
+    def step(self, dt: float, substeps: int | None = None) -> StepStats:
+        """Advance by ``dt`` seconds (in ``substeps`` equal sub-steps; explicit picks enough).
+
+        Raises :class:`SimulationDiverged` (state unchanged) if the result is non-finite
+        or exploding.
+        """
+        dt = float(dt)
+        if not math.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+        if substeps is None:
+            substeps = 1
+            if self.integrator == "explicit":
+                substeps = max(1, math.ceil(dt / (self.safety * self.critical_dt())))
+        substeps = int(substeps)
+        if substeps < 1:
+            raise ValueError("substeps must be >= 1")
+        x0, v0 = self.x.copy(), self.v.copy()
+        start_targets = x0.copy()
+        h = dt / substeps
+        stats = StepStats(substeps=substeps)
+        reaction = np.zeros_like(self.x)
+        try:
+            with np.errstate(all="ignore"):
+                for k in range(1, substeps + 1):
+                    targets = start_targets + (self._targets - start_targets) * (k / substeps)
+                    if self.integrator == "explicit":
+                        reaction = self._explicit_substep(h, targets)
+                    else:
+                        reaction, it, res = self._implicit_substep(h, targets)
+                        stats.newton_iterations += it
+                        stats.residual = max(stats.residual, res)
+                    self._check(x0)
+        except SimulationDiverged:
+            self.x, self.v = x0, v0
+            raise
+        self._reaction = reaction
+        self.time += dt
+        self.step_count += 1
+        self.last = stats
+        return stats
+
+    def _constrain(self, x, v, targets, h, x_prev):
+        """Hold fixed vertices where they are and put kinematic ones on their path."""
+        kin = self.kinematic
+        x[self.fixed] = x_prev[self.fixed]
+        v[self.fixed] = 0.0
+        x[kin] = targets[kin]
+        v[kin] = (targets[kin] - x_prev[kin]) / h
+
+    def _held_reaction(self, v_prev, total, h) -> np.ndarray:
+        """Constraint force (N) on held vertices: ``m a`` minus every other force on them."""
+        held = ~self.free
+        reaction = np.zeros_like(self.x)
+        reaction[held] = self.mass[held, None] * (self.v[held] - v_prev[held]) / h - total[held]
+        return reaction
+
+    def _explicit_substep(self, h, targets):
+        x_prev, v_prev = self.x.copy(), self.v.copy()
+        total = self._total_forces(self.x, self.v)
+        self.v = self.v + h * total / self.mass[:, None]
+        self.x = self.x + h * self.v
+        self._constrain(self.x, self.v, targets, h, x_prev)
+        return self._held_reaction(v_prev, total, h)
+
+    def _force_scale(self) -> float:
+        """Force (N) the Newton tolerances are relative to: total weight plus external load."""
+        load = float(np.linalg.norm(self.gravity) * self.mass.sum() + np.abs(self.external_forces).sum())
+        if load > 0:
+            return load
+        return self.field.material.young_modulus * self.mesh.min_edge_length**2
+
+    def _newton(self, x, potential, gradient, hessian, free, tol, max_iter):
+        """Minimise ``potential`` over the free dofs from ``x`` (in place) by Newton.
+
+        Sparse direct solve of the (projected, so positive definite) Hessian system and a
+        backtracking (Armijo) line search that also rejects non-finite energies, e.g.
+        inverted elements of ln J laws. Returns ``(x, iterations, residual norm in N)``.
+        """
+        g = gradient(x)
+        gnorm = float(np.linalg.norm(g[free]))
+        it = 0
+        while gnorm > tol and it < max_iter:
+            it += 1
+            a = hessian(x)[free][:, free].tocsc()
+            dx = spla.spsolve(a, -g[free])
+            if not np.all(np.isfinite(dx)):
+                raise SimulationDiverged(self.step_count, "Newton system could not be solved")
+            phi0 = potential(x)
+            slope = float(g[free] @ dx)
+            if slope >= 0:  # not a descent direction: fall back to steepest descent
+                dx = -g[free] / float(np.abs(a.diagonal()).max())
+                slope = float(g[free] @ dx)
+            step = 1.0
+            trial = x.copy()
+            for _ in range(30):
+                trial.reshape(-1)[free] = x.reshape(-1)[free] + step * dx
+                phi = potential(trial)
+                if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * slope:
+                    break
+                step *= 0.5
+            else:
+                break  # no decrease possible at this precision: keep the best iterate
+            x = trial
+            g = gradient(x)
+            gnorm = float(np.linalg.norm(g[free]))
+        return x, it, gnorm
+
+    def _implicit_substep(self, h, targets):
+        x_n, v_n = self.x.copy(), self.v.copy()
+        m3 = np.repeat(self.mass, 3)
+        alpha, beta = self.damping.alpha, self.damping.beta
+        c = 1.0 / h**2 + alpha / h
+        x_hat = (x_n + h * v_n / (1.0 + alpha * h)).reshape(-1)
+        load = (self.external_forces + self.mass[:, None] * self.gravity).reshape(-1)
+        # stiffness damping with K frozen at the start of the step keeps this a potential
+        k_n = self.field.hessian(x_n) * (beta / h) if beta else None
+        x0 = x_n.reshape(-1)
+        diag = sp.diags(c * m3)
+
+        def potential(x):
+            d = x.reshape(-1) - x_hat
+            phi = 0.5 * c * float(m3 @ (d * d)) + self.field.energy(x) - float(load @ x.reshape(-1))
+            if k_n is not None:
+                dn = x.reshape(-1) - x0
+                phi += 0.5 * float(dn @ (k_n @ dn))
+            return phi
+
+        def gradient(x):
+            g = c * m3 * (x.reshape(-1) - x_hat) - self.field.forces(x).reshape(-1) - load
+            if k_n is not None:
+                g += k_n @ (x.reshape(-1) - x0)
+            return g
+
+        def hessian(x):
+            a = self.field.hessian(x, project=True) + diag
+            return a + k_n if k_n is not None else a
+
+        x = x_n + h * v_n
+        v = v_n.copy()
+        self._constrain(x, v, targets, h, x_n)
+        free = np.repeat(self.free, 3)
+        tol = self.newton_tol * self._force_scale()
+        x, it, res = self._newton(x, potential, gradient, hessian, free, tol, self.max_newton)
+        self.x = x
+        self.v = (x - x_n) / h
+        self._constrain(self.x, self.v, targets, h, x_n)
+        total = self._total_forces(self.x, self.v)
+        return self._held_reaction(v_n, total, h), it, res
+
+    def solve_static(self, load_steps: int = 1, tol: float = 1e-10, max_iter: int = 100) -> StepStats:
+        """Static equilibrium under gravity and external forces, by Newton with load stepping.
+
+        Loads are ramped in ``load_steps`` equal increments; each increment is solved to a
+        force residual below ``tol`` times the total load (N). Velocities are zeroed.
+        Raises ``RuntimeError`` if the last increment does not converge.
+        """
+        if self.kinematic.any():
+            self._constrain(self.x, self.v, self._targets, 1.0, self.x.copy())
+        free = np.repeat(self.free, 3)
+        stats = StepStats(substeps=load_steps)
+        x = self.x.copy()
+        with np.errstate(all="ignore"):
+            for k in range(1, load_steps + 1):
+                load = (k / load_steps) * (self.external_forces + self.mass[:, None] * self.gravity).reshape(-1)
+
+                def potential(y, load=load):
+                    return self.field.energy(y) - float(load @ y.reshape(-1))
+
+                def gradient(y, load=load):
+                    return -self.field.forces(y).reshape(-1) - load
+
+                def hessian(y):
+                    return self.field.hessian(y, project=True)
+
+                x, it, res = self._newton(x, potential, gradient, hessian, free,
+                                          tol * self._force_scale(), max_iter)
+                stats.newton_iterations += it
+                stats.residual = res
+        if not np.all(np.isfinite(x)):
+            raise SimulationDiverged(self.step_count, "static solve went non-finite")
+        self.x = x
+        self.v[:] = 0.0
+        self.last = stats
+        if res > tol * self._force_scale():
+            raise RuntimeError(
+                f"static solve did not converge: residual {res:.3e} N after {max_iter} iterations "
+                f"(target {tol * self._force_scale():.3e} N); try more load_steps"
+            )
+        f = self.field.forces(self.x) + self.external_forces + self.mass[:, None] * self.gravity
+        self._reaction = np.where(self.free[:, None], 0.0, -f)
+        return stats
+
+    def _check(self, x0):
+        x, v = self.x, self.v
+        bad_vertices = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
+        speed = np.sqrt((v * v).sum(axis=1))
+        if bad_vertices.any() or speed.max(initial=0.0) > self.max_speed:
+            bad = bad_vertices | (speed > self.max_speed)
+            tets = np.flatnonzero(bad[self.mesh.tets].any(axis=1))
+            what = "non-finite positions or velocities" if bad_vertices.any() else (
+                f"speed {speed.max():.3g} m/s above max_speed {self.max_speed:g} m/s")
+            raise SimulationDiverged(self.step_count, what, tets)
+
+    # ------------------------------------------------------------- energies
+    def kinetic_energy(self) -> float:
+        """Kinetic energy in joules."""
+        return 0.5 * float((self.mass[:, None] * self.v * self.v).sum())
+
+    def potential_energy(self) -> float:
+        """Elastic plus gravitational potential energy in joules (gravity relative to x = 0)."""
+        grav = -float((self.mass[:, None] * self.gravity * self.x).sum())
+        ext = -float((self.external_forces * self.x).sum())
+        return self.field.energy(self.x) + grav + ext
+
+    def total_energy(self) -> float:
+        """Kinetic plus potential energy in joules."""
+        return self.kinetic_energy() + self.potential_energy()
