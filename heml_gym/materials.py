@@ -100,6 +100,9 @@ class Material:
 
     law_id: int = -1
     needs_i2: bool = False
+    #: ``dPsi/dI1`` when it is a constant and ``Psi`` has no ``I2`` term (the I1 part of the
+    #: force is then a fixed linear spring network), else None.
+    constant_psi1: float | None = None
     defined_when_inverted: bool = False
     params: np.ndarray
 
@@ -172,6 +175,7 @@ class NeoHookean(Material):
         if not math.isfinite(lam) or lam + 2.0 * mu / 3.0 <= 0:
             raise ValueError(f"NeoHookean: bulk modulus lam + 2 mu / 3 must be > 0 (mu={mu}, lam={lam})")
         self.mu, self.lam = mu, lam
+        self.constant_psi1 = 0.5 * mu
         self.params = np.array([mu, lam], dtype=np.float64)
 
     shear_modulus = property(lambda self: self.mu)

@@ -15,8 +15,8 @@ class ForceField:
     Positions are ``(n, 3)`` float64 arrays in metres, energies in joules, forces in
     newtons. ``forces(x)`` is ``-dW/dx``: the force the tissue exerts on its vertices.
 
-    Subclasses provide serial kernels over a range of elements (``_add_forces_range``,
-    ``_energy_range``) and parallel ones (``_add_forces_parallel``, ``_energy_parallel``).
+    Subclasses provide serial kernels (``_add_forces_serial``, ``_energy_serial``) and
+    parallel ones (``_add_forces_parallel``, ``_energy_parallel``).
     The parallel kernels are race-free: elements are split into one contiguous chunk per
     Numba thread, each chunk adds into its own buffer, the buffers are summed. Meshes
     smaller than :attr:`parallel_min_elements` use the serial kernels, since waking the
@@ -62,7 +62,7 @@ class ForceField:
         x = self._positions(x)
         threads = self._threads()
         if threads == 1:
-            return float(self._energy_range(x, 0, self.n_elements))
+            return float(self._energy_serial(x))
         return float(self._energy_parallel(x, threads))
 
     def forces(self, x, out: np.ndarray | None = None) -> np.ndarray:
@@ -80,7 +80,7 @@ class ForceField:
             out.fill(0.0)
         threads = self._threads()
         if threads == 1:
-            self._add_forces_range(x, out, 0, self.n_elements)
+            self._add_forces_serial(x, out)
             return out
         shape = (threads, self.mesh.n_vertices, 3)
         if self._buf.shape != shape:
@@ -92,13 +92,13 @@ class ForceField:
         return out
 
     # kernels, per subclass ---------------------------------------------------
-    def _energy_range(self, x, lo, hi):  # pragma: no cover - abstract
+    def _energy_serial(self, x):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def _energy_parallel(self, x, n_chunks):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _add_forces_range(self, x, f, lo, hi):  # pragma: no cover - abstract
+    def _add_forces_serial(self, x, f):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def _add_forces_parallel(self, x, buf):  # pragma: no cover - abstract

@@ -29,14 +29,14 @@ class FemForce(ForceField):
     def _args(self):
         return self.mesh.tets, self.dm_inv, self.vol, self._law, self._params
 
-    def _energy_range(self, x, lo, hi):
-        return kernels_fem.fem_energy_chunk(x, *self._args(), lo, hi)
+    def _energy_serial(self, x):
+        return kernels_fem.fem_energy_chunk(x, *self._args(), 0, self.n_elements)
 
     def _energy_parallel(self, x, n_chunks):
         return kernels_fem.fem_energy_parallel(x, *self._args(), n_chunks)
 
-    def _add_forces_range(self, x, f, lo, hi):
-        kernels_fem.fem_forces_chunk(x, *self._args(), f, lo, hi)
+    def _add_forces_serial(self, x, f):
+        kernels_fem.fem_forces_chunk(x, *self._args(), f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
         kernels_fem.fem_forces_parallel(x, *self._args(), buf)

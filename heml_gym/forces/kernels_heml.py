@@ -177,6 +177,107 @@ def heml_forces_parallel(x, tets, coef, q, use_q, law, p, buf):
     reduce_chunks(buf)
 
 
+@nb.njit(cache=True)
+def spring_network_chunk(x, edges, weights, f, lo, hi):
+    """Add the fixed zero-rest-length springs ``f_i += w (x_j - x_i)``, ``f_j -= ...`` (N).
+
+    For a law with constant ``Psi_1`` (Neo-Hookean) the I1 part of the HEML force is this
+    linear network on the mesh's unique edges, ``w_e = sum over tets of 2 V0 Psi_1 a_k``.
+    """
+    for e in range(lo, hi):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        w = weights[e]
+        dx = (x[j, 0] - x[i, 0]) * w
+        dy = (x[j, 1] - x[i, 1]) * w
+        dz = (x[j, 2] - x[i, 2]) * w
+        f[i, 0] += dx
+        f[i, 1] += dy
+        f[i, 2] += dz
+        f[j, 0] -= dx
+        f[j, 1] -= dy
+        f[j, 2] -= dz
+
+
+@nb.njit(cache=True)
+def volume_term_chunk(x, tets, inv_det, law, p, f, lo, hi):
+    """Add the volume term ``-V0 Psi_J dJ/dx`` (N) of tets ``lo..hi-1`` into ``f``.
+
+    Only for laws whose ``Psi_J`` does not depend on I1 or I2 (those with a constant
+    ``Psi_1``); ``inv_det`` is ``1 / det(Dm) = 1 / (6 V0)`` per tet.
+    """
+    for t in range(lo, hi):
+        i0 = tets[t, 0]
+        i1 = tets[t, 1]
+        i2 = tets[t, 2]
+        i3 = tets[t, 3]
+        x0x = x[i0, 0]
+        x0y = x[i0, 1]
+        x0z = x[i0, 2]
+        ax = x[i1, 0] - x0x
+        ay = x[i1, 1] - x0y
+        az = x[i1, 2] - x0z
+        bx = x[i2, 0] - x0x
+        by = x[i2, 1] - x0y
+        bz = x[i2, 2] - x0z
+        cx = x[i3, 0] - x0x
+        cy = x[i3, 1] - x0y
+        cz = x[i3, 2] - x0z
+        c1x = by * cz - bz * cy
+        c1y = bz * cx - bx * cz
+        c1z = bx * cy - by * cx
+        c2x = cy * az - cz * ay
+        c2y = cz * ax - cx * az
+        c2z = cx * ay - cy * ax
+        c3x = ay * bz - az * by
+        c3y = az * bx - ax * bz
+        c3z = ax * by - ay * bx
+        jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
+        d1, d2, dj = law_gradient(law, p, 0.0, 0.0, jac)
+        g = dj * (1.0 / 6.0)
+        c1x *= g
+        c1y *= g
+        c1z *= g
+        c2x *= g
+        c2y *= g
+        c2z *= g
+        c3x *= g
+        c3y *= g
+        c3z *= g
+        f[i0, 0] += c1x + c2x + c3x
+        f[i0, 1] += c1y + c2y + c3y
+        f[i0, 2] += c1z + c2z + c3z
+        f[i1, 0] -= c1x
+        f[i1, 1] -= c1y
+        f[i1, 2] -= c1z
+        f[i2, 0] -= c2x
+        f[i2, 1] -= c2y
+        f[i2, 2] -= c2z
+        f[i3, 0] -= c3x
+        f[i3, 1] -= c3y
+        f[i3, 2] -= c3z
+
+
+@nb.njit(cache=True)
+def heml_split_forces_chunk(x, tets, inv_det, edges, weights, law, p, f, t_lo, t_hi, e_lo, e_hi):
+    """Constant-``Psi_1`` HEML forces: springs ``e_lo..e_hi-1`` plus volume terms of tets ``t_lo..t_hi-1``."""
+    spring_network_chunk(x, edges, weights, f, e_lo, e_hi)
+    volume_term_chunk(x, tets, inv_det, law, p, f, t_lo, t_hi)
+
+
+@nb.njit(cache=True, parallel=True)
+def heml_split_forces_parallel(x, tets, inv_det, edges, weights, law, p, buf):
+    """Constant-``Psi_1`` HEML forces, one chunk of edges and tets per thread, into ``buf[0]``."""
+    n_chunks = buf.shape[0]
+    m = tets.shape[0]
+    ne = edges.shape[0]
+    for c in prange(n_chunks):
+        heml_split_forces_chunk(x, tets, inv_det, edges, weights, law, p, buf[c],
+                                c * m // n_chunks, (c + 1) * m // n_chunks,
+                                c * ne // n_chunks, (c + 1) * ne // n_chunks)
+    reduce_chunks(buf)
+
+
 @nb.njit(cache=True, parallel=True)
 def reduce_chunks(buf):
     """Sum ``buf[1:]`` into ``buf[0]`` (parallel over vertices)."""

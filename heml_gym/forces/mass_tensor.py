@@ -106,17 +106,17 @@ class MassTensorForce(ForceField):
         kernels_mass_tensor.displacements(x, self.mesh.vertices, self._u)
         return self._u
 
-    def _energy_range(self, x, lo, hi):
+    def _energy_serial(self, x):
         u = self._displacements(x)
-        return kernels_mass_tensor.mass_tensor_energy_chunk(u, self.mesh.tets, self.K, self.C, self.D, lo, hi)
+        return kernels_mass_tensor.mass_tensor_energy_chunk(u, self.mesh.tets, self.K, self.C, self.D, 0, self.n_elements)
 
     def _energy_parallel(self, x, n_chunks):
         u = self._displacements(x)
         return kernels_mass_tensor.mass_tensor_energy_parallel(u, self.mesh.tets, self.K, self.C, self.D, n_chunks)
 
-    def _add_forces_range(self, x, f, lo, hi):
+    def _add_forces_serial(self, x, f):
         u = self._displacements(x)
-        kernels_mass_tensor.mass_tensor_forces_chunk(u, self.mesh.tets, self.K, self.C, self.D, f, lo, hi)
+        kernels_mass_tensor.mass_tensor_forces_chunk(u, self.mesh.tets, self.K, self.C, self.D, f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
         m = self.mesh
