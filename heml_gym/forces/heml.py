@@ -66,11 +66,26 @@ def heml_coefficients(vertices: np.ndarray, tets: np.ndarray, with_q: bool):
     return coef, q
 
 
+def assembled_edge_weights(mesh, tet_edge_weights: np.ndarray):
+    """Sum per-tet edge weights ``(m, 6)`` onto the mesh's unique edges.
+
+    Returns ``(edges (e, 2), weights (e,))`` with the edges as in :attr:`TetMesh.edges`.
+    """
+    n = mesh.n_vertices
+    edges = np.ascontiguousarray(mesh.edges)
+    pairs = np.sort(mesh.tets[:, EDGE_PAIRS].reshape(-1, 2), axis=1)
+    idx = np.searchsorted(edges[:, 0] * n + edges[:, 1], pairs[:, 0] * n + pairs[:, 1])
+    weights = np.bincount(idx, weights=tet_edge_weights.reshape(-1), minlength=len(edges))
+    return edges, weights
+
+
 class HemlForce(ForceField):
     """Hyper-Elastic Mass-Links force field for any law of :mod:`heml_gym.materials`.
 
     Exactly P1 finite elements (it agrees with :class:`heml_gym.FemForce` to rounding),
-    evaluated as state-dependent edge springs plus one volume term per tet.
+    evaluated as state-dependent edge springs plus one volume term per tet. For a law
+    with constant ``dPsi/dI1`` (Neo-Hookean) the springs are fixed: they are assembled
+    once on the unique edges (``split``), and only the volume term is evaluated per tet.
     """
 
     name = "HEML"
@@ -81,18 +96,47 @@ class HemlForce(ForceField):
         self.coef, self.q = heml_coefficients(mesh.vertices, mesh.tets, self.use_q)
         self._law = np.int64(material.law_id)
         self._params = np.ascontiguousarray(material.params, dtype=np.float64)
+        # Constant Psi_1 (Neo-Hookean): the I1 part is a fixed spring network on the unique
+        # edges, assembled once; only the volume term is evaluated per tet.
+        self.split = material.constant_psi1 is not None and not self.use_q
+        if self.split:
+            self.edges, self.edge_weights = assembled_edge_weights(
+                mesh, 2.0 * material.constant_psi1 * self.coef[:, 0:1] * self.coef[:, 2:])
+            self.inv_det = np.ascontiguousarray(self.coef[:, 1])
 
     def _args(self):
         return self.mesh.tets, self.coef, self.q, self.use_q, self._law, self._params
 
-    def _energy_range(self, x, lo, hi):
-        return kernels_heml.heml_energy_chunk(x, *self._args(), lo, hi)
+    def _energy_serial(self, x):
+        return kernels_heml.heml_energy_chunk(x, *self._args(), 0, self.n_elements)
 
     def _energy_parallel(self, x, n_chunks):
         return kernels_heml.heml_energy_parallel(x, *self._args(), n_chunks)
 
-    def _add_forces_range(self, x, f, lo, hi):
-        kernels_heml.heml_forces_chunk(x, *self._args(), f, lo, hi)
+    def _split_args(self):
+        return self.mesh.tets, self.inv_det, self.edges, self.edge_weights, self._law, self._params
+
+    def _add_forces_serial(self, x, f):
+        if self.split:
+            kernels_heml.heml_split_forces_chunk(x, *self._split_args(), f, 0, self.mesh.n_tets,
+                                                 0, len(self.edges))
+        else:
+            kernels_heml.heml_forces_chunk(x, *self._args(), f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
-        kernels_heml.heml_forces_parallel(x, *self._args(), buf)
+        if self.split:
+            kernels_heml.heml_split_forces_parallel(x, *self._split_args(), buf)
+        else:
+            kernels_heml.heml_forces_parallel(x, *self._args(), buf)
+
+    def hessian(self, x, project=True):
+        """Stiffness matrix ``d2W/dx2`` (N/m) at ``x``: a ``3n x 3n`` scipy CSR matrix.
+
+        ``forces(x + dx) ~= forces(x) - K dx``. With ``project=True`` each tet's
+        contribution is made positive semi-definite (negative eigenvalues of
+        ``d2Psi/dF2`` clamped to zero, in closed form); ``project=False`` gives the
+        exact Hessian. See :mod:`heml_gym.forces.hessian`.
+        """
+        from .hessian import heml_hessian
+
+        return heml_hessian(self, x, project)

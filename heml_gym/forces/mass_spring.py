@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import EDGE_PAIRS
 from . import kernels_mass_spring
 from .base import ForceField
+from .heml import assembled_edge_weights
 
 #: Stiffness calibration: ``k_e = SPRING_CALIBRATION * E * (sum of adjacent tet volumes) / L_e^2``.
 #: Averaging ``(n . eps n)^2`` over isotropic edge directions gives 1/5, and each tet's
@@ -32,11 +32,7 @@ class MassSpringForce(ForceField):
         self.edges = np.ascontiguousarray(mesh.edges)
         self.rest_length = np.ascontiguousarray(mesh.edge_lengths())
         # total volume of the tets around each edge
-        tet_edges = np.sort(mesh.tets[:, EDGE_PAIRS].reshape(-1, 2), axis=1)
-        n = mesh.n_vertices
-        keys = self.edges[:, 0] * n + self.edges[:, 1]
-        idx = np.searchsorted(keys, tet_edges[:, 0] * n + tet_edges[:, 1])
-        edge_volume = np.bincount(idx, weights=np.repeat(mesh.volumes, 6), minlength=len(keys))
+        _, edge_volume = assembled_edge_weights(mesh, np.repeat(mesh.volumes[:, None], 6, axis=1))
         self.stiffness = SPRING_CALIBRATION * material.young_modulus * edge_volume / self.rest_length**2
 
     @property
@@ -46,14 +42,24 @@ class MassSpringForce(ForceField):
     def _args(self):
         return self.edges, self.stiffness, self.rest_length
 
-    def _energy_range(self, x, lo, hi):
-        return kernels_mass_spring.spring_energy_chunk(x, *self._args(), lo, hi)
+    def _energy_serial(self, x):
+        return kernels_mass_spring.spring_energy_chunk(x, *self._args(), 0, self.n_elements)
 
     def _energy_parallel(self, x, n_chunks):
         return kernels_mass_spring.spring_energy_parallel(x, *self._args(), n_chunks)
 
-    def _add_forces_range(self, x, f, lo, hi):
-        kernels_mass_spring.spring_forces_chunk(x, *self._args(), f, lo, hi)
+    def _add_forces_serial(self, x, f):
+        kernels_mass_spring.spring_forces_chunk(x, *self._args(), f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
         kernels_mass_spring.spring_forces_parallel(x, *self._args(), buf)
+
+    def hessian(self, x, project=True):
+        """Stiffness matrix ``d2W/dx2`` (N/m) at ``x``: a ``3n x 3n`` scipy CSR matrix.
+
+        Per edge ``k [(1 - L/l)(I - n n^T) + n n^T]``; ``project=True`` clamps
+        ``1 - L/l`` at 0 (a compressed spring's transverse part), which makes it PSD.
+        """
+        from .hessian import spring_hessian
+
+        return spring_hessian(self, x, project)
