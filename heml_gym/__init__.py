@@ -4,7 +4,7 @@ The physics backend depends only on numpy, numba, scipy and meshio (gmsh for the
 procedural organs). Units are SI throughout: metres, seconds, pascals, kilograms.
 """
 
-from . import materials
+from . import kinematics, materials, organs
 from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
 from .simulation import Damping, Simulation, SimulationDiverged
@@ -20,6 +20,8 @@ __all__ = [
     "load_mesh",
     "save_mesh",
     "materials",
+    "organs",
+    "kinematics",
     "ForceField",
     "HemlForce",
     "FemForce",

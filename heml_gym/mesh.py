@@ -8,6 +8,8 @@ tets unless asked to re-orient them).
 
 from __future__ import annotations
 
+import contextlib
+import io
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -272,10 +274,23 @@ def load_mesh(path: str | Path, reorient: bool = True) -> TetMesh:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
-    try:
-        m = meshio.read(path)
-    except Exception as exc:  # meshio raises many kinds of errors on bad files
-        raise ValueError(f"cannot read mesh file {path}: {exc}") from exc
+    # meshio lists ANSYS before gmsh for ".msh"; try gmsh first (the common case).
+    formats = ["gmsh", "ansys"] if path.suffix.lower() == ".msh" else [None]
+    errors = []
+    for fmt in formats:
+        # meshio prints its read errors and calls sys.exit(1) when no reader accepts the
+        # file, so SystemExit is caught here and the printed reason is kept instead.
+        chatter = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+                m = meshio.read(path, file_format=fmt)
+            break
+        except (Exception, SystemExit) as exc:  # meshio raises many kinds of errors
+            said = " ".join(chatter.getvalue().split())
+            reason = said if isinstance(exc, SystemExit) and said else f"{exc}"
+            errors.append(f"as {fmt or 'detected format'}: {reason}")
+    else:
+        raise ValueError(f"cannot read mesh file {path} ({'; '.join(errors)})")
     blocks = [c.data for c in m.cells if c.type in _TET_CELL_TYPES]
     if not blocks:
         kinds = sorted({c.type for c in m.cells}) or ["none"]
@@ -297,12 +312,15 @@ def load_mesh(path: str | Path, reorient: bool = True) -> TetMesh:
 def save_mesh(mesh: TetMesh, path: str | Path, **kwargs) -> Path:
     """Write ``mesh`` with meshio; the format follows the file extension.
 
-    Extra keyword arguments go to :func:`meshio.write` (e.g. ``file_format=``).
-    Returns the path written.
+    Extra keyword arguments go to :func:`meshio.write` (e.g. ``file_format=``). A
+    ``.msh`` file is written in gmsh 4.1 format unless ``file_format`` says otherwise
+    (meshio's own default for ``.msh`` is ANSYS). Returns the path written.
     """
     import meshio
 
     path = Path(path)
+    if path.suffix.lower() == ".msh":
+        kwargs.setdefault("file_format", "gmsh")
     out = meshio.Mesh(np.asarray(mesh.vertices), [("tetra", np.asarray(mesh.tets))])
     try:
         meshio.write(path, out, **kwargs)
