@@ -92,7 +92,9 @@ class Simulation:
         Rayleigh damping; a float is taken as ``Damping(alpha=value)``.
     integrator : {"implicit", "explicit"}
     safety : float
-        Explicit sub-steps are at most ``safety * critical_dt()`` seconds.
+        Explicit sub-steps are at most ``safety * critical_dt()`` seconds. The critical
+        step is that of the rest state; large deformations stiffen most laws (a 15 %
+        squeeze of a Neo-Hookean cube diverged at 0.9), hence the default of 0.5.
     newton_tol : float
         Implicit: Newton stops when the force residual on the free vertices is below
         ``newton_tol`` times the total weight (or 1e-12 N times the vertex count in
@@ -111,7 +113,7 @@ class Simulation:
         fixed=None,
         damping: Damping | float | None = None,
         integrator: str = "implicit",
-        safety: float = 0.9,
+        safety: float = 0.5,
         newton_tol: float = 1e-6,
         max_newton: int = 20,
         max_speed: float = 1e3,
@@ -241,16 +243,41 @@ class Simulation:
         return self._reaction[np.asarray(vertices, dtype=np.int64)].copy()
 
     # ------------------------------------------------------------- stepping
-    def critical_dt(self) -> float:
-        """Explicit stability limit in seconds: ``h_min / c``, ``c = sqrt((lam + 2 mu)/rho)``.
+    def critical_dt(self, method: str = "eigen") -> float:
+        """Explicit stability limit in seconds (undamped, lumped mass, at rest).
 
-        ``h_min`` is the smallest tet altitude. The true limit of an undamped lumped-mass
-        P1 mesh is close to this (tests check that slightly below it is stable).
+        ``method="estimate"``: ``h_min / c`` with ``h_min`` the smallest tet altitude and
+        ``c = sqrt((lam + 2 mu) / rho)`` the small-strain P-wave speed. Quick, but off by a
+        mesh-dependent factor (measured 0.88 to 1.75 on our meshes).
+        ``method="eigen"`` (default): ``2 / omega_max``, with ``omega_max^2`` the largest
+        eigenvalue of ``M^-1 K`` at rest found by Lanczos iteration on force differences;
+        exact for the rest state, computed once and cached. Stiffening under large strain
+        lowers the limit, which is what the explicit integrator's ``safety`` factor is for.
         """
+        if method == "estimate":
+            return self.mesh.min_height / self.field.material.wave_speed(self.density)
+        if method != "eigen":
+            raise ValueError(f"method must be 'eigen' or 'estimate', got {method!r}")
         if self._critical_dt is None:
-            c = self.field.material.wave_speed(self.density)
-            self._critical_dt = self.mesh.min_height / c
+            self._critical_dt = 2.0 / math.sqrt(self._max_eigenvalue_rest())
         return self._critical_dt
+
+    def _max_eigenvalue_rest(self) -> float:
+        """Largest eigenvalue (1/s^2) of ``M^-1/2 K M^-1/2`` at the rest shape."""
+        x0 = np.array(self.mesh.vertices)
+        n = self.mesh.n_vertices
+        inv_sqrt_m = 1.0 / np.sqrt(np.repeat(self.mass, 3))
+        h = 1e-6 * self.mesh.min_edge_length
+
+        def matvec(y):
+            d = (inv_sqrt_m * np.ravel(y)).reshape(n, 3)
+            kd = (self.field.forces(x0 - h * d) - self.field.forces(x0 + h * d)) / (2.0 * h)
+            return inv_sqrt_m * kd.ravel()
+
+        op = spla.LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
+        v0 = np.random.default_rng(0).standard_normal(3 * n)
+        lam = spla.eigsh(op, k=1, which="LA", tol=1e-4, v0=v0, return_eigenvectors=False)[0]
+        return float(lam)
 
     def _total_forces(self, x, v) -> np.ndarray:
         """Elastic + external + gravity + damping forces (N) at state ``(x, v)``."""

@@ -1,0 +1,130 @@
+"""Dynamics: energy behaviour, stability limits, divergence, constraints and statics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import heml_gym as hg
+from heml_gym import materials as M
+
+RHO = 1000.0
+
+
+def cube_sim(integrator="explicit", nu=0.45, E=5e3, **kw):
+    mesh = hg.box_mesh((0.02, 0.02, 0.02), 2)
+    return hg.Simulation(hg.HemlForce(mesh, M.NeoHookean(E=E, nu=nu)), RHO, integrator=integrator, **kw)
+
+
+def squeezed_start(sim, amount=0.15):
+    """Initial positions: the cube squeezed along z and bulged in x, y (free vibration)."""
+    x = sim.mesh.vertices * np.array([1 + amount / 2, 1 + amount / 2, 1 - amount])
+    sim.reset(x=x)
+
+
+def test_critical_dt_matches_the_spectrum():
+    sim = cube_sim()
+    mesh = sim.mesh
+    n = mesh.n_vertices
+    h = 1e-7 * mesh.min_edge_length
+    k = np.zeros((3 * n, 3 * n))
+    for i in range(3 * n):
+        d = np.zeros(3 * n)
+        d[i] = h
+        k[:, i] = -(sim.field.forces(mesh.vertices + d.reshape(-1, 3))
+                    - sim.field.forces(mesh.vertices - d.reshape(-1, 3))).ravel() / (2 * h)
+    omega2 = np.linalg.eigvals(k / np.repeat(sim.mass, 3)[:, None]).real.max()
+    assert sim.critical_dt() == pytest.approx(2 / np.sqrt(omega2), rel=1e-3)
+    # the element-size estimate is of the right order
+    assert 0.5 < sim.critical_dt("estimate") / sim.critical_dt() < 2.0
+
+
+def test_explicit_energy_drift_bounded_below_critical_step():
+    sim = cube_sim(gravity=(0, 0, 0))
+    squeezed_start(sim)
+    dt = 0.5 * sim.critical_dt()
+    e0 = sim.total_energy()
+    energies = []
+    for _ in range(10_000):
+        sim.step(dt, substeps=1)
+        energies.append(sim.total_energy())
+    energies = np.array(energies)
+    # symplectic Euler: the energy oscillates (by O(omega dt)) but does not drift
+    assert np.all(np.abs(energies - e0) <= 0.25 * e0)
+    early, late = energies[:1000].mean(), energies[-1000:].mean()
+    assert abs(late - early) <= 0.02 * e0
+    # and it really moved: kinetic energy came and went
+    assert sim.kinetic_energy() < e0 and max(energies) > 0
+
+
+def test_explicit_above_critical_step_diverges_and_keeps_state():
+    sim = cube_sim(gravity=(0, 0, 0))
+    squeezed_start(sim, 0.01)
+    dt = 1.5 * sim.critical_dt()
+    with pytest.raises(hg.SimulationDiverged) as info:
+        for _ in range(5000):
+            before = (sim.x.copy(), sim.v.copy(), sim.step_count)
+            sim.step(dt, substeps=1)
+    err = info.value
+    assert err.step == before[2]
+    assert err.elements.size > 0
+    np.testing.assert_array_equal(sim.x, before[0])
+    np.testing.assert_array_equal(sim.v, before[1])
+    assert np.all(np.isfinite(sim.x))
+
+
+def test_explicit_auto_substeps_stay_stable_at_frame_rate():
+    sim = cube_sim(gravity=(0, 0, 0))
+    squeezed_start(sim)
+    e0 = sim.total_energy()
+    for _ in range(30):
+        stats = sim.step(1 / 30)
+    assert stats.substeps >= (1 / 30) / sim.critical_dt()
+    assert sim.total_energy() <= 1.05 * e0
+
+
+def test_fixed_and_kinematic_vertices():
+    mesh = hg.box_mesh((0.06, 0.02, 0.02), (6, 2, 2))
+    fixed = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0))
+    held = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.06))
+    sim = hg.Simulation(hg.HemlForce(mesh, M.NeoHookean(E=20e3, nu=0.4)), RHO, fixed=fixed,
+                        integrator="explicit", damping=5.0)
+    sim.attach(held)
+    start = sim.x[held].copy()
+    path = lambda t: start + np.array([0.0, 0.0, 0.01 * np.sin(2 * np.pi * t)])  # noqa: E731
+    dt = 0.01
+    for k in range(1, 51):
+        sim.drive(held, path(k * dt))
+        sim.step(dt)
+        np.testing.assert_array_equal(sim.x[fixed], mesh.vertices[fixed])
+        np.testing.assert_allclose(sim.x[held], path(k * dt), rtol=0, atol=1e-15)
+    # the gripper feels the tissue: nonzero reaction
+    assert np.linalg.norm(sim.reaction_forces(held).sum(axis=0)) > 0
+    # release: the vertices now move on their own (fall and spring back)
+    sim.detach(held)
+    before = sim.x[held].copy()
+    for _ in range(5):
+        sim.step(dt)
+    assert np.abs(sim.x[held] - before).max() > 1e-5
+    assert not sim.kinematic.any()
+
+
+def test_bad_arguments_raise():
+    mesh = hg.box_mesh((0.02, 0.02, 0.02), 1)
+    field = hg.HemlForce(mesh, M.NeoHookean(E=5e3, nu=0.45))
+    with pytest.raises(ValueError, match="density"):
+        hg.Simulation(field, -1.0)
+    with pytest.raises(ValueError, match="integrator"):
+        hg.Simulation(field, RHO, integrator="rk4")
+    with pytest.raises(ValueError, match="Damping"):
+        hg.Simulation(field, RHO, damping=hg.Damping(alpha=-1.0))
+    sim = hg.Simulation(field, RHO, integrator="explicit", fixed=[0])
+    with pytest.raises(ValueError, match="dt"):
+        sim.step(float("nan"))
+    with pytest.raises(ValueError, match="attach"):
+        sim.drive([1], [[0, 0, 0]])
+    with pytest.raises(ValueError, match="fixed"):
+        sim.attach([0])
+    sim.attach([1])
+    with pytest.raises(ValueError, match="finite"):
+        sim.drive([1], [[0, np.nan, 0]])
