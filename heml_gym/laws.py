@@ -14,6 +14,8 @@ import math
 
 import numba as nb
 
+from .fastlog import log_positive
+
 from .materials import (
     DEMIRAY,
     MOONEY_RIVLIN,
@@ -50,6 +52,18 @@ def law_energy(law, p, I1, I2, J):
         return 0.5 * p[0] / p[1] * (math.exp(p[1] * (ib1 - 3.0)) - 1.0) + 0.5 * p[2] * (J - 1.0) ** 2
     elif law == STABLE_NEO_HOOKEAN:
         return 0.5 * p[0] * (I1 - 3.0) + 0.5 * p[1] * (J - p[2]) ** 2 - 0.5 * p[0] * math.log(I1 + 1.0) + p[3]
+    return _NAN
+
+
+@nb.njit(cache=True, inline="always")
+def volumetric_gradient_fast(law, p, J):
+    """``dPsi/dJ`` for the laws with constant ``Psi_1`` and no ``I2`` (Neo-Hookean), inline.
+
+    Only for normal, positive, finite ``J`` (the caller checks): it uses the inlinable
+    logarithm so that a loop around it can vectorise.
+    """
+    if law == NEO_HOOKEAN:
+        return (p[1] * log_positive(J) - p[0]) / J
     return _NAN
 
 
