@@ -365,39 +365,52 @@ class Simulation:
         return self.field.material.young_modulus * self.mesh.min_edge_length**2
 
     def _newton(self, x, potential, gradient, hessian, free, tol, max_iter):
-        """Minimise ``potential`` over the free dofs from ``x`` (in place) by Newton.
+        """Minimise ``potential`` over the free dofs from ``x`` by Newton's method.
 
-        Sparse direct solve of the (projected, so positive definite) Hessian system and a
-        backtracking (Armijo) line search that also rejects non-finite energies, e.g.
-        inverted elements of ln J laws. Returns ``(x, iterations, residual norm in N)``.
+        Each iteration solves with the exact Hessian first and, if that gives no descent
+        direction (the law is not convex there), with the per-element projected one,
+        which is positive semi-definite. A backtracking line search accepts a step that
+        satisfies the Armijo condition on the potential or, near convergence where the
+        potential's round-off hides the decrease, that reduces the residual; steps to
+        non-finite energies (inverted elements of ln J laws) are halved. Returns
+        ``(x, iterations, residual norm in N)``.
         """
         g = gradient(x)
         gnorm = float(np.linalg.norm(g[free]))
         it = 0
         while gnorm > tol and it < max_iter:
             it += 1
-            a = hessian(x)[free][:, free].tocsc()
-            dx = spla.spsolve(a, -g[free])
-            if not np.all(np.isfinite(dx)):
-                raise SimulationDiverged(self.step_count, "Newton system could not be solved")
+            gf = g[free]
+            for project in (False, True):
+                a = hessian(x, project)[free][:, free].tocsc()
+                dx = spla.spsolve(a, -gf)
+                slope = float(gf @ dx)
+                if np.all(np.isfinite(dx)) and slope < 0:
+                    break
+            else:  # no Newton direction: steepest descent, scaled by the diagonal
+                dx = -gf / float(np.abs(a.diagonal()).max())
+                slope = float(gf @ dx)
             phi0 = potential(x)
-            slope = float(g[free] @ dx)
-            if slope >= 0:  # not a descent direction: fall back to steepest descent
-                dx = -g[free] / float(np.abs(a.diagonal()).max())
-                slope = float(g[free] @ dx)
             step = 1.0
             trial = x.copy()
-            for _ in range(30):
+            for _ in range(40):
                 trial.reshape(-1)[free] = x.reshape(-1)[free] + step * dx
                 phi = potential(trial)
-                if np.isfinite(phi) and phi <= phi0 + 1e-4 * step * slope:
-                    break
+                if np.isfinite(phi):
+                    if phi <= phi0 + 1e-4 * step * slope:
+                        g_trial = gradient(trial)
+                        break
+                    g_trial = gradient(trial)
+                    if np.linalg.norm(g_trial[free]) < (1.0 - 1e-4 * step) * gnorm:
+                        break
                 step *= 0.5
             else:
-                break  # no decrease possible at this precision: keep the best iterate
+                break  # no progress possible at this precision: keep the best iterate
             x = trial
-            g = gradient(x)
+            g = g_trial
             gnorm = float(np.linalg.norm(g[free]))
+        if not np.isfinite(gnorm):
+            raise SimulationDiverged(self.step_count, "Newton iterate went non-finite")
         return x, it, gnorm
 
     def _implicit_substep(self, h, targets):
@@ -426,8 +439,8 @@ class Simulation:
                 g += k_n @ (x.reshape(-1) - x0)
             return g
 
-        def hessian(x):
-            a = self.field.hessian(x, project=True) + diag
+        def hessian(x, project):
+            a = self.field.hessian(x, project=project) + diag
             return a + k_n if k_n is not None else a
 
         x = x_n + h * v_n
@@ -464,8 +477,8 @@ class Simulation:
                 def gradient(y, load=load):
                     return -self.field.forces(y).reshape(-1) - load
 
-                def hessian(y):
-                    return self.field.hessian(y, project=True)
+                def hessian(y, project):
+                    return self.field.hessian(y, project=project)
 
                 x, it, res = self._newton(x, potential, gradient, hessian, free,
                                           tol * self._force_scale(), max_iter)
