@@ -109,49 +109,38 @@ def counted_array(a) -> np.ndarray:
 
 
 def _patch_math():
+    import heml_gym.fastlog as fastlog
     import heml_gym.forces.kernels_mass_spring as ms
     import heml_gym.laws as laws
 
     laws.math = counting_math
     ms.math = counting_math
+    fastlog.math = counting_math
 
 
-def count_forces(field, x: np.ndarray) -> OpTally:
-    """Run ``field``'s force kernel once at ``x`` with counting scalars; return the tally."""
+def count_forces(field, x: np.ndarray) -> tuple[OpTally, np.ndarray]:
+    """Run ``field``'s serial force kernel once at ``x`` with counting scalars.
+
+    Every float64 array the field holds (precomputed constants, work arrays) is replaced
+    by a counted copy on a shallow clone of the field, so the very kernel that runs
+    compiled runs here. Returns the tally and the forces it computed (N).
+    """
     if os.environ.get("NUMBA_DISABLE_JIT") != "1":  # pragma: no cover
         raise RuntimeError("op counting needs NUMBA_DISABLE_JIT=1 set before numba is imported")
-    _patch_math()
-    from heml_gym.forces import HemlForce, MassSpringForce, MassTensorForce
+    import copy
 
-    n = field.mesh.n_vertices
-    f = np.empty((n, 3), dtype=object)
+    _patch_math()
+    clone = copy.copy(field)
+    for name, value in vars(field).items():
+        if isinstance(value, np.ndarray) and value.dtype == np.float64:
+            setattr(clone, name, counted_array(value))
+    f = np.empty((field.mesh.n_vertices, 3), dtype=object)
     f.fill(0.0)
     xc = counted_array(x)
     TALLY.reset()
-    if isinstance(field, HemlForce):
-        from heml_gym.forces import kernels_heml as k
-
-        k.heml_forces_chunk(xc, field.mesh.tets, counted_array(field.coef), counted_array(field.q),
-                            field.use_q, int(field._law), counted_array(field._params), f, 0, field.n_elements)
-    elif isinstance(field, MassSpringForce):
-        from heml_gym.forces import kernels_mass_spring as k
-
-        k.spring_forces_chunk(xc, field.edges, counted_array(field.stiffness),
-                              counted_array(field.rest_length), f, 0, field.n_elements)
-    elif isinstance(field, MassTensorForce):
-        from heml_gym.forces import kernels_mass_tensor as k
-
-        u = np.empty((n, 3), dtype=object)
-        m = field.mesh
-        k.displacements(xc, counted_array(m.vertices), u)  # counted: u = x - X
-        k.mass_tensor_forces_chunk(u, m.tets, counted_array(field.K), counted_array(field.C),
-                                   counted_array(field.D), f, 0, field.n_elements)
-    else:
-        raise TypeError(f"no op counter for {type(field).__name__}")
+    clone._add_forces_serial(xc, f)
     result = OpTally(TALLY.add, TALLY.mul, TALLY.div, TALLY.func)
-    # the counted run must compute the same forces as the compiled one
-    counted = np.array(f, dtype=np.float64)
-    return result, counted
+    return result, np.array(f, dtype=np.float64)
 
 
 def _main():

@@ -84,8 +84,9 @@ class HemlForce(ForceField):
 
     Exactly P1 finite elements (it agrees with :class:`heml_gym.FemForce` to rounding),
     evaluated as state-dependent edge springs plus one volume term per tet. For a law
-    with constant ``dPsi/dI1`` (Neo-Hookean) the springs are fixed: they are assembled
-    once on the unique edges (``split``), and only the volume term is evaluated per tet.
+    with constant ``dPsi/dI1`` (Neo-Hookean) the spring weights are constants (``split``):
+    they are precomputed, and a blocked kernel that vectorises evaluates springs and
+    volume term together.
     """
 
     name = "HEML"
@@ -96,12 +97,13 @@ class HemlForce(ForceField):
         self.coef, self.q = heml_coefficients(mesh.vertices, mesh.tets, self.use_q)
         self._law = np.int64(material.law_id)
         self._params = np.ascontiguousarray(material.params, dtype=np.float64)
-        # Constant Psi_1 (Neo-Hookean): the I1 part is a fixed spring network on the unique
-        # edges, assembled once; only the volume term is evaluated per tet.
+        # Constant Psi_1 (Neo-Hookean): the I1 part is a fixed spring network, its weights
+        # 2 V0 Psi_1 a_k precomputed; a blocked kernel that vectorises does the rest.
         self.split = material.constant_psi1 is not None and not self.use_q
         if self.split:
-            self.edges, self.edge_weights = assembled_edge_weights(
-                mesh, 2.0 * material.constant_psi1 * self.coef[:, 0:1] * self.coef[:, 2:])
+            # stored edge-major, (6, m), so a block of tets reads each weight contiguously
+            self.spring_weights = np.ascontiguousarray(
+                (2.0 * material.constant_psi1 * self.coef[:, 0:1] * self.coef[:, 2:]).T)
             self.inv_det = np.ascontiguousarray(self.coef[:, 1])
 
     def _args(self):
@@ -114,18 +116,17 @@ class HemlForce(ForceField):
         return kernels_heml.heml_energy_parallel(x, *self._args(), n_chunks)
 
     def _split_args(self):
-        return self.mesh.tets, self.inv_det, self.edges, self.edge_weights, self._law, self._params
+        return self.mesh.tets, self.inv_det, self.spring_weights, self._law, self._params
 
     def _add_forces_serial(self, x, f):
         if self.split:
-            kernels_heml.heml_split_forces_chunk(x, *self._split_args(), f, 0, self.mesh.n_tets,
-                                                 0, len(self.edges))
+            kernels_heml.constant_psi1_forces_chunk(x, *self._split_args(), f, 0, self.mesh.n_tets)
         else:
             kernels_heml.heml_forces_chunk(x, *self._args(), f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
         if self.split:
-            kernels_heml.heml_split_forces_parallel(x, *self._split_args(), buf)
+            kernels_heml.constant_psi1_forces_parallel(x, *self._split_args(), buf)
         else:
             kernels_heml.heml_forces_parallel(x, *self._args(), buf)
 

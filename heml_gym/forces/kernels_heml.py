@@ -181,46 +181,26 @@ def heml_forces_parallel(x, tets, coef, q, use_q, law, p, buf):
     reduce_chunks(buf)
 
 
-@nb.njit(cache=True)
-def spring_network_chunk(x, edges, weights, f, lo, hi):
-    """Add the fixed zero-rest-length springs ``f_i += w (x_j - x_i)``, ``f_j -= ...`` (N).
-
-    For a law with constant ``Psi_1`` (Neo-Hookean) the I1 part of the HEML force is this
-    linear network on the mesh's unique edges, ``w_e = sum over tets of 2 V0 Psi_1 a_k``.
-    """
-    for e in range(lo, hi):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        w = weights[e]
-        dx = (x[j, 0] - x[i, 0]) * w
-        dy = (x[j, 1] - x[i, 1]) * w
-        dz = (x[j, 2] - x[i, 2]) * w
-        f[i, 0] += dx
-        f[i, 1] += dy
-        f[i, 2] += dz
-        f[j, 0] -= dx
-        f[j, 1] -= dy
-        f[j, 2] -= dz
-
-
-#: Tets per block of the volume-term kernel: its arithmetic runs on blocks in SIMD lanes.
-VOLUME_BLOCK = 64
+#: Tets per block of the constant-``Psi_1`` kernel: its arithmetic runs in SIMD lanes.
+BLOCK = 64
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def volume_term_chunk(x, tets, inv_det, law, p, f, lo, hi):
-    """Add the volume term ``-V0 Psi_J dJ/dx`` (N) of tets ``lo..hi-1`` into ``f``.
+def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
+    """Add the HEML forces (N) of tets ``lo..hi-1`` for a law with constant ``Psi_1``.
 
-    Only for laws whose ``Psi_J`` depends on J alone (those with a constant ``Psi_1``);
-    ``inv_det`` is ``1 / det(Dm) = 1 / (6 V0)`` per tet. Works on blocks of
-    :data:`VOLUME_BLOCK` tets: gather the edges, compute the cross products and ``Psi_J``
-    in a loop that vectorises (inline logarithm), scatter. A block holding a tet with
-    ``J`` not positive and normal is redone with ``law_gradient`` (NaN where undefined).
+    For such a law (Neo-Hookean) the edge weights ``w[k, t] = 2 V0 Psi_1 a_k`` are
+    constants: the I1 part is a fixed linear spring network, and ``Psi_J`` depends on J
+    alone. ``inv_det`` is ``1 / det(Dm) = 1 / (6 V0)`` per tet. Tets are processed in
+    blocks of :data:`BLOCK`: gather the edge vectors; compute the spring forces, the cross
+    products, J and ``Psi_J`` (inline logarithm) in a loop that vectorises; scatter. A
+    block holding a tet whose J is not positive and normal is redone for those tets with
+    ``law_gradient`` (NaN where the law is undefined).
     """
-    edges = np.empty((9, VOLUME_BLOCK), dtype=x.dtype)
-    work = np.empty((9, VOLUME_BLOCK), dtype=x.dtype)
-    for start in range(lo, hi, VOLUME_BLOCK):
-        size = min(VOLUME_BLOCK, hi - start)
+    edges = np.empty((9, BLOCK), dtype=x.dtype)
+    work = np.empty((12, BLOCK), dtype=x.dtype)
+    for start in range(lo, hi, BLOCK):
+        size = min(BLOCK, hi - start)
         for k in range(size):
             t = start + k
             i0 = tets[t, 0]
@@ -240,7 +220,8 @@ def volume_term_chunk(x, tets, inv_det, law, p, f, lo, hi):
             edges[7, k] = x[i3, 1] - x0y
             edges[8, k] = x[i3, 2] - x0z
         n_bad = 0
-        for k in range(size):
+        for k in range(size):  # vectorises: no calls, no branches, unit-stride arrays
+            t = start + k
             ax = edges[0, k]
             ay = edges[1, k]
             az = edges[2, k]
@@ -259,21 +240,17 @@ def volume_term_chunk(x, tets, inv_det, law, p, f, lo, hi):
             c3x = ay * bz - az * by
             c3y = az * bx - ax * bz
             c3z = ax * by - ay * bx
-            jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[start + k]
+            jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
             good = jac >= SMALLEST_NORMAL and jac < math.inf
             n_bad += 0 if good else 1
             g = volumetric_gradient_fast(law, p, jac if good else 1.0) * (1.0 / 6.0)
-            work[0, k] = c1x * g
-            work[1, k] = c1y * g
-            work[2, k] = c1z * g
-            work[3, k] = c2x * g
-            work[4, k] = c2y * g
-            work[5, k] = c2z * g
-            work[6, k] = c3x * g
-            work[7, k] = c3y * g
-            work[8, k] = c3z * g
+            _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
+                              c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
+                              c3x * g, c3y * g, c3z * g,
+                              w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
         if n_bad:  # rare: inverted, flat or non-finite tets take the general path
             for k in range(size):
+                t = start + k
                 ax = edges[0, k]
                 ay = edges[1, k]
                 az = edges[2, k]
@@ -283,66 +260,91 @@ def volume_term_chunk(x, tets, inv_det, law, p, f, lo, hi):
                 cx = edges[6, k]
                 cy = edges[7, k]
                 cz = edges[8, k]
-                jac = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
-                       + az * (bx * cy - by * cx)) * inv_det[start + k]
+                c1x = by * cz - bz * cy
+                c1y = bz * cx - bx * cz
+                c1z = bx * cy - by * cx
+                c2x = cy * az - cz * ay
+                c2y = cz * ax - cx * az
+                c2z = cx * ay - cy * ax
+                c3x = ay * bz - az * by
+                c3y = az * bx - ax * bz
+                c3z = ax * by - ay * bx
+                jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
                 if not (jac >= SMALLEST_NORMAL and jac < math.inf):
                     d1, d2, dj = law_gradient(law, p, 0.0, 0.0, jac)
                     g = dj * (1.0 / 6.0)
-                    work[0, k] = (by * cz - bz * cy) * g
-                    work[1, k] = (bz * cx - bx * cz) * g
-                    work[2, k] = (bx * cy - by * cx) * g
-                    work[3, k] = (cy * az - cz * ay) * g
-                    work[4, k] = (cz * ax - cx * az) * g
-                    work[5, k] = (cx * ay - cy * ax) * g
-                    work[6, k] = (ay * bz - az * by) * g
-                    work[7, k] = (az * bx - ax * bz) * g
-                    work[8, k] = (ax * by - ay * bx) * g
+                    _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
+                                      c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
+                                      c3x * g, c3y * g, c3z * g,
+                                      w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
         for k in range(size):
             t = start + k
             i0 = tets[t, 0]
             i1 = tets[t, 1]
             i2 = tets[t, 2]
             i3 = tets[t, 3]
-            c1x = work[0, k]
-            c1y = work[1, k]
-            c1z = work[2, k]
-            c2x = work[3, k]
-            c2y = work[4, k]
-            c2z = work[5, k]
-            c3x = work[6, k]
-            c3y = work[7, k]
-            c3z = work[8, k]
-            f[i0, 0] += c1x + c2x + c3x
-            f[i0, 1] += c1y + c2y + c3y
-            f[i0, 2] += c1z + c2z + c3z
-            f[i1, 0] -= c1x
-            f[i1, 1] -= c1y
-            f[i1, 2] -= c1z
-            f[i2, 0] -= c2x
-            f[i2, 1] -= c2y
-            f[i2, 2] -= c2z
-            f[i3, 0] -= c3x
-            f[i3, 1] -= c3y
-            f[i3, 2] -= c3z
+            f[i0, 0] += work[0, k]
+            f[i0, 1] += work[1, k]
+            f[i0, 2] += work[2, k]
+            f[i1, 0] += work[3, k]
+            f[i1, 1] += work[4, k]
+            f[i1, 2] += work[5, k]
+            f[i2, 0] += work[6, k]
+            f[i2, 1] += work[7, k]
+            f[i2, 2] += work[8, k]
+            f[i3, 0] += work[9, k]
+            f[i3, 1] += work[10, k]
+            f[i3, 2] += work[11, k]
 
 
-@nb.njit(cache=True)
-def heml_split_forces_chunk(x, tets, inv_det, edges, weights, law, p, f, t_lo, t_hi, e_lo, e_hi):
-    """Constant-``Psi_1`` HEML forces: springs ``e_lo..e_hi-1`` plus volume terms of tets ``t_lo..t_hi-1``."""
-    spring_network_chunk(x, edges, weights, f, e_lo, e_hi)
-    volume_term_chunk(x, tets, inv_det, law, p, f, t_lo, t_hi)
+@nb.njit(cache=True, inline="always", error_model="numpy")
+def _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
+                      c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z,
+                      w01, w02, w03, w12, w13, w23):
+    """Write the forces on the 4 vertices of the tet in lane ``k`` into ``work[:, k]``.
+
+    ``a, b, c`` are its edges from vertex 0, ``c1..c3`` the volume-term vectors (already
+    scaled), ``w..`` the spring weights of edges 01, 02, 03, 12, 13, 23.
+    """
+    s01x = w01 * ax
+    s01y = w01 * ay
+    s01z = w01 * az
+    s02x = w02 * bx
+    s02y = w02 * by
+    s02z = w02 * bz
+    s03x = w03 * cx
+    s03y = w03 * cy
+    s03z = w03 * cz
+    s12x = w12 * (bx - ax)
+    s12y = w12 * (by - ay)
+    s12z = w12 * (bz - az)
+    s13x = w13 * (cx - ax)
+    s13y = w13 * (cy - ay)
+    s13z = w13 * (cz - az)
+    s23x = w23 * (cx - bx)
+    s23y = w23 * (cy - by)
+    s23z = w23 * (cz - bz)
+    work[0, k] = s01x + s02x + s03x + c1x + c2x + c3x
+    work[1, k] = s01y + s02y + s03y + c1y + c2y + c3y
+    work[2, k] = s01z + s02z + s03z + c1z + c2z + c3z
+    work[3, k] = s12x + s13x - s01x - c1x
+    work[4, k] = s12y + s13y - s01y - c1y
+    work[5, k] = s12z + s13z - s01z - c1z
+    work[6, k] = s23x - s02x - s12x - c2x
+    work[7, k] = s23y - s02y - s12y - c2y
+    work[8, k] = s23z - s02z - s12z - c2z
+    work[9, k] = -(s03x + s13x + s23x + c3x)
+    work[10, k] = -(s03y + s13y + s23y + c3y)
+    work[11, k] = -(s03z + s13z + s23z + c3z)
 
 
 @nb.njit(cache=True, parallel=True)
-def heml_split_forces_parallel(x, tets, inv_det, edges, weights, law, p, buf):
-    """Constant-``Psi_1`` HEML forces, one chunk of edges and tets per thread, into ``buf[0]``."""
+def constant_psi1_forces_parallel(x, tets, inv_det, w, law, p, buf):
+    """Constant-``Psi_1`` HEML forces, one chunk of tets per thread, summed into ``buf[0]``."""
     n_chunks = buf.shape[0]
     m = tets.shape[0]
-    ne = edges.shape[0]
     for c in prange(n_chunks):
-        heml_split_forces_chunk(x, tets, inv_det, edges, weights, law, p, buf[c],
-                                c * m // n_chunks, (c + 1) * m // n_chunks,
-                                c * ne // n_chunks, (c + 1) * ne // n_chunks)
+        constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, buf[c], c * m // n_chunks, (c + 1) * m // n_chunks)
     reduce_chunks(buf)
 
 

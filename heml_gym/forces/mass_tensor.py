@@ -93,6 +93,7 @@ class MassTensorForce(ForceField):
                 f"got {type(material).__name__}"
             )
         super().__init__(mesh, material)
+        self._hessian_field = None
         m = mesh.n_tets
         grads = shape_gradients(mesh.vertices, mesh.tets)
         K, C, D = mass_tensors(grads, mesh.volumes, material.mu, material.lam)
@@ -121,3 +122,16 @@ class MassTensorForce(ForceField):
     def _add_forces_parallel(self, x, buf):
         m = self.mesh
         kernels_mass_tensor.mass_tensor_forces_parallel(x, m.vertices, m.tets, self.K, self.C, self.D, self._u, buf)
+
+    def hessian(self, x, project=True):
+        """Stiffness matrix ``d2W/dx2`` (N/m), a ``3n x 3n`` scipy CSR matrix.
+
+        The energy is the same P1 energy as HEML's for this mesh and law, so this is
+        HEML's analytic Hessian (see :meth:`heml_gym.HemlForce.hessian`); it lets the
+        implicit integrator run with this field's forces.
+        """
+        if self._hessian_field is None:
+            from .heml import HemlForce
+
+            self._hessian_field = HemlForce(self.mesh, self.material)
+        return self._hessian_field.hessian(x, project)
