@@ -29,6 +29,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from . import kernels_dynamics
+from .linear_solvers import FreeSubmatrix, LaggedFactorPCG
 from .forces.base import ForceField
 
 __all__ = ["Simulation", "SimulationDiverged", "Damping", "StepStats"]
@@ -104,6 +105,11 @@ class Simulation:
         Implicit: Newton iterations per step at most.
     max_speed : float
         A state with a vertex faster than this (m/s) counts as exploded.
+    linear_solver : {"pcg", "direct"}
+        Implicit steps: ``"pcg"`` solves each Newton system by conjugate gradients
+        preconditioned with a factorisation kept from an earlier system (refreshed when
+        CG needs more than 20 iterations or the free vertices change); ``"direct"``
+        factorises every system (SuperLU). :meth:`solve_static` always uses ``"direct"``.
     """
 
     def __init__(
@@ -118,6 +124,7 @@ class Simulation:
         newton_tol: float = 1e-6,
         max_newton: int = 20,
         max_speed: float = 1e3,
+        linear_solver: str = "pcg",
     ):
         if not isinstance(field, ForceField):
             raise TypeError(f"field must be a heml_gym ForceField, got {type(field).__name__}")
@@ -137,6 +144,8 @@ class Simulation:
             damping = Damping(alpha=float(damping))
         if not 0 < safety <= 1:
             raise ValueError(f"safety must lie in (0, 1], got {safety}")
+        if linear_solver not in ("pcg", "direct"):
+            raise ValueError(f"linear_solver must be 'pcg' or 'direct', got {linear_solver!r}")
 
         self.field = field
         self.mesh = field.mesh
@@ -148,6 +157,9 @@ class Simulation:
         self.newton_tol = float(newton_tol)
         self.max_newton = int(max_newton)
         self.max_speed = float(max_speed)
+        self.linear_solver = linear_solver
+        self._pcg = LaggedFactorPCG(rtol=1e-8, max_iter=20)
+        self._submatrix = FreeSubmatrix()
 
         n = self.mesh.n_vertices
         self.mass = density * self.mesh.vertex_volumes  # kg per vertex
@@ -384,12 +396,13 @@ class Simulation:
             return load
         return self.field.material.young_modulus * self.mesh.min_edge_length**2
 
-    def _newton(self, x, potential, gradient, hessian, free, tol, max_iter):
+    def _newton(self, x, potential, gradient, hessian, free, tol, max_iter, pcg=None, pcg_key=None):
         """Minimise ``potential`` over the free dofs from ``x`` by Newton's method.
 
         Each iteration solves with the exact Hessian first and, if that gives no descent
         direction (the law is not convex there), with the per-element projected one,
-        which is positive semi-definite. A backtracking line search accepts a step that
+        which is positive semi-definite; by ``pcg`` (a :class:`LaggedFactorPCG`) if given,
+        else by a sparse direct solve. A backtracking line search accepts a step that
         satisfies the Armijo condition on the potential or, near convergence where the
         potential's round-off hides the decrease, that reduces the residual; steps to
         non-finite energies (inverted elements of ln J laws) are halved. Returns
@@ -403,12 +416,16 @@ class Simulation:
             it += 1
             gf = g[free]
             for project in (False, True):
-                a = hessian(x, project)[free][:, free].tocsc()
-                dx = spla.spsolve(a, -gf)
+                a = self._submatrix(hessian(x, project), free)
+                if pcg is not None:
+                    dx = pcg.solve(a, -gf, key=(pcg_key, project))
+                else:
+                    dx = spla.spsolve(a.tocsc(), -gf)
                 slope = float(gf @ dx)
-                if np.all(np.isfinite(dx)) and slope < 0:
+                ok = bool(np.all(np.isfinite(dx)) and slope < 0)
+                if ok:
                     break
-            else:  # no Newton direction: steepest descent, scaled by the diagonal
+            if not ok:  # no Newton direction: steepest descent, scaled by the diagonal
                 dx = -gf / float(np.abs(a.diagonal()).max())
                 slope = float(gf @ dx)
             phi0 = potential(x)
@@ -472,7 +489,9 @@ class Simulation:
         self._constrain(x, v, targets, h, x_n)
         free = np.repeat(self.free, 3)
         tol = self.newton_tol * self._force_scale()
-        x, it, res = self._newton(x, potential, gradient, hessian, free, tol, self.max_newton)
+        pcg = self._pcg if self.linear_solver == "pcg" else None
+        key = (free.tobytes(), h)
+        x, it, res = self._newton(x, potential, gradient, hessian, free, tol, self.max_newton, pcg, key)
         self.x = x
         self.v = (x - x_n) / h
         self._constrain(self.x, self.v, targets, h, x_n)
