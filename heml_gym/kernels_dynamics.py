@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numba as nb
 
+from .forces.kernels_heml import constant_psi1_forces_chunk
+
 
 @nb.njit(cache=True)
 def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinematic,
@@ -46,3 +48,24 @@ def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinema
         if bad < 0 and not (speed2 <= limit and abs(x[i, 0]) + abs(x[i, 1]) + abs(x[i, 2]) < 1e300):
             bad = i
     return bad
+
+
+@nb.njit(cache=True)
+def explicit_substeps_constant_psi1(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub,
+                                    fixed, kinematic, kin_from, kin_to, max_speed,
+                                    tets, inv_det, w, law, p):
+    """``n_sub`` symplectic Euler sub-steps of a constant-``Psi_1`` HEML body in one call.
+
+    The force kernel is :func:`~heml_gym.forces.kernels_heml.constant_psi1_forces_chunk`
+    (arguments ``tets, inv_det, w, law, p``); the rest as
+    :func:`symplectic_euler_update`. Returns ``(sub-steps done, first bad vertex or -1)``.
+    """
+    m = tets.shape[0]
+    for k in range(1, n_sub + 1):
+        f[:, :] = 0.0
+        constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, 0, m)
+        bad = symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinematic,
+                                      kin_from, kin_to, k / n_sub, max_speed, reaction)
+        if bad >= 0:
+            return k, bad
+    return n_sub, -1

@@ -31,6 +31,7 @@ import scipy.sparse.linalg as spla
 from . import kernels_dynamics
 from .linear_solvers import FreeSubmatrix, LaggedFactorPCG
 from .forces.base import ForceField
+from .forces.heml import HemlForce
 
 __all__ = ["Simulation", "SimulationDiverged", "Damping", "StepStats"]
 
@@ -371,6 +372,17 @@ class Simulation:
         n = self.mesh.n_vertices
         f = np.zeros((n, 3))
         reaction = np.zeros((n, 3))
+        field = self.field
+        if isinstance(field, HemlForce) and field.split and field._threads() == 1:
+            # Neo-Hookean HEML: every sub-step inside one compiled call
+            done, bad = kernels_dynamics.explicit_substeps_constant_psi1(
+                self.x, self.v, f, reaction, self.mass, self.gravity, self.external_forces,
+                self.damping.alpha, h, substeps, self.fixed, self.kinematic, start_targets,
+                self._targets, self.max_speed, *field._split_args())
+            if bad >= 0:
+                self._check()
+                raise SimulationDiverged(self.step_count, f"vertex {bad} went non-finite or too fast")
+            return reaction
         for k in range(1, substeps + 1):
             self.field.forces(self.x, out=f)
             bad = kernels_dynamics.symplectic_euler_update(
