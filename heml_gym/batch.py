@@ -154,11 +154,19 @@ class BatchedSimulation:
         start = self.x.copy()
         bad = np.full(self.n_scenes, -1, dtype=np.int64)
         with np.errstate(all="ignore"):
-            batched_explicit_substeps(
-                self.x, self.v, self._f, self.reaction, self.mass, self.gravity, self._ext,
-                self.alpha, h, n_sub, self.fixed, self.kinematic, start, self.targets,
-                self.max_speed, self._tets, self._inv_det, self._weights, self._law,
-                self._params, active, bad)
+            if self.n_scenes == 1:  # no thread launch for one scene
+                if active[0]:
+                    bad[0] = explicit_substeps_constant_psi1(
+                        self.x[0], self.v[0], self._f[0], self.reaction[0], self.mass, self.gravity,
+                        self._ext, self.alpha, h, n_sub, self.fixed, self.kinematic[0], start[0],
+                        self.targets[0], self.max_speed, self._tets, self._inv_det, self._weights[0],
+                        self._law, self._params[0])[1]
+            else:
+                batched_explicit_substeps(
+                    self.x, self.v, self._f, self.reaction, self.mass, self.gravity, self._ext,
+                    self.alpha, h, n_sub, self.fixed, self.kinematic, start, self.targets,
+                    self.max_speed, self._tets, self._inv_det, self._weights, self._law,
+                    self._params, active, bad)
         diverged = bad >= 0
         self.x[diverged] = x0[diverged]
         self.v[diverged] = v0[diverged]

@@ -1,0 +1,259 @@
+"""The retraction task on N scenes at once: gripper, grasp, observations, reward.
+
+A :class:`RetractionScene` describes one scene family (tissue mesh, attachment, target
+placement, camera, gripper start); :class:`BatchedRetraction` runs N independent copies
+of it on one :class:`heml_gym.batch.BatchedSimulation`. The single-environment classes
+(N = 1) and the vectorised ones share this code. Units: m, s, N, Pa.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from heml_gym.batch import BatchedSimulation
+from heml_gym.mesh import TetMesh
+
+from .geometry import fibonacci_sphere, visible_fraction, visible_fraction_batch
+
+#: Names and order of the state-observation entries (see the env docstrings).
+STATE_FIELDS = (
+    ["gripper_x", "gripper_y", "gripper_z", "grasping"]
+    + ["grasp_force_x", "grasp_force_y", "grasp_force_z"]
+    + ["target_x", "target_y", "target_z"]
+    + [f"tracked_{i}_{a}" for i in range(4) for a in "xyz"]
+    + ["max_strain", "exposure"]
+)
+STATE_SIZE = len(STATE_FIELDS)
+POSITION_BOUND = 0.5  # m: |positions| in observations are clipped to this
+FORCE_BOUND = 20.0  # N
+STRAIN_BOUND = 5.0
+
+
+@dataclass
+class RewardWeights:
+    """Weights of the reward terms (each term is reported in ``info`` under its name)."""
+
+    exposure: float = 10.0  # times the change of exposure (0..1) this step
+    grasp: float = 0.5  # once per episode, when a grasp first holds tissue
+    strain: float = 5.0  # times the strain above the damage threshold
+    effort: float = 0.01  # times |gripper velocity command|^2
+    success: float = 5.0  # once, on success
+
+
+@dataclass
+class RetractionScene:
+    """One scene family of the retraction task.
+
+    ``mesh``: tissue at rest (m); ``fixed``: its attached vertices; ``tracked``: 4 vertex
+    indices reported in the observation; ``camera``: eye position (m), looking at the
+    scene; ``target_low``/``target_high``: box the target centre is drawn from (m);
+    ``target_radius`` (m); ``gripper_low``/``gripper_high``: box of gripper start
+    positions (m); ``workspace_low``/``workspace_high``: the gripper is kept inside;
+    ``stiffness_range``: E (Pa) drawn per episode; ``poisson``, ``density`` (kg/m^3),
+    ``gravity`` (m/s^2), ``damping`` (1/s).
+    """
+
+    name: str
+    mesh: TetMesh
+    fixed: np.ndarray
+    tracked: np.ndarray
+    camera: np.ndarray
+    target_low: np.ndarray
+    target_high: np.ndarray
+    target_radius: float
+    gripper_low: np.ndarray
+    gripper_high: np.ndarray
+    workspace_low: np.ndarray
+    workspace_high: np.ndarray
+    stiffness_range: tuple[float, float] = (2e3, 5e3)
+    poisson: float = 0.45
+    density: float = 950.0
+    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    damping: float = 5.0
+    surface_faces: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        self.surface_faces = self.mesh.boundary_faces
+
+
+@dataclass
+class TaskSettings:
+    """Task constants: control step, gripper, thresholds, episode length."""
+
+    control_dt: float = 0.1  # s simulated per env step
+    max_speed: float = 0.05  # m/s of the gripper at action 1
+    grasp_radius: float = 0.012  # m: tissue surface vertices this close can be grasped
+    grasp_vertices: int = 2  # at most this many of them, the nearest (jaws hold a small patch)
+    damage_strain: float = 0.5  # edge strain above which the strain penalty applies
+    tear_strain: float = 1.0  # edge strain that ends the episode (tissue torn)
+    success_exposure: float = 0.8  # fraction of the target visible for success
+    max_steps: int = 100  # steps before truncation
+    exposure_samples: int = 64  # points on the target sphere for exposure
+    safety: float = 0.5  # explicit sub-step safety factor
+
+
+class BatchedRetraction:
+    """N independent retraction episodes on one scene family."""
+
+    def __init__(self, scene: RetractionScene, n_scenes: int, settings: TaskSettings | None = None,
+                 weights: RewardWeights | None = None):
+        self.scene = scene
+        self.n = int(n_scenes)
+        self.settings = settings or TaskSettings()
+        self.weights = weights or RewardWeights()
+        s = scene
+        self.sim = BatchedSimulation(s.mesh, self.n, young_modulus=s.stiffness_range[1],
+                                     poisson=s.poisson, density=s.density, gravity=s.gravity,
+                                     fixed=s.fixed, damping=s.damping, safety=self.settings.safety)
+        self._edges = s.mesh.edges
+        self._rest_length = s.mesh.edge_lengths()
+        surface = np.setdiff1d(s.mesh.surface_vertices, np.flatnonzero(self.sim.fixed))
+        self._graspable = surface
+        self._sphere = fibonacci_sphere(self.settings.exposure_samples)
+        n = self.n
+        self.gripper = np.zeros((n, 3))
+        self.grasping = np.zeros(n, dtype=bool)
+        self.held = np.zeros((n, s.mesh.n_vertices), dtype=bool)
+        self.offsets = np.zeros((n, s.mesh.n_vertices, 3))
+        self.target = np.zeros((n, 3))
+        self.exposure = np.zeros(n)
+        self.max_strain = np.zeros(n)
+        self.grasp_force = np.zeros((n, 3))
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.grasped_once = np.zeros(n, dtype=bool)
+        self.rngs = [np.random.default_rng() for _ in range(n)]
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, scenes, seeds=None) -> None:
+        """Start new episodes in ``scenes`` (indices), reseeding them from ``seeds`` if given."""
+        s = self.scene
+        for k, i in enumerate(np.atleast_1d(scenes)):
+            if seeds is not None and seeds[k] is not None:
+                self.rngs[i] = np.random.default_rng(seeds[k])
+            rng = self.rngs[i]
+            self.sim.reset_scene(i)
+            self.sim.set_young_modulus(rng.uniform(*s.stiffness_range), scenes=[i])
+            self.target[i] = rng.uniform(s.target_low, s.target_high)
+            self.gripper[i] = rng.uniform(s.gripper_low, s.gripper_high)
+            self.grasping[i] = False
+            self.held[i] = False
+            self.steps[i] = 0
+            self.grasped_once[i] = False
+            self.grasp_force[i] = 0.0
+        idx = np.atleast_1d(scenes)
+        self.exposure[idx] = self._exposure(idx)
+        self.max_strain[idx] = self._max_strain(idx)
+
+    # ------------------------------------------------------------------- step
+    def step(self, actions: np.ndarray):
+        """Apply ``actions`` (N, 4) in [-1, 1] to every scene; returns reward, terminated,
+        truncated and a dict of per-scene arrays (the info)."""
+        st, w = self.settings, self.weights
+        a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
+        prev_exposure = self.exposure.copy()
+        grasp_bonus = np.zeros(self.n)
+        # grasp / release
+        for i in range(self.n):
+            close = a[i, 3] > 0.0
+            if close and not self.grasping[i]:
+                d = np.linalg.norm(self.sim.x[i, self._graspable] - self.gripper[i], axis=1)
+                held = (d <= st.jaw_radius) | (d == d.min())
+                picked = self._graspable[held & (d <= st.grasp_reach)]
+                if picked.size:
+                    self.grasping[i] = True
+                    self.held[i, picked] = True
+                    self.offsets[i, picked] = self.sim.x[i, picked] - self.gripper[i]
+                    self.sim.attach(i, picked)
+                    if not self.grasped_once[i]:
+                        self.grasped_once[i] = True
+                        grasp_bonus[i] = w.grasp
+            elif not close and self.grasping[i]:
+                self.grasping[i] = False
+                self.held[i] = False
+                self.sim.detach(i)
+        # move the gripper, drive the held tissue
+        self.gripper = np.clip(self.gripper + a[:, :3] * st.max_speed * st.control_dt,
+                               self.scene.workspace_low, self.scene.workspace_high)
+        for i in np.flatnonzero(self.grasping):
+            idx = np.flatnonzero(self.held[i])
+            self.sim.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
+        diverged = self.sim.step(st.control_dt)
+        self.steps += 1
+        # measurements
+        held_reaction = np.where(self.held[:, :, None], self.sim.reaction, 0.0).sum(axis=1)
+        self.grasp_force = -held_reaction  # force the tissue pulls the gripper with
+        all_scenes = np.arange(self.n)
+        self.exposure = self._exposure(all_scenes)
+        self.max_strain = self._max_strain(all_scenes)
+        # reward terms
+        terms = {
+            "reward_exposure": w.exposure * (self.exposure - prev_exposure),
+            "reward_grasp": grasp_bonus,
+            "reward_strain": -w.strain * np.maximum(0.0, self.max_strain - st.damage_strain),
+            "reward_effort": -w.effort * (a[:, :3] ** 2).sum(axis=1),
+        }
+        success = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~diverged
+        terms["reward_success"] = np.where(success, w.success, 0.0)
+        reward = sum(terms.values())
+        torn = (self.max_strain >= st.tear_strain) & ~diverged
+        terminated = success | torn | diverged
+        truncated = (self.steps >= st.max_steps) & ~terminated
+        info = {
+            **terms,
+            "exposure": self.exposure.copy(),
+            "max_strain": self.max_strain.copy(),
+            "grasp_force": np.linalg.norm(self.grasp_force, axis=1),
+            "grasping": self.grasping.copy(),
+            "is_success": success,
+            "tissue_torn": torn,
+            "simulation_diverged": diverged,
+        }
+        reward = np.where(diverged, 0.0, reward)
+        return reward, terminated, truncated, info
+
+    # ----------------------------------------------------------- measurements
+    def _exposure(self, scenes) -> np.ndarray:
+        """Fraction of the camera-facing target surface samples the tissue does not hide."""
+        scenes = np.atleast_1d(scenes)
+        r = self.scene.target_radius
+        points = self.target[scenes, None, :] + r * self._sphere[None, :, :]
+        # only samples facing the camera count; the rest are hidden by the target itself
+        if len(scenes) == 1:  # no thread launch for one scene
+            return np.array([visible_fraction(points[0], self.scene.camera, self.sim.x[scenes[0]],
+                                              self.scene.surface_faces,
+                                              sphere_center=self.target[scenes[0]], sphere_radius=r)])
+        return visible_fraction_batch(points, self.scene.camera, self.sim.x[scenes],
+                                      self.scene.surface_faces,
+                                      sphere_center=self.target[scenes], sphere_radius=r)
+
+    def _max_strain(self, scenes) -> np.ndarray:
+        """Largest engineering strain ``|l / L - 1|`` over the tissue's edges, per scene."""
+        x = self.sim.x[np.atleast_1d(scenes)]
+        e = self._edges
+        length = np.linalg.norm(x[:, e[:, 1]] - x[:, e[:, 0]], axis=2)
+        return np.abs(length / self._rest_length - 1.0).max(axis=1)
+
+    # ------------------------------------------------------------ observation
+    def state_observation(self) -> np.ndarray:
+        """The state vector of every scene, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
+        tracked = self.sim.x[:, self.scene.tracked].reshape(self.n, -1)
+        obs = np.concatenate([
+            np.clip(self.gripper, -POSITION_BOUND, POSITION_BOUND),
+            self.grasping[:, None].astype(np.float64),
+            np.clip(self.grasp_force, -FORCE_BOUND, FORCE_BOUND),
+            np.clip(self.target, -POSITION_BOUND, POSITION_BOUND),
+            np.clip(tracked, -POSITION_BOUND, POSITION_BOUND),
+            np.clip(self.max_strain, 0.0, STRAIN_BOUND)[:, None],
+            np.clip(self.exposure, 0.0, 1.0)[:, None],
+        ], axis=1)
+        return np.nan_to_num(obs, nan=0.0).astype(np.float32)
+
+    @staticmethod
+    def state_bounds() -> tuple[np.ndarray, np.ndarray]:
+        low = np.array([-POSITION_BOUND] * 3 + [0.0] + [-FORCE_BOUND] * 3 + [-POSITION_BOUND] * 15
+                       + [0.0, 0.0], dtype=np.float32)
+        high = np.array([POSITION_BOUND] * 3 + [1.0] + [FORCE_BOUND] * 3 + [POSITION_BOUND] * 15
+                        + [STRAIN_BOUND, 1.0], dtype=np.float32)
+        return low, high

@@ -1,0 +1,126 @@
+"""TissueRetraction-v0: lift a fat flap off a tumour.
+
+## Description
+
+A flap of fat tissue (120 x 120 x 8 mm, the size of LapGym's tissue-retraction slab)
+lies on an organ; its edge at ``x = 0`` is attached. Under it, hidden from a camera
+above, sits a tumour (a sphere of radius 8 mm). The agent moves a gripper, closes it on
+the flap near the free edge, and retracts the flap to expose the tumour without
+over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 2-5 kPa per
+episode, nu = 0.45, 950 kg/m^3), integrated explicitly; the organ under the flap is not
+simulated (no contact): the flap's rest shape is where it lies, so gravity is off.
+
+## Action Space
+
+``Box(-1, 1, (4,), float32)``: gripper velocity along x, y, z in units of
+``max_speed`` (0.05 m/s), and a grasp command (> 0 close, <= 0 open). Closing with a
+tissue surface vertex within ``grasp_reach`` (12 mm) grasps the nearest one and every
+other within ``jaw_radius`` (5 mm): on the default mesh (15 mm spacing) one vertex, on
+finer meshes a patch. Opening releases them. Out-of-range actions are clipped; non-finite ones raise ``ValueError``.
+Each step simulates ``control_dt`` = 0.1 s.
+
+## Observation Space
+
+``obs_mode="state"``: ``Box(24,)`` float32, clipped to its bounds:
+
+| index | meaning | min | max | unit |
+|---|---|---|---|---|
+| 0-2 | gripper position | -0.5 | 0.5 | m |
+| 3 | grasping (0 or 1) | 0 | 1 | - |
+| 4-6 | grasp force (force of the tissue on the gripper) | -20 | 20 | N |
+| 7-9 | target (tumour centre) position | -0.5 | 0.5 | m |
+| 10-21 | four tracked tissue points (free-edge corners and middle, flap centre) | -0.5 | 0.5 | m |
+| 22 | largest edge strain of the tissue | 0 | 5 | - |
+| 23 | exposure of the target | 0 | 1 | - |
+
+``obs_mode="pointcloud"``: ``Dict(state=<the above>, points=Box(64, 3))``: 64 fixed
+tissue surface vertices (m).
+
+## Rewards
+
+The sum of (each reported in ``info`` under its name, weights in ``RewardWeights``):
+``reward_exposure`` = 10 x (change of exposure this step); ``reward_grasp`` = 0.5 the
+first time a grasp holds tissue; ``reward_strain`` = -5 x (largest edge strain - 0.4, if
+positive); ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
+success. Exposure is the fraction of the tumour's camera-facing surface samples (64
+points) that the deformed tissue surface does not hide, by ray casting.
+
+## Starting State
+
+Tissue at rest; tumour centre uniform in x 50-90 mm, y 35-85 mm, 20 mm below the
+flap's underside (its top 12 mm below); gripper uniform in x 108-114 mm, y 40-80 mm, z 9-11 mm (just above the
+free edge); tissue E uniform in 2-5 kPa. ``reset(seed=...)`` fixes all of them.
+
+## Episode End
+
+Terminated on success (exposure >= 0.8 with strain below 0.4), when the tissue tears
+(edge strain >= 1.0) or when the simulation diverges (``info["simulation_diverged"]``;
+the observation stays finite). Truncated after 100 steps (10 s).
+
+## Arguments
+
+``obs_mode`` ("state" | "pointcloud"), ``render_mode`` ("rgb_array" | "human"),
+``settings`` (:class:`~heml_gym.envs.core.TaskSettings`), ``weights``
+(:class:`~heml_gym.envs.core.RewardWeights`), ``cells`` (mesh cells along x, y, z).
+
+## Version History
+
+v0: initial version.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from heml_gym import box_mesh
+
+from .core import RetractionScene
+from .retraction_env import RetractionEnv, RetractionVectorEnv
+
+FLAP_SIZE = (0.12, 0.12, 0.008)
+DEFAULT_CELLS = (8, 8, 1)
+
+
+def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
+    """The fat-flap scene with a ``cells`` hex grid (6 tets per cell)."""
+    mesh = box_mesh(FLAP_SIZE, cells)
+    v = mesh.vertices
+    lx, ly, lz = FLAP_SIZE
+    fixed = np.flatnonzero(np.isclose(v[:, 0], 0.0))
+
+    def nearest(p):
+        return int(np.argmin(np.linalg.norm(v - np.asarray(p), axis=1)))
+
+    tracked = np.array([nearest((lx, 0, lz)), nearest((lx, ly / 2, lz)), nearest((lx, ly, lz)),
+                        nearest((lx / 2, ly / 2, lz))])
+    return RetractionScene(
+        name="TissueRetraction",
+        mesh=mesh,
+        fixed=fixed,
+        tracked=tracked,
+        camera=np.array([0.06, 0.06, 0.30]),
+        target_low=np.array([0.05, 0.035, -0.02]),
+        target_high=np.array([0.09, 0.085, -0.02]),
+        target_radius=0.008,
+        gripper_low=np.array([0.108, 0.04, 0.009]),
+        gripper_high=np.array([0.114, 0.08, 0.011]),
+        workspace_low=np.array([-0.05, -0.05, 0.0]),
+        workspace_high=np.array([0.20, 0.17, 0.15]),
+    )
+
+
+class TissueRetractionEnv(RetractionEnv):
+    __doc__ = __doc__
+
+    def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None,
+                 cells=DEFAULT_CELLS):
+        super().__init__(tissue_scene(cells), obs_mode, render_mode, settings, weights)
+
+
+class TissueRetractionVectorEnv(RetractionVectorEnv):
+    """``num_envs`` TissueRetraction scenes in one batched Numba call (see TissueRetractionEnv)."""
+
+    def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None,
+                 max_episode_steps=None, render_mode=None, cells=DEFAULT_CELLS):
+        super().__init__(tissue_scene(cells), num_envs, obs_mode, settings, weights,
+                         max_episode_steps, render_mode)
