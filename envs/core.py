@@ -84,8 +84,8 @@ class TaskSettings:
 
     control_dt: float = 0.1  # s simulated per env step
     max_speed: float = 0.05  # m/s of the gripper at action 1
-    grasp_radius: float = 0.012  # m: tissue surface vertices this close can be grasped
-    grasp_vertices: int = 2  # at most this many of them, the nearest (jaws hold a small patch)
+    grasp_reach: float = 0.012  # m: closing grasps tissue only if a surface vertex is this close
+    jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
     damage_strain: float = 0.5  # edge strain above which the strain penalty applies
     tear_strain: float = 1.0  # edge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
