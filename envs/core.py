@@ -107,6 +107,10 @@ class BatchedRetraction:
         self.sim = BatchedSimulation(s.mesh, self.n, young_modulus=s.stiffness_range[1],
                                      poisson=s.poisson, density=s.density, gravity=s.gravity,
                                      fixed=s.fixed, damping=s.damping, safety=self.settings.safety)
+        # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
+        # scene and batch, so a scene's trajectory does not depend on its neighbours
+        self.substeps = max(1, int(np.ceil(self.settings.control_dt / (
+            self.settings.safety * self.sim.critical_dt(s.stiffness_range[1])))))
         self._edges = s.mesh.edges
         self._rest_length = s.mesh.edge_lengths()
         surface = np.setdiff1d(s.mesh.surface_vertices, np.flatnonzero(self.sim.fixed))
@@ -179,7 +183,7 @@ class BatchedRetraction:
         for i in np.flatnonzero(self.grasping):
             idx = np.flatnonzero(self.held[i])
             self.sim.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
-        diverged = self.sim.step(st.control_dt)
+        diverged = self.sim.step(st.control_dt, substeps=self.substeps)
         self.steps += 1
         # measurements
         held_reaction = np.where(self.held[:, :, None], self.sim.reaction, 0.0).sum(axis=1)

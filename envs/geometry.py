@@ -155,10 +155,29 @@ def _segment_hits(rec, r, dx, dy, dz, dlen, tlo, thi):
 
 
 @nb.njit(cache=True)
+def _cell(value, lo, h, g):
+    """Grid index ``floor((value - lo) / h)`` clamped to [0, g - 1] before the int conversion."""
+    f = (value - lo) / h
+    if f >= g - 1.0:
+        return g - 1
+    if f >= 0.0:
+        return int(f)
+    return 0
+
+
+@nb.njit(cache=True)
 def _visible_counts_kernel(points, eye, x, faces, eps, center, use_sphere, method):
-    """(visible samples, samples counted) for one scene; see :func:`visible_counts`."""
+    """(visible samples, samples counted) for one scene; see :func:`visible_counts`.
+
+    Returns (-1, -1) when ``faces`` holds an index outside ``[0, len(x))``.
+    """
     k = points.shape[0]
     nf = faces.shape[0]
+    nv = x.shape[0]
+    for t in range(nf):  # no bounds checks below: refuse bad indices here
+        for c in range(3):
+            if faces[t, c] < 0 or faces[t, c] >= nv:
+                return -1, -1
     ex = eye[0]
     ey = eye[1]
     ez = eye[2]
@@ -303,10 +322,10 @@ def _visible_counts_kernel(points, eye, x, faces, eps, center, use_sphere, metho
                 tvmax += tpad
                 if tumax < umin or tumin > umax or tvmax < vmin or tvmin > vmax:
                     continue
-                iu0 = min(g - 1, max(0, int((tumin - umin) / hu)))
-                iu1 = min(g - 1, max(0, int((tumax - umin) / hu)))
-                iv0 = min(g - 1, max(0, int((tvmin - vmin) / hv)))
-                iv1 = min(g - 1, max(0, int((tvmax - vmin) / hv)))
+                iu0 = _cell(tumin, umin, hu, g)
+                iu1 = _cell(tumax, umin, hu, g)
+                iv0 = _cell(tvmin, vmin, hv, g)
+                iv1 = _cell(tvmax, vmin, hv, g)
             else:
                 # reaches the eye's plane: the projection is unbounded, list it everywhere
                 iu0 = 0
@@ -343,8 +362,8 @@ def _visible_counts_kernel(points, eye, x, faces, eps, center, use_sphere, metho
             sdz = points[i, 2] - ez
             dlen = math.sqrt(sdx * sdx + sdy * sdy + sdz * sdz)
             tol = eps / dlen
-            iu = min(g - 1, max(0, int((pu[j] - umin) / hu)))
-            iv = min(g - 1, max(0, int((pv[j] - vmin) / hv)))
+            iu = _cell(pu[j], umin, hu, g)
+            iv = _cell(pv[j], vmin, hv, g)
             c = iv * g + iu
             hidden = False
             for e in range(cell_start[c], cell_start[c + 1]):
@@ -385,7 +404,7 @@ def _visible_fraction_batch_kernel(points, eye, x, faces, eps, centers, use_sphe
     for s in nb.prange(points.shape[0]):
         vis, cnt = _visible_counts_kernel(points[s], eye, x[s], faces, eps, centers[s],
                                           use_sphere, method)
-        out[s] = vis / cnt if cnt > 0 else 0.0
+        out[s] = vis / cnt if cnt > 0 else (0.0 if cnt == 0 else -1.0)
 
 
 # ----------------------------------------------------------------------------- wrappers
@@ -446,8 +465,12 @@ def visible_counts(points, eye, x, faces, eps: float = 1e-9, sphere_center=None,
     x = _as_points(x, "x", 2)
     faces = _as_faces(faces)
     center, use_sphere = _sphere_args(eye, sphere_center, sphere_radius)
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
     vis, cnt = _visible_counts_kernel(points, eye, x, faces, float(eps), center, use_sphere,
                                       _METHODS[method])
+    if cnt < 0:
+        raise ValueError(f"faces must index the {len(x)} vertices of x")
     return int(vis), int(cnt)
 
 
@@ -464,10 +487,11 @@ def visible_fraction(points, eye, x, faces, eps: float = 1e-9, sphere_center=Non
     front-facing samples; ``sphere_radius`` (m), if given, is only checked (positive,
     eye outside the sphere). Returns a float in [0, 1]; 0.0 when nothing is counted.
 
-    Cost (one core, after compilation; a flap surface over the tumour, 64 samples): see
-    the report in the module docstring's acceleration note - per call a pass over the
-    triangles (cull against the samples' footprint), then only the triangles listed in
-    each sample's grid cell.
+    Cost per call (one core, after compilation; 64 samples on a 1 cm tumour under a
+    12 x 12 cm fat flap, camera 25 cm above): about 15-20 us with the flap's 644
+    boundary triangles and 60-100 us with 3,108 (brute force: 30-100 us and 0.2-0.6 ms).
+    One pass over the triangles culls them against the samples' footprint; each sample
+    then meets only the triangles listed in its grid cell.
     """
     vis, cnt = visible_counts(points, eye, x, faces, eps, sphere_center, sphere_radius)
     return vis / cnt if cnt > 0 else 0.0
@@ -492,4 +516,6 @@ def visible_fraction_batch(points, eye, x, faces, eps: float = 1e-9, sphere_cent
     out = np.empty(points.shape[0])
     _visible_fraction_batch_kernel(points, eye, x, faces, float(eps), centers, use_sphere,
                                    _AUTO, out)
+    if out.size and out.min() < 0.0:
+        raise ValueError(f"faces must index the {x.shape[1]} vertices of x")
     return out

@@ -17,9 +17,10 @@ Rasterisation: every triangle is drawn with one colour (flat shading) lit by a
 headlight, a directional light along the optical axis:
 ``shade = ambient + (1 - ambient) |n . z_cam|`` with ``n`` the unit face normal, so a
 face square to the view is drawn in its full colour, one seen edge-on in ``ambient``
-times it, and both sides are lit alike (the flap's underside shows when it is lifted). Pixels are covered
-when their centre is inside the projected triangle or on its edge (edge functions
-evaluated at pixel centres, within the triangle's bounding box), and a z-buffer in
+times it, and both sides are lit alike (the flap's underside shows when it is lifted).
+Pixels are covered when their centre is inside the projected triangle or on its edge
+(edge functions evaluated at pixel centres, within the triangle's bounding box, in a
+Numba kernel that also projects and shades), and a z-buffer in
 ``1/z_cam`` (interpolated linearly in screen space, which is exact under perspective)
 keeps the nearest surface; on equal depth the triangle drawn first stays. Near-plane
 handling is by discarding: a triangle with any vertex at ``z_cam <= near`` (behind the

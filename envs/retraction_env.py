@@ -70,8 +70,10 @@ class RetractionEnv(_ObservationMixin, gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        # the scene's own generator is derived from the env's, so one seed fixes both
-        self.task.reset([0], seeds=[int(self.np_random.integers(2**63 - 1))])
+        # a given seed seeds the scene directly (as scene i of a vector env reset with
+        # seed - i); without one, the scene continues from the env's generator
+        scene_seed = seed if seed is not None else int(self.np_random.integers(2**63 - 1))
+        self.task.reset([0], seeds=[scene_seed])
         return self._obs(), self._info_at_reset()
 
     def _info_at_reset(self) -> dict[str, Any]:

@@ -112,9 +112,13 @@ class BatchedSimulation:
             self._params[s] = mat.params
             self._weights[s] = mat.constant_psi1 * self._base_weights
 
-    def critical_dt(self) -> float:
-        """Rest-state explicit limit (s) of the stiffest scene (it scales as 1/sqrt(E))."""
-        return self._reference_dt * math.sqrt(self._reference_E / float(self.young_modulus.max()))
+    def critical_dt(self, young_modulus: float | None = None) -> float:
+        """Rest-state explicit limit (s) for E = ``young_modulus`` Pa (default: the stiffest scene).
+
+        It scales as ``1 / sqrt(E)`` at fixed Poisson ratio and density.
+        """
+        E = float(self.young_modulus.max()) if young_modulus is None else float(young_modulus)
+        return self._reference_dt * math.sqrt(self._reference_E / E)
 
     def reset_scene(self, s: int) -> None:
         """Scene ``s`` back to rest, at rest, nothing grasped."""
@@ -140,15 +144,16 @@ class BatchedSimulation:
         self.kinematic[s] = False
 
     # ---------------------------------------------------------------- stepping
-    def step(self, dt: float, active=None) -> np.ndarray:
+    def step(self, dt: float, active=None, substeps: int | None = None) -> np.ndarray:
         """Advance the active scenes by ``dt`` s; returns the mask of scenes that diverged.
 
-        A diverged scene keeps the state it had before this step.
+        ``substeps`` defaults to what ``safety`` requires for the stiffest scene. A
+        diverged scene keeps the state it had before this step.
         """
         if not (dt > 0 and math.isfinite(dt)):
             raise ValueError(f"dt must be a positive number of seconds, got {dt}")
         active = np.ones(self.n_scenes, dtype=bool) if active is None else np.asarray(active, dtype=bool)
-        n_sub = max(1, math.ceil(dt / (self.safety * self.critical_dt())))
+        n_sub = substeps or max(1, math.ceil(dt / (self.safety * self.critical_dt())))
         h = dt / n_sub
         x0, v0 = self.x.copy(), self.v.copy()
         start = self.x.copy()

@@ -18,7 +18,7 @@ if [ ! -f "$stamp" ]; then
   echo "[setup] installing heml-gym[$extras] (pinned by constraints.txt)"
   python -m pip install --quiet --upgrade pip
   case ",$extras," in
-    *,train,*|*,all,*) python -m pip install --quiet torch==2.13.0 ;;  # CPU build; before anything asks for torch
+    *,train,*|*,test,*|*,all,*) python -m pip install --quiet torch==2.13.0 ;;  # CPU build, first
   esac
   python -m pip install --quiet -c "$root/constraints.txt" -e "$root[$extras]"
   touch "$stamp"

@@ -1,0 +1,164 @@
+"""Retraction environments: API conformance, determinism, robustness, mechanics, baseline."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import heml_gym.envs  # noqa: F401  (registers the environments)
+from heml_gym.envs.core import TaskSettings
+from heml_gym.envs.scripted import FoldBackPolicy, run_episodes
+from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
+
+ENV_ID = "heml_gym/TissueRetraction-v0"
+
+
+@pytest.mark.parametrize("obs_mode", ["state", "pointcloud"])
+def test_gymnasium_and_sb3_env_checkers_pass(obs_mode):
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = TissueRetractionEnv(obs_mode=obs_mode)
+    check_env(env, skip_render_check=True)
+    sb3_check_env(TissueRetractionEnv(obs_mode=obs_mode), warn=True)
+
+
+def rollout(env, seed, steps=200):
+    obs, _ = env.reset(seed=seed)
+    env.action_space.seed(seed)
+    observations, rewards = [obs], []
+    for _ in range(steps):
+        obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        observations.append(obs)
+        rewards.append(reward)
+        if terminated or truncated:
+            obs, _ = env.reset()
+            observations.append(obs)
+    return np.array(observations), np.array(rewards)
+
+
+def test_same_seed_same_trajectory_different_seed_differs():
+    env = gym.make(ENV_ID)
+    o1, r1 = rollout(env, seed=3)
+    o2, r2 = rollout(env, seed=3)
+    np.testing.assert_array_equal(o1, o2)
+    np.testing.assert_array_equal(r1, r2)
+    o3, _ = rollout(env, seed=4)
+    assert o3.shape != o1.shape or not np.array_equal(o1, o3)
+
+
+def test_reset_randomises_target_stiffness_and_gripper():
+    env = TissueRetractionEnv()
+    draws = []
+    for seed in range(5):
+        obs, info = env.reset(seed=seed)
+        draws.append((*obs[0:3], *obs[7:10], info["young_modulus"]))
+    draws = np.array(draws)
+    assert np.all(draws.std(axis=0)[[0, 1, 3, 4, 6]] > 0)
+    assert np.all((draws[:, 6] >= 2e3) & (draws[:, 6] <= 5e3))
+
+
+def test_vector_env_matches_single_envs_and_make_vec_uses_it():
+    vec = gym.make_vec(ENV_ID, num_envs=3, vectorization_mode="vector_entry_point")
+    assert isinstance(vec.unwrapped, TissueRetractionVectorEnv)
+    obs, _ = vec.reset(seed=10)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (15, 3, 4)).astype(np.float32)
+    vec_obs, vec_rew = [obs], []
+    for a in actions:
+        obs, reward, terminated, truncated, info = vec.step(a)
+        vec_obs.append(obs)
+        vec_rew.append(reward)
+    for i in range(3):
+        env = TissueRetractionEnv()
+        obs, _ = env.reset(seed=10 + i)
+        np.testing.assert_allclose(obs, vec_obs[0][i], rtol=0, atol=1e-12)
+        for k, a in enumerate(actions):
+            obs, reward, terminated, truncated, _ = env.step(a[i])
+            np.testing.assert_allclose(obs, vec_obs[k + 1][i], rtol=1e-9, atol=1e-9)
+            assert reward == pytest.approx(vec_rew[k][i], rel=1e-9, abs=1e-12)
+            if terminated or truncated:
+                break
+
+
+def test_ten_thousand_random_and_extreme_steps_stay_in_space():
+    vec = TissueRetractionVectorEnv(num_envs=10)
+    obs, _ = vec.reset(seed=0)
+    rng = np.random.default_rng(1)
+    space = vec.single_observation_space
+    for k in range(1000):
+        if k % 3 == 0:
+            a = rng.choice([-1.0, 1.0], size=(10, 4)) * rng.uniform(1, 50, (10, 1))  # extreme, clipped
+        else:
+            a = rng.uniform(-1, 1, (10, 4))
+        obs, reward, terminated, truncated, info = vec.step(a)
+        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
+        for o in obs:
+            assert space.contains(o)
+
+
+def test_diverged_simulation_ends_episode_with_flag_and_finite_obs():
+    env = TissueRetractionEnv(settings=TaskSettings(safety=8.0))  # sub-steps far past dt_c
+    obs, _ = env.reset(seed=0)
+    for _ in range(100):
+        obs, reward, terminated, truncated, info = env.step(np.array([1.0, 1.0, 1.0, 1.0], dtype=np.float32))
+        assert np.all(np.isfinite(obs)) and env.observation_space.contains(obs)
+        if terminated:
+            break
+    assert info["simulation_diverged"] and terminated and reward == 0.0
+
+
+def test_bad_actions():
+    env = TissueRetractionEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan, 0, 0, 0]))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(3))
+    # out of range is clipped: the same as the clipped action
+    a, b = TissueRetractionEnv(), TissueRetractionEnv()
+    a.reset(seed=1)
+    b.reset(seed=1)
+    oa = a.step(np.array([7.0, -3.0, 2.0, 5.0]))[0]
+    ob = b.step(np.array([1.0, -1.0, 1.0, 1.0]))[0]
+    np.testing.assert_array_equal(oa, ob)
+
+
+def test_grasp_holds_then_release_lets_go():
+    env = TissueRetractionEnv()
+    obs, _ = env.reset(seed=2)
+    task = env.task
+    obs, *_ = env.step(np.array([0, 0, 0, 1.0]))  # close next to the free edge
+    assert obs[3] == 1.0 and task.held[0].any()
+    held = np.flatnonzero(task.held[0])
+    offset = task.sim.x[0, held] - task.gripper[0]
+    for _ in range(5):
+        obs, reward, terminated, truncated, info = env.step(np.array([0, 0, 1.0, 1.0]))  # lift
+        np.testing.assert_allclose(task.sim.x[0, held], task.gripper[0] + offset, atol=1e-12)
+    assert info["grasp_force"] > 0  # the tissue pulls back down on the gripper
+    lifted = task.sim.x[0, held].copy()
+    obs, *_ = env.step(np.array([0, 0, 0, -1.0]))  # open
+    assert obs[3] == 0.0 and not task.held[0].any()
+    for _ in range(5):
+        env.step(np.array([0, 0, 0, -1.0]))
+    assert np.all(task.sim.x[0, held, 2] < lifted[:, 2] - 1e-3)  # springs back towards rest
+
+
+def test_reward_terms_add_up():
+    env = TissueRetractionEnv()
+    obs, _ = env.reset(seed=5)
+    rng = np.random.default_rng(5)
+    policy = FoldBackPolicy()
+    for k in range(40):
+        a = policy(obs) if k % 2 else rng.uniform(-1, 1, 4)
+        obs, reward, terminated, truncated, info = env.step(a)
+        terms = sum(v for key, v in info.items() if key.startswith("reward_"))
+        assert reward == pytest.approx(terms, abs=1e-12)
+        if terminated or truncated:
+            obs, _ = env.reset()
+
+
+def test_scripted_baseline_succeeds_in_ninety_percent():
+    result = run_episodes(TissueRetractionEnv(), FoldBackPolicy(), episodes=20, seed=1000)
+    assert result["success_rate"] >= 0.9
