@@ -162,3 +162,22 @@ def test_reward_terms_add_up():
 def test_scripted_baseline_succeeds_in_ninety_percent():
     result = run_episodes(TissueRetractionEnv(), FoldBackPolicy(), episodes=20, seed=1000)
     assert result["success_rate"] >= 0.9
+
+
+def test_rgb_array_render_shows_the_tumour_once_exposed():
+    env = TissueRetractionEnv(render_mode="rgb_array")
+    obs, _ = env.reset(seed=3)
+    policy = FoldBackPolicy()
+
+    def yellow(img):
+        return int(((img[..., 0] > 150) & (img[..., 1] > 130) & (img[..., 2] < 90)).sum())
+
+    first = env.render()
+    assert first.shape == (120, 160, 3) and first.dtype == np.uint8
+    assert yellow(first) == 0  # hidden under the flap
+    for _ in range(60):
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        if terminated:
+            break
+    assert info["exposure"] >= 0.8
+    assert yellow(env.render()) > 0

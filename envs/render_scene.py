@@ -1,0 +1,74 @@
+"""Draw a retraction scene: CPU images (``rgb_array``) or a live rerun stream (``human``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .render import Camera, box, compose, icosphere, rasterize
+
+TISSUE = np.array([235, 170, 150])  # fat: pale pink
+STRAINED = np.array([200, 30, 30])  # at the damage threshold
+TUMOUR = np.array([240, 220, 40])
+JAWS_OPEN = np.array([150, 150, 160])
+JAWS_CLOSED = np.array([40, 200, 90])
+
+
+class SceneRenderer:
+    """Renders scene ``i`` of a :class:`~heml_gym.envs.core.BatchedRetraction`.
+
+    ``rgb_array``: a 160 x 120 uint8 image from the task camera, tissue coloured by the
+    strain of its surface triangles (pink to red at the damage threshold), the tumour
+    yellow, the gripper grey (open) or green (closed). ``human``: the same scene logged
+    to a rerun viewer (spawned on first use; needs ``pip install 'heml-gym[viz]'``).
+    """
+
+    def __init__(self, task, mode: str = "rgb_array", width: int = 160, height: int = 120):
+        self.task, self.mode, self.width, self.height = task, mode, width, height
+        scene = task.scene
+        center = scene.mesh.vertices.mean(axis=0)
+        self.camera = Camera.looking_at(scene.camera, center, up=(0.0, 1.0, 0.0), fov_y=45.0)
+        self._faces = scene.surface_faces
+        rest = scene.mesh.vertices
+        self._rest_edge = np.linalg.norm(rest[self._faces[:, 1]] - rest[self._faces[:, 0]], axis=1)
+        self._rr = None
+
+    def _triangles(self, i: int):
+        t = self.task
+        x = t.sim.x[i]
+        f = self._faces
+        edge = np.linalg.norm(x[f[:, 1]] - x[f[:, 0]], axis=1)
+        strain = np.clip(np.abs(edge / self._rest_edge - 1.0) / t.settings.damage_strain, 0.0, 1.0)
+        tissue_colours = ((1 - strain)[:, None] * TISSUE + strain[:, None] * STRAINED).astype(np.uint8)
+        sphere = icosphere(t.scene.target_radius, t.target[i], subdivisions=1)
+        jaws = box(t.gripper[i] + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
+        jaw_colour = JAWS_CLOSED if t.grasping[i] else JAWS_OPEN
+        x_all, faces_all, colours = compose([(sphere[0], sphere[1], TUMOUR), (jaws[0], jaws[1], jaw_colour)])
+        n = len(x_all)
+        return (np.concatenate([x_all, x]), np.concatenate([faces_all, f + n]),
+                np.concatenate([colours, tissue_colours]))
+
+    def render(self, i: int = 0):
+        x, faces, colours = self._triangles(i)
+        if self.mode == "rgb_array":
+            return rasterize((x, faces), colours, self.camera, self.width, self.height,
+                             background=(25, 25, 35))
+        if self._rr is None:
+            import rerun as rr
+
+            rr.init("heml_gym", spawn=True)
+            self._rr = rr
+        rr = self._rr
+        rr.set_time("step", sequence=int(self.task.steps[i]))
+        rr.log("scene", rr.Mesh3D(vertex_positions=x, triangle_indices=faces,
+                                  vertex_colors=_vertex_colours(len(x), faces, colours)))
+        return None
+
+    def close(self):
+        self._rr = None
+
+
+def _vertex_colours(n: int, faces: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """Per-vertex colours from per-face ones (the last face touching a vertex wins)."""
+    out = np.zeros((n, 3), dtype=np.uint8)
+    out[faces.ravel()] = np.repeat(colours, 3, axis=0)
+    return out
