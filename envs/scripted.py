@@ -16,14 +16,16 @@ import numpy as np
 class FoldBackPolicy:
     """Grasp, then fold the tissue about the hinge line ``x = hinge[0], z = hinge[1]``.
 
+    ``direction`` is +1 when the tissue extends from the hinge towards +x, -1 towards -x.
     ``step_angle``: radians added to the arc angle per step; ``max_angle``: where to stop
     (past vertical, so the tissue lies back over its attachment); ``max_speed`` and
     ``control_dt`` convert a displacement (m) into a velocity command.
     """
 
     def __init__(self, hinge=(0.0, 0.008), step_angle=0.06, max_angle=1.9, max_speed=0.05,
-                 control_dt=0.1):
+                 control_dt=0.1, direction=1.0):
         self.hinge = np.asarray(hinge, dtype=np.float64)
+        self.direction = 1.0 if direction >= 0 else -1.0  # -1: the tissue extends towards -x
         self.step_angle = float(step_angle)
         self.max_angle = float(max_angle)
         self.scale = 1.0 / (max_speed * control_dt)
@@ -38,13 +40,24 @@ class FoldBackPolicy:
         if not grasping:
             self.radius = None
             return np.array([0.0, 0.0, 0.0, 1.0], dtype=np.float32)
-        rel = np.array([gripper[0] - self.hinge[0], gripper[2] - self.hinge[1]])
+        sign = self.direction
+        rel = np.array([sign * (gripper[0] - self.hinge[0]), gripper[2] - self.hinge[1]])
         if self.radius is None:
             self.radius = float(np.hypot(*rel))
         angle = min(math.atan2(rel[1], rel[0]) + self.step_angle, self.max_angle)
-        target = self.hinge + self.radius * np.array([math.cos(angle), math.sin(angle)])
-        move = np.array([target[0] - gripper[0], 0.0, target[1] - gripper[2]]) * self.scale
+        target = self.radius * np.array([math.cos(angle), math.sin(angle)])
+        move = np.array([self.hinge[0] + sign * target[0] - gripper[0], 0.0,
+                         self.hinge[1] + target[1] - gripper[2]]) * self.scale
         return np.concatenate([np.clip(move, -1.0, 1.0), [1.0]]).astype(np.float32)
+
+
+def scripted_policy(scene_name: str) -> FoldBackPolicy:
+    """The scripted baseline of a scene family ("TissueRetraction" or "OrganRetraction")."""
+    if scene_name == "TissueRetraction":  # fold the flap back over its attached edge
+        return FoldBackPolicy(hinge=(0.0, 0.008), direction=1.0, max_angle=1.9)
+    if scene_name == "OrganRetraction":  # lift the lobe's thin edge about its attachment
+        return FoldBackPolicy(hinge=(0.045, 0.0), direction=-1.0, max_angle=0.8)
+    raise ValueError(f"no scripted policy for scene {scene_name!r}")
 
 
 def run_episodes(env, policy, episodes: int, seed: int = 0) -> dict:

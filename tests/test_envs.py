@@ -9,19 +9,21 @@ from gymnasium.utils.env_checker import check_env
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
 from heml_gym.envs.core import TaskSettings
-from heml_gym.envs.scripted import FoldBackPolicy, run_episodes
+from heml_gym.envs.organ_retraction import OrganRetractionEnv
+from heml_gym.envs.scripted import FoldBackPolicy, run_episodes, scripted_policy
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
 
 ENV_ID = "heml_gym/TissueRetraction-v0"
 
 
+@pytest.mark.parametrize("env_class", [TissueRetractionEnv, OrganRetractionEnv])
 @pytest.mark.parametrize("obs_mode", ["state", "pointcloud"])
-def test_gymnasium_and_sb3_env_checkers_pass(obs_mode):
+def test_gymnasium_and_sb3_env_checkers_pass(env_class, obs_mode):
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-    env = TissueRetractionEnv(obs_mode=obs_mode)
+    env = env_class(obs_mode=obs_mode)
     check_env(env, skip_render_check=True)
-    sb3_check_env(TissueRetractionEnv(obs_mode=obs_mode), warn=True)
+    sb3_check_env(env_class(obs_mode=obs_mode), warn=True)
 
 
 def rollout(env, seed, steps=200):
@@ -159,8 +161,10 @@ def test_reward_terms_add_up():
             obs, _ = env.reset()
 
 
-def test_scripted_baseline_succeeds_in_ninety_percent():
-    result = run_episodes(TissueRetractionEnv(), FoldBackPolicy(), episodes=20, seed=1000)
+@pytest.mark.parametrize("env_class", [TissueRetractionEnv, OrganRetractionEnv])
+def test_scripted_baseline_succeeds_in_ninety_percent(env_class):
+    env = env_class()
+    result = run_episodes(env, scripted_policy(env.task.scene.name), episodes=20, seed=1000)
     assert result["success_rate"] >= 0.9
 
 

@@ -1,0 +1,93 @@
+"""OrganRetraction-v0: lift a liver lobe to expose the structure beneath its edge.
+
+## Description
+
+A soft liver-like lobe (160 x 100 x 44 mm, meshed with gmsh; thin towards -x) is
+attached at its thick end (x > 45 mm). Beneath it, behind its thin edge, lies a structure
+to expose (a sphere of radius 8 mm, e.g. a gallbladder neck), hidden from a laparoscope
+placed in front of and above the thin edge (at (-170, 0, 120) mm, looking under the
+edge). The agent grasps the lobe near its thin edge and lifts it. Neo-Hookean HEML tissue (E drawn in
+4-8 kPa, nu = 0.45, 1060 kg/m^3), explicit integration, no contact with the organs below
+(gravity off: the lobe rests in its rest shape).
+
+## Action Space, Observation Space, Rewards, Episode End
+
+As for ``TissueRetraction-v0`` (see :mod:`heml_gym.envs.tissue_retraction`): the same
+4-D action, 24-D state (the four tracked points are the lobe's thin-edge corners and
+middle, and its top centre), the same reward terms and thresholds.
+
+## Starting State
+
+Tissue at rest; target centre uniform in x -35..-10 mm, y -20..20 mm, 23 mm below the
+lobe's flat face; gripper uniform in x -72..-66 mm, y -10..10 mm, z 19-22 mm (above the
+thin edge); E uniform in 4-8 kPa.
+
+## Arguments
+
+``obs_mode``, ``render_mode``, ``settings``, ``weights`` as for TissueRetraction;
+``mesh_size`` (m, gmsh element size; default 16 mm: ~200 vertices / 560 tets).
+
+## Version History
+
+v0: initial version.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from heml_gym.organs import liver_lobe_mesh
+
+from .core import RetractionScene
+from .retraction_env import RetractionEnv, RetractionVectorEnv
+
+DEFAULT_MESH_SIZE = 0.016
+ATTACHED_X = 0.045  # m: vertices beyond this are attached
+
+
+def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
+    """The liver-lobe scene meshed at ``mesh_size`` metres."""
+    mesh = liver_lobe_mesh(mesh_size=mesh_size)
+    v = mesh.vertices
+    fixed = np.flatnonzero(v[:, 0] > ATTACHED_X)
+
+    def nearest_surface(p):
+        s = mesh.surface_vertices
+        return int(s[np.argmin(np.linalg.norm(v[s] - np.asarray(p), axis=1))])
+
+    lo, hi = mesh.bounds()
+    tracked = np.array([nearest_surface((lo[0], lo[1], 0.02)), nearest_surface((lo[0], 0.0, 0.02)),
+                        nearest_surface((lo[0], hi[1], 0.02)), nearest_surface((0.0, 0.0, hi[2]))])
+    return RetractionScene(
+        name="OrganRetraction",
+        mesh=mesh,
+        fixed=fixed,
+        tracked=tracked,
+        camera=np.array([-0.17, 0.0, 0.12]),
+        target_low=np.array([-0.035, -0.02, -0.023]),
+        target_high=np.array([-0.010, 0.02, -0.023]),
+        target_radius=0.008,
+        gripper_low=np.array([-0.072, -0.01, 0.019]),
+        gripper_high=np.array([-0.066, 0.01, 0.022]),
+        workspace_low=np.array([-0.15, -0.10, 0.0]),
+        workspace_high=np.array([0.10, 0.10, 0.20]),
+        stiffness_range=(4e3, 8e3),
+        density=1060.0,
+    )
+
+
+class OrganRetractionEnv(RetractionEnv):
+    __doc__ = __doc__
+
+    def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None,
+                 mesh_size=DEFAULT_MESH_SIZE):
+        super().__init__(organ_scene(mesh_size), obs_mode, render_mode, settings, weights)
+
+
+class OrganRetractionVectorEnv(RetractionVectorEnv):
+    """``num_envs`` OrganRetraction scenes in one batched Numba call (see OrganRetractionEnv)."""
+
+    def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None,
+                 max_episode_steps=None, render_mode=None, mesh_size=DEFAULT_MESH_SIZE):
+        super().__init__(organ_scene(mesh_size), num_envs, obs_mode, settings, weights,
+                         max_episode_steps, render_mode)
