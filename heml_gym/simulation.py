@@ -424,7 +424,7 @@ class Simulation:
         g = gradient(x)
         gnorm = float(np.linalg.norm(g[free]))
         it = 0
-        best, stalled = gnorm, 0
+        stalled = 0
         while gnorm > tol and it < max_iter and stalled < 5:
             it += 1
             gf = g[free]
@@ -459,13 +459,45 @@ class Simulation:
                 break  # no progress possible at this precision: keep the best iterate
             x = trial
             g = g_trial
-            gnorm = float(np.linalg.norm(g[free]))
+            previous, gnorm = gnorm, float(np.linalg.norm(g[free]))
             # at the round-off floor the residual stops falling: stop after 5 such steps
-            stalled = stalled + 1 if gnorm > 0.5 * best else 0
-            best = min(best, gnorm)
+            stalled = stalled + 1 if gnorm > 0.99 * previous else 0
         if not np.isfinite(gnorm):
             raise SimulationDiverged(self.step_count, "Newton iterate went non-finite")
         return x, it, gnorm
+
+    def _feasible_start(self, x_n, v_n, h, targets, potential, hessian):
+        """A Newton starting point with finite energy (no inverted ln J element).
+
+        Tries the explicit predictor ``x_n + h v_n``, then the previous positions, then
+        the previous positions plus the linear response of the free vertices to the
+        kinematic vertices' motion (one solve with the step matrix at ``x_n``); all with
+        fixed vertices held and kinematic ones on their targets. Raises
+        :class:`SimulationDiverged` naming the inverted elements if none is feasible.
+        """
+        for x in (x_n + h * v_n, x_n.copy()):
+            v = v_n.copy()
+            self._constrain(x, v, targets, h, x_n)
+            if np.isfinite(potential(x)):
+                return x
+        kin = np.repeat(self.kinematic, 3)
+        free = np.repeat(self.free, 3)
+        if kin.any():
+            a = hessian(x_n, True).tocsr()
+            d = (targets - x_n).reshape(-1)
+            u = np.zeros_like(d)
+            u[free] = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, kin] @ d[kin]))
+            u[kin] = d[kin]
+            x = x_n + u.reshape(x_n.shape)
+            v = v_n.copy()
+            self._constrain(x, v, targets, h, x_n)
+            if np.isfinite(potential(x)):
+                return x
+        from .mesh import signed_volumes
+
+        inverted = np.flatnonzero(signed_volumes(x, self.mesh.tets) <= 0)
+        raise SimulationDiverged(self.step_count, "no feasible start: the driven vertices invert "
+                                 "elements within one step", inverted)
 
     def _implicit_substep(self, h, targets):
         x_n, v_n = self.x.copy(), self.v.copy()
@@ -497,9 +529,7 @@ class Simulation:
             a = self.field.hessian(x, project=project) + diag
             return a + k_n if k_n is not None else a
 
-        x = x_n + h * v_n
-        v = v_n.copy()
-        self._constrain(x, v, targets, h, x_n)
+        x = self._feasible_start(x_n, v_n, h, targets, potential, hessian)
         free = np.repeat(self.free, 3)
         tol = self.newton_tol * self._force_scale()
         pcg = self._pcg if self.linear_solver == "pcg" else None
