@@ -1,0 +1,149 @@
+"""The ``heml-gym`` command line: train, eval, rollout, bench.
+
+    heml-gym train configs/tissue_ppo.yaml [--seed 1] [--resume CHECKPOINT] [--steps N]
+    heml-gym eval runs/tissue_ppo-seed0 [--episodes 50]
+    heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
+    heml-gym bench [force_throughput op_counts simulation_speed ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+def _train(args) -> int:
+    from .config import load_config
+    from .train import train
+
+    overrides = {}
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    if args.steps is not None:
+        overrides.setdefault("algorithm", {})["total_timesteps"] = args.steps
+    cfg = load_config(args.config, overrides)
+    result = train(cfg, run_dir=args.run_dir, resume=args.resume, progress_bar=not args.no_progress)
+    ev = result["final_evaluation"]
+    print(f"run folder: {result['run_dir']}  ({result['timesteps']} env steps)")
+    print(f"  model:       {Path(result['run_dir']) / 'model.zip'}")
+    print(f"  checkpoints: {Path(result['run_dir']) / 'checkpoints'}")
+    print(f"  tensorboard: tensorboard --logdir {Path(result['run_dir']) / 'tb'}")
+    print(f"  evaluation:  success {ev['success_rate']:.0%} (95% CI {ev['success_ci95'][0]:.0%}-"
+          f"{ev['success_ci95'][1]:.0%}) over {ev['episodes']} episodes")
+    return 0
+
+
+def _eval(args) -> int:
+    from .train import evaluate_policy, load_model, model_policy
+
+    model, cfg = load_model(args.run_or_model)
+    env_id = args.env or (cfg.env.id if cfg else "heml_gym/TissueRetraction-v0")
+    obs_mode = cfg.env.obs_mode if cfg else "state"
+    max_steps = cfg.env.max_episode_steps if cfg else 100
+    result = evaluate_policy(model_policy(model), env_id, args.episodes, seed=args.seed, obs_mode=obs_mode,
+                             max_episode_steps=max_steps)
+    result["env"] = env_id
+    print(json.dumps(result, indent=1))
+    if args.out:
+        Path(args.out).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def _rollout(args) -> int:
+    import gymnasium as gym
+
+    import heml_gym.envs  # noqa: F401
+
+    from .recording import record_rollouts
+
+    if args.policy == "scripted":
+        from heml_gym.envs.scripted import scripted_policy
+
+        env = gym.make(args.env)
+        policy = scripted_policy(env.unwrapped.task.scene.name)
+    else:
+        from .train import load_model, model_policy
+
+        model, cfg = load_model(args.policy)
+        env_id = cfg.env.id if cfg else args.env
+        env = gym.make(env_id, obs_mode=cfg.env.obs_mode if cfg else "state")
+        policy = model_policy(model)
+    summary = record_rollouts(env, policy, path=args.rrd, episodes=args.episodes, seed=args.seed,
+                              spawn=args.spawn)
+    print(json.dumps(summary, indent=1, default=str))
+    if args.rrd:
+        print(f"recording: {args.rrd}  (open with: rerun {args.rrd})")
+    return 0
+
+
+BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
+              "env_throughput", "scene_convergence"]
+
+
+def _bench(args) -> int:
+    root = Path(__file__).resolve().parents[1] / "benchmarks"
+    if not root.is_dir():
+        print("the benchmark scripts live in the source checkout (benchmarks/); "
+              "install heml-gym with `pip install -e .` from a clone to run them", file=sys.stderr)
+        return 2
+    names = args.names or BENCHMARKS
+    for name in names:
+        script = root / f"{name}.py"
+        if not script.is_file():
+            print(f"unknown benchmark {name!r}; known: {', '.join(BENCHMARKS)}", file=sys.stderr)
+            return 2
+        print(f"== {name}", flush=True)
+        code = subprocess.call([sys.executable, str(script), *args.extra])
+        if code:
+            return code
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="heml-gym", description="Train, evaluate and record agents on HEML tissue.")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="train an agent from a YAML config")
+    t.add_argument("config")
+    t.add_argument("--seed", type=int)
+    t.add_argument("--steps", type=int, help="override algorithm.total_timesteps")
+    t.add_argument("--resume", help="checkpoint .zip to continue from (keeps its step count)")
+    t.add_argument("--run-dir", help="run folder (default runs/<config name>-seed<seed>)")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.set_defaults(func=_train)
+
+    e = sub.add_parser("eval", help="success rate of a trained model or run folder")
+    e.add_argument("run_or_model")
+    e.add_argument("--episodes", type=int, default=50)
+    e.add_argument("--seed", type=int, default=10_000)
+    e.add_argument("--env", help="environment id (default: the run's)")
+    e.add_argument("--out", help="write the result as JSON here")
+    e.set_defaults(func=_eval)
+
+    r = sub.add_parser("rollout", help="roll a policy out and record it to rerun")
+    r.add_argument("--policy", default="scripted", help="'scripted', a model .zip or a run folder")
+    r.add_argument("--env", default="heml_gym/TissueRetraction-v0")
+    r.add_argument("--episodes", type=int, default=2)
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--rrd", help="write the recording to this .rrd file")
+    r.add_argument("--spawn", action="store_true", help="open the rerun viewer")
+    r.set_defaults(func=_rollout)
+
+    b = sub.add_parser("bench", help="run benchmark scripts (results go to docs/)")
+    b.add_argument("names", nargs="*", help=f"any of {', '.join(BENCHMARKS)} (default: all)")
+    b.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="arguments for the scripts")
+    b.set_defaults(func=_bench)
+
+    args = ap.parse_args(argv)
+    try:
+        return args.func(args)
+    except (FileNotFoundError, ValueError) as exc:  # ConfigError is a ValueError
+        print(f"heml-gym {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,155 @@
+"""Run configurations: YAML files validated before anything trains.
+
+A config names the environment, the algorithm and its hyperparameters, and the
+evaluation / checkpoint schedule::
+
+    env:
+      id: heml_gym/TissueRetraction-v0
+      num_envs: 8
+      obs_mode: state
+    algorithm:
+      name: PPO
+      policy: MlpPolicy
+      total_timesteps: 300000
+      hyperparameters: {n_steps: 128, batch_size: 256}
+    evaluation: {every_steps: 20000, episodes: 20}
+    checkpoint: {every_steps: 50000}
+    seed: 0
+
+Unknown keys, wrong types and missing files raise :class:`ConfigError` naming the key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any, get_type_hints
+
+import yaml
+
+ALGORITHMS = ("PPO", "SAC")
+
+
+class ConfigError(ValueError):
+    """An invalid run configuration; the message names the offending key or file."""
+
+
+@dataclass
+class EnvConfig:
+    id: str = "heml_gym/TissueRetraction-v0"
+    num_envs: int = 8
+    obs_mode: str = "state"
+    max_episode_steps: int = 100
+
+
+@dataclass
+class AlgorithmConfig:
+    name: str = "PPO"
+    policy: str = "MlpPolicy"
+    total_timesteps: int = 100_000
+    hyperparameters: dict = field(default_factory=dict)
+
+
+@dataclass
+class EvaluationConfig:
+    every_steps: int = 20_000
+    episodes: int = 20
+
+
+@dataclass
+class CheckpointConfig:
+    every_steps: int = 50_000
+
+
+@dataclass
+class RunConfig:
+    env: EnvConfig = field(default_factory=EnvConfig)
+    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    seed: int = 0
+    name: str = "run"
+
+    def to_dict(self) -> dict:
+        return _to_dict(self)
+
+
+def _to_dict(obj) -> dict:
+    return {f.name: (_to_dict(getattr(obj, f.name)) if is_dataclass(getattr(obj, f.name))
+                     else getattr(obj, f.name)) for f in fields(obj)}
+
+
+def _build(cls, data: Any, path: str):
+    if not isinstance(data, dict):
+        raise ConfigError(f"config key '{path or '<top>'}' must be a mapping, got {type(data).__name__}")
+    hints = get_type_hints(cls)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        where = f"{path}." if path else ""
+        raise ConfigError(f"unknown config key '{where}{unknown[0]}' (known: {', '.join(sorted(known))})")
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{path}.{name}" if path else name
+        expected = hints[name]
+        if is_dataclass(expected):
+            kwargs[name] = _build(expected, value, key)
+            continue
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if expected is int and isinstance(value, float) and value.is_integer():
+            value = int(value)  # YAML writes 1e5 as a float
+        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            raise ConfigError(f"config key '{key}' must be {expected.__name__}, "
+                              f"got {type(value).__name__} ({value!r})")
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def validate(cfg: RunConfig) -> RunConfig:
+    """Check values beyond types; raises :class:`ConfigError` naming the key."""
+    if cfg.algorithm.name not in ALGORITHMS:
+        raise ConfigError(f"config key 'algorithm.name' must be one of {ALGORITHMS}, got {cfg.algorithm.name!r}")
+    if cfg.env.obs_mode not in ("state", "pointcloud"):
+        raise ConfigError(f"config key 'env.obs_mode' must be 'state' or 'pointcloud', got {cfg.env.obs_mode!r}")
+    for key, value in [("env.num_envs", cfg.env.num_envs), ("env.max_episode_steps", cfg.env.max_episode_steps),
+                       ("algorithm.total_timesteps", cfg.algorithm.total_timesteps),
+                       ("evaluation.every_steps", cfg.evaluation.every_steps),
+                       ("evaluation.episodes", cfg.evaluation.episodes),
+                       ("checkpoint.every_steps", cfg.checkpoint.every_steps)]:
+        if value < 1:
+            raise ConfigError(f"config key '{key}' must be >= 1, got {value}")
+    import gymnasium as gym
+
+    import heml_gym.envs  # noqa: F401  (registers the ids)
+
+    if cfg.env.id not in gym.registry:
+        known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
+        raise ConfigError(f"config key 'env.id': unknown environment {cfg.env.id!r} (known: {', '.join(known)})")
+    return cfg
+
+
+def load_config(path: str | Path, overrides: dict | None = None) -> RunConfig:
+    """Read, type-check and validate a YAML run config; ``overrides`` (nested dict) win."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+    if overrides:
+        data = _merge(data, overrides)
+    data.setdefault("name", path.stem)
+    return validate(_build(RunConfig, data, ""))
+
+
+def config_from_dict(data: dict) -> RunConfig:
+    return validate(_build(RunConfig, data, ""))
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out.get(k, {}), v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

@@ -1,0 +1,191 @@
+"""Training and evaluation with Stable-Baselines3 on the batched retraction environments.
+
+A run lives in one folder: ``config.yaml`` (the resolved config), ``checkpoints/``,
+``tb/`` (TensorBoard), ``evaluations.json`` (success rate during training) and
+``model.zip`` (the final policy), so it can be evaluated, resumed or reproduced from the
+folder alone.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import yaml
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
+from stable_baselines3.common.vec_env import VecMonitor
+
+import heml_gym.envs  # noqa: F401  (registers the environments)
+
+from .config import RunConfig, load_config
+from .vec_env import RetractionSb3VecEnv
+
+ALGORITHM_CLASSES = {"PPO": PPO, "SAC": SAC}
+
+
+def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
+    """The SB3 VecEnv of a config: one batched Numba call for all scenes, with episode stats."""
+    vector_env = gym.make_vec(cfg.env.id, num_envs=num_envs or cfg.env.num_envs,
+                              vectorization_mode="vector_entry_point", obs_mode=cfg.env.obs_mode,
+                              max_episode_steps=cfg.env.max_episode_steps)
+    return VecMonitor(RetractionSb3VecEnv(vector_env.unwrapped))
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
+                    obs_mode: str = "state", max_episode_steps: int = 100) -> dict:
+    """Success rate (with its 95 % Wilson interval), mean final exposure and max strain.
+
+    ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``.
+    """
+    from heml_gym.envs.core import TaskSettings
+
+    env = gym.make(env_id, obs_mode=obs_mode, settings=TaskSettings(max_steps=max_episode_steps))
+    successes, exposures, strains, lengths = 0, [], [], []
+    for k in range(episodes):
+        obs, _ = env.reset(seed=seed + k)
+        if hasattr(policy, "reset"):
+            policy.reset()
+        done, steps, worst = False, 0, 0.0
+        while not done:
+            obs, _, terminated, truncated, info = env.step(policy(obs))
+            done = terminated or truncated
+            steps += 1
+            worst = max(worst, info["max_strain"])
+        successes += bool(info["is_success"])
+        exposures.append(info["exposure"])
+        strains.append(worst)
+        lengths.append(steps)
+    env.close()
+    lo, hi = wilson_interval(successes, episodes)
+    return {"episodes": episodes, "success_rate": successes / episodes, "success_ci95": [lo, hi],
+            "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
+            "mean_episode_length": float(np.mean(lengths))}
+
+
+def model_policy(model):
+    """An ``obs -> action`` callable from an SB3 model (deterministic)."""
+    return lambda obs: model.predict(obs, deterministic=True)[0]
+
+
+class SuccessEvalCallback(BaseCallback):
+    """Every ``every_steps`` env steps: evaluate the policy, log and store the success rate."""
+
+    def __init__(self, cfg: RunConfig, path: Path):
+        super().__init__()
+        self.cfg, self.path = cfg, path
+        self.history = json.loads(path.read_text()) if path.exists() else []
+        self._next = (self.history[-1]["timesteps"] if self.history else 0) + cfg.evaluation.every_steps
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            self._next += self.cfg.evaluation.every_steps
+            self.evaluate()
+        return True
+
+    def evaluate(self):
+        result = evaluate_policy(model_policy(self.model), self.cfg.env.id, self.cfg.evaluation.episodes,
+                                 obs_mode=self.cfg.env.obs_mode,
+                                 max_episode_steps=self.cfg.env.max_episode_steps)
+        result["timesteps"] = int(self.num_timesteps)
+        self.history.append(result)
+        self.path.write_text(json.dumps(self.history, indent=1))
+        self.logger.record("eval/success_rate", result["success_rate"])
+        self.logger.record("eval/mean_final_exposure", result["mean_final_exposure"])
+        return result
+
+
+def run_directory(cfg: RunConfig, root: str | Path = "runs") -> Path:
+    return Path(root) / f"{cfg.name}-seed{cfg.seed}"
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The checkpoint of the run with the most steps, or None."""
+    best, best_steps = None, -1
+    for p in (run_dir / "checkpoints").glob("*.zip"):
+        m = re.search(r"_(\d+)_steps\.zip$", p.name)
+        if m and int(m.group(1)) > best_steps:
+            best, best_steps = p, int(m.group(1))
+    return best
+
+
+def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
+          progress_bar: bool = True) -> dict:
+    """Train per ``cfg`` into ``run_dir``; ``resume`` continues from a checkpoint's step count."""
+    run_dir = Path(run_dir) if run_dir is not None else run_directory(cfg)
+    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    env = make_vec_env(cfg)
+    env.seed(cfg.seed)
+    algo = ALGORITHM_CLASSES[cfg.algorithm.name]
+    if resume is not None:
+        resume = Path(resume)
+        if not resume.is_file():
+            raise FileNotFoundError(f"checkpoint not found: {resume}")
+        model = algo.load(resume, env=env, device="cpu", tensorboard_log=str(run_dir / "tb"))
+    else:
+        model = algo(cfg.algorithm.policy, env, seed=cfg.seed, device="cpu", verbose=0,
+                     tensorboard_log=str(run_dir / "tb"), **cfg.algorithm.hyperparameters)
+    evaluator = SuccessEvalCallback(cfg, run_dir / "evaluations.json")
+    callbacks = [
+        CheckpointCallback(save_freq=max(1, cfg.checkpoint.every_steps // cfg.env.num_envs),
+                           save_path=str(run_dir / "checkpoints"), name_prefix="model"),
+        evaluator,
+    ]
+    remaining = cfg.algorithm.total_timesteps - (model.num_timesteps if resume is not None else 0)
+    if remaining > 0:
+        model.learn(total_timesteps=remaining, callback=CallbackList(callbacks),
+                    reset_num_timesteps=resume is None, progress_bar=progress_bar,
+                    tb_log_name=cfg.algorithm.name)
+    model.save(run_dir / "model.zip")
+    final = evaluator.evaluate() if not evaluator.history or evaluator.history[-1]["timesteps"] != model.num_timesteps else evaluator.history[-1]
+    env.close()
+    return {"run_dir": str(run_dir), "timesteps": int(model.num_timesteps), "final_evaluation": final}
+
+
+def load_model(path: str | Path):
+    """An SB3 model from a ``.zip`` or a run folder (its ``model.zip`` or latest checkpoint)."""
+    path = Path(path)
+    if path.is_dir():
+        cfg_path = path / "config.yaml"
+        candidate = path / "model.zip"
+        if not candidate.is_file():
+            candidate = latest_checkpoint(path)
+        if candidate is None:
+            raise FileNotFoundError(f"no model.zip or checkpoint in run folder {path}")
+        cfg = load_config(cfg_path) if cfg_path.is_file() else None
+        path = candidate
+    elif not path.is_file():
+        raise FileNotFoundError(f"model file or run folder not found: {path}")
+    else:
+        cfg = None
+        cfg_path = path.parent.parent / "config.yaml" if path.parent.name == "checkpoints" else path.parent / "config.yaml"
+        if cfg_path.is_file():
+            cfg = load_config(cfg_path)
+    name = cfg.algorithm.name if cfg is not None else _algorithm_of(path)
+    return ALGORITHM_CLASSES[name].load(path, device="cpu"), cfg
+
+
+def _algorithm_of(path: Path) -> str:
+    for name, cls in ALGORITHM_CLASSES.items():
+        try:
+            cls.load(path, device="cpu")
+            return name
+        except Exception:  # noqa: BLE001 - try the next algorithm
+            continue
+    raise ValueError(f"{path} is not a PPO or SAC model")

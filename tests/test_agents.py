@@ -1,0 +1,82 @@
+"""Agents: config validation, a tiny train / save / reload / evaluate / resume cycle, CLI errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from stable_baselines3 import PPO
+
+from heml_gym.agents.cli import main
+from heml_gym.agents.config import ConfigError, config_from_dict, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def tiny_config(tmp_path, **changes) -> Path:
+    cfg = yaml.safe_load((ROOT / "configs" / "quick.yaml").read_text())
+    cfg["env"]["num_envs"] = 4
+    cfg["env"]["max_episode_steps"] = 20
+    cfg["algorithm"]["total_timesteps"] = 1024
+    cfg["algorithm"]["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=2)
+    cfg["evaluation"] = {"every_steps": 512, "episodes": 3}
+    cfg["checkpoint"] = {"every_steps": 512}
+    for key, value in changes.items():
+        section, name = key.split("__")
+        cfg[section][name] = value
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.mark.parametrize("name", ["quick", "tissue_ppo", "tissue_sac", "organ_ppo", "organ_sac"])
+def test_shipped_configs_are_valid(name):
+    cfg = load_config(ROOT / "configs" / f"{name}.yaml")
+    assert cfg.algorithm.total_timesteps > 0
+
+
+@pytest.mark.parametrize("data, key", [
+    ({"algorithm": {"nme": "PPO"}}, "algorithm.nme"),
+    ({"env": {"num_envs": "eight"}}, "env.num_envs"),
+    ({"env": {"id": "heml_gym/Nope-v0"}}, "env.id"),
+    ({"algorithm": {"name": "DQN"}}, "algorithm.name"),
+    ({"evaluation": {"episodes": 0}}, "evaluation.episodes"),
+    ({"seeed": 1}, "seeed"),
+    ({"env": [1, 2]}, "env"),
+])
+def test_bad_configs_fail_fast_naming_the_key(data, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        config_from_dict(data)
+
+
+def test_missing_config_file_and_model_are_clear_errors(tmp_path, capsys):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    assert main(["eval", str(tmp_path / "missing.zip")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "nope.yaml")]) == 2
+
+
+def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path):
+    config = tiny_config(tmp_path)
+    run = tmp_path / "run"
+    assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 0
+    model = PPO.load(run / "model.zip", device="cpu")
+    assert model.num_timesteps >= 1024
+    history = json.loads((run / "evaluations.json").read_text())
+    assert history and 0.0 <= history[-1]["success_rate"] <= 1.0
+    checkpoints = sorted((run / "checkpoints").glob("*.zip"))
+    assert checkpoints
+    # evaluate the saved run through the CLI
+    out = tmp_path / "eval.json"
+    assert main(["eval", str(run), "--episodes", "2", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["episodes"] == 2 and len(result["success_ci95"]) == 2
+    # resume from the final model: the step count continues to the new total
+    first = model.num_timesteps
+    assert main(["train", str(config), "--run-dir", str(run), "--resume", str(run / "model.zip"),
+                 "--steps", str(first + 512), "--no-progress"]) == 0
+    resumed = PPO.load(run / "model.zip", device="cpu")
+    assert first + 512 <= resumed.num_timesteps < first + 512 + 4 * 64 + 1
