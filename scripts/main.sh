@@ -1,7 +1,14 @@
 #!/usr/bin/env bash
-# The main job: set up the environment (first run only) and run the demo.
+# The main job: set up the environment (first run only), train the default agent on
+# heml_gym/TissueRetraction-v0 for a short budget, evaluate it, and record a rollout.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-HEML_EXTRAS="${HEML_EXTRAS:-mesh}" source scripts/setup_env.sh
+HEML_EXTRAS="${HEML_EXTRAS:-train,viz}" source scripts/setup_env.sh
 set -euo pipefail
-python -m heml_gym.demo "$@"
+run="${RUN_DIR:-runs/quick-seed0}"
+heml-gym train configs/quick.yaml --run-dir "$run" "$@"
+heml-gym eval "$run" --episodes 20 --out "$run/eval.json"
+heml-gym rollout --policy "$run" --episodes 2 --rrd "$run/rollout.rrd"
+echo
+echo "everything is in $run/: model.zip, checkpoints/, tb/ (tensorboard --logdir $run/tb),"
+echo "evaluations.json (success during training), eval.json, rollout.rrd (rerun $run/rollout.rrd)"
