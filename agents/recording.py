@@ -95,7 +95,7 @@ def _import_rerun():
     try:
         import rerun as rr
         import rerun.blueprint as rrb
-    except ImportError as exc:  # pragma: no cover - exercised by monkeypatching in the tests
+    except ImportError as exc:  # tests/test_recording.py hides rerun to check this
         raise ImportError(
             "recording rollouts needs the rerun SDK (rerun-sdk >= 0.41); install it with "
             "pip install 'heml-gym[viz]'"
