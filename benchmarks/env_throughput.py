@@ -1,0 +1,421 @@
+"""Environment throughput: env steps per second of the retraction tasks.
+
+For ``heml_gym/TissueRetraction-v0`` (and ``heml_gym/OrganRetraction-v0`` when it is
+registered), with the default ``control_dt`` = 0.1 s simulated per env step:
+
+1. Single env (the unwrapped env class, i.e. ``TissueRetractionEnv``): random actions
+   and the scripted fold-back policy (policy call included in the loop), numba threads
+   = 1 and = all. One row also goes through ``gym.make`` (its checker wrappers).
+2. Time breakdown of the single env step (random actions, one thread): physics
+   (``task.sim.step``), exposure ray casting (``task._exposure``), edge strain
+   (``task._max_strain``) and the rest (grasp logic, observation, reward, gymnasium
+   plumbing), by timing those task internals in place.
+3. Vector env (``gym.make_vec(..., vectorization_mode="vector_entry_point")``, i.e.
+   ``TissueRetractionVectorEnv``) with N = 1, 4, 16, 64 scenes, random actions, numba
+   threads = 1 and = all: total env steps per second (N x vector steps per second), and
+   the same time breakdown at the largest N.
+
+Every rate includes the resets of episodes that end during the run (autoreset in the
+vector env), as in a training loop. Timings are taken in blocks of steps; the table gives
+the median block rate (and the interquartile range). The blocks of all configurations
+of an env are interleaved (each round runs one block of each, in a shuffled order) so
+that they see the same background load: on a shared machine the numbers are noisy, and
+a second thread only helps when a core is free (otherwise the OpenMP team oversubscribes
+the cores and every parallel call waits for its slowest, descheduled, thread). The
+machine-wide CPU use during the run (/proc/stat) is stored beside the results.
+
+Writes docs/benchmarks/env_throughput.{json,md} and docs/img/env_throughput.png.
+
+    python benchmarks/env_throughput.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numba
+import numpy as np
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import heml_gym.envs  # noqa: E402,F401  (registers the envs)
+from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
+
+ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
+VECTOR_SIZES = (1, 4, 16, 64)
+BAR_SINGLE = 300.0  # env steps/s, single env, one core
+BAR_VECTOR = 1500.0  # env steps/s in total, vectorised, this 2-core machine
+
+
+def _policy_for(env):
+    """The scripted baseline for the env's scene family (None if there is none)."""
+    from heml_gym.envs import scripted
+
+    name = env.unwrapped.task.scene.name
+    if hasattr(scripted, "scripted_policy"):
+        try:
+            return scripted.scripted_policy(name)
+        except ValueError:
+            return None
+    return scripted.FoldBackPolicy() if name == "TissueRetraction" else None
+
+
+# ----------------------------------------------------------------- single env
+class _SingleRunner:
+    """Steps one env with a given action source, resetting when an episode ends."""
+
+    def __init__(self, env, mode: str, seed: int):
+        self.env, self.mode = env, mode
+        self.rng = np.random.default_rng(seed)
+        self.policy = _policy_for(env) if mode == "scripted" else None
+        self.episode = seed * 1000
+        self.episodes = 0
+        self._reset()
+
+    def _reset(self):
+        self.obs, _ = self.env.reset(seed=self.episode)
+        self.episode += 1
+        self.episodes += 1
+        if self.policy is not None:
+            self.policy.reset()
+
+    def block(self, steps: int) -> tuple[float, float, float]:
+        """Wall, main-thread CPU and process CPU seconds for ``steps`` env steps
+        (including the policy and any resets)."""
+        actions = self.rng.uniform(-1.0, 1.0, (steps, 4)).astype(np.float32)
+        env, policy = self.env, self.policy
+        c0, p0, t0 = time.thread_time(), time.process_time(), time.perf_counter()
+        for k in range(steps):
+            a = policy(self.obs) if policy is not None else actions[k]
+            self.obs, _, terminated, truncated, _ = env.step(a)
+            if terminated or truncated:
+                self._reset()
+        return time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0
+
+
+def _rates(times, steps_per_block, threads):
+    """Median (and IQR) of the block rates by wall time; for one thread also by the main
+    thread's CPU time (what the run would give on a core of its own); and the cores the
+    process kept busy on average (process CPU / wall; OpenMP workers spin-wait, so this
+    counts waiting as well as work)."""
+    t = np.asarray(times)
+    rates = steps_per_block / t[:, 0]
+    q1, med, q3 = np.percentile(rates, [25, 50, 75])
+    out = {"median_steps_per_s": float(med), "iqr_steps_per_s": float(q3 - q1),
+           "blocks": len(times), "steps_per_block": int(steps_per_block),
+           "cpu_rate_steps_per_s": float(np.median(steps_per_block / t[:, 1])) if threads == 1 else None,
+           "busy_cores": float(np.median(t[:, 2] / t[:, 0])),
+           "block_times_s": t.tolist()}
+    return out
+
+
+def _single_configs(env_id: str, threads_all: int) -> list[dict]:
+    """Single-env configurations: (actions, wrapped, threads) with their runners."""
+    configs = []
+    for mode, wrapped in (("random", False), ("scripted", False), ("random", True)):
+        make = (lambda: gym.make(env_id)) if wrapped else (lambda: gym.make(env_id).unwrapped)
+        if mode == "scripted" and _policy_for(make()) is None:
+            continue
+        for t in ((1,) if wrapped else (1, threads_all)):
+            configs.append({"env_id": env_id, "env": "gym.make (wrapped)" if wrapped else "single",
+                            "actions": mode, "num_envs": 1, "threads": t,
+                            "runner": _SingleRunner(make(), mode, seed=1)})
+    return configs
+
+
+# ------------------------------------------------------------------ breakdown
+class _Timed:
+    """Wraps a bound method of a task object and accumulates its wall time."""
+
+    def __init__(self, fn):
+        self.fn, self.total = fn, 0.0
+
+    def __call__(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        out = self.fn(*args, **kwargs)
+        self.total += time.perf_counter() - t0
+        return out
+
+
+def _instrument(task):
+    """Time ``task.sim.step`` (physics), ``task._exposure``, ``task._max_strain`` in place."""
+    parts = {}
+    for name, owner, attr in (("physics", task.sim, "step"), ("exposure", task, "_exposure"),
+                              ("strain", task, "_max_strain")):
+        if hasattr(owner, attr):
+            timed = _Timed(getattr(owner, attr))
+            setattr(owner, attr, timed)  # instance attribute shadows the method
+            parts[name] = timed
+    return parts
+
+
+def breakdown(env, steps: int, num_envs: int, threads: int, seed: int = 3) -> dict:
+    """Mean time per env step split into physics / exposure / strain / rest (ms)."""
+    numba.set_num_threads(threads)
+    task = env.unwrapped.task
+    rng = np.random.default_rng(seed)
+    vector = num_envs > 1 or hasattr(env, "num_envs")
+    shape = (num_envs, 4) if vector else (4,)
+    env.reset(seed=seed)
+    for _ in range(3):  # warm-up
+        env.step(rng.uniform(-1, 1, shape).astype(np.float32))
+    parts = _instrument(task)
+    substeps = getattr(task, "substeps", None)
+    resets = 0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, shape).astype(np.float32))
+        if not vector and (terminated or truncated):
+            # reset time is counted in "rest" (it also runs the exposure once)
+            env.reset()
+            resets += 1
+    total = time.perf_counter() - t0
+    env_steps = steps * num_envs
+    ms = {k: 1e3 * p.total / env_steps for k, p in parts.items()}
+    ms["rest"] = 1e3 * total / env_steps - sum(ms.values())
+    ms["total"] = 1e3 * total / env_steps
+    mesh = task.scene.mesh
+    out = {"num_envs": num_envs, "threads": threads, "env_steps": env_steps, "resets": resets,
+           "ms_per_env_step": ms, "share": {k: v / ms["total"] for k, v in ms.items() if k != "total"},
+           "substeps_per_env_step": substeps, "n_vertices": mesh.n_vertices, "n_tets": mesh.n_tets,
+           "n_surface_triangles": int(len(task.scene.surface_faces))}
+    if substeps:
+        out["physics_M_tet_substeps_per_s"] = mesh.n_tets * substeps / (ms["physics"] * 1e-3) / 1e6
+    return out
+
+
+# ----------------------------------------------------------------- vector env
+class _VectorRunner:
+    def __init__(self, env_id: str, n: int, seed: int):
+        self.env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
+        self.n = n
+        self.rng = np.random.default_rng(seed)
+        self.env.reset(seed=seed)
+        self.episodes_ended = 0
+
+    def block(self, steps: int) -> tuple[float, float, float]:
+        actions = self.rng.uniform(-1.0, 1.0, (steps, self.n, 4)).astype(np.float32)
+        env = self.env
+        c0, p0, t0 = time.thread_time(), time.process_time(), time.perf_counter()
+        for k in range(steps):
+            _, _, terminated, truncated, _ = env.step(actions[k])
+            self.episodes_ended += int(np.count_nonzero(terminated | truncated))
+        return time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0
+
+
+def _vector_configs(env_id: str, threads_all: int) -> list[dict]:
+    return [{"env_id": env_id, "env": "vector", "actions": "random", "num_envs": n, "threads": t,
+             "runner": _VectorRunner(env_id, n, seed=2)}
+            for n in VECTOR_SIZES for t in (1, threads_all)]
+
+
+def _cpu_stat() -> np.ndarray:
+    """Machine-wide jiffies from /proc/stat: (busy, idle, steal)."""
+    try:
+        f = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    except OSError:
+        return np.zeros(3)
+    idle = f[3] + f[4]
+    steal = f[7] if len(f) > 7 else 0
+    return np.array([sum(f[:8]) - idle - steal, idle, steal], dtype=float)
+
+
+def run_interleaved(configs: list[dict], rounds: int, target_env_steps: int, bar) -> list[dict]:
+    """Time every configuration in blocks; each round runs one block of each configuration
+    (in a shuffled order), so all of them see the same background load."""
+    rng = np.random.default_rng(0)
+    for c in configs:  # warm-up: compilation, caches
+        numba.set_num_threads(c["threads"])
+        c["runner"].block(3)
+        c["steps"] = max(4, target_env_steps // c["num_envs"])  # steps (vector steps) per block
+        c["times"] = []
+    for _ in range(rounds):
+        for i in rng.permutation(len(configs)):
+            c = configs[i]
+            numba.set_num_threads(c["threads"])
+            c["times"].append(c["runner"].block(c["steps"]))
+            bar.update(1)
+    rows = []
+    for c in configs:
+        r = c["runner"]
+        extra = ({"episodes_started": r.episodes} if hasattr(r, "episodes")
+                 else {"episodes_ended": r.episodes_ended})
+        rows.append({k: c[k] for k in ("env_id", "env", "actions", "num_envs", "threads")}
+                    | extra | _rates(c["times"], c["steps"] * c["num_envs"], c["threads"]))
+        if hasattr(r.env, "close"):
+            r.env.close()
+    return rows
+
+
+# ---------------------------------------------------------------------- output
+def _chart(results: dict, path: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    envs = list(results["envs"])
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), gridspec_kw={"width_ratios": [1.4, 1]})
+    ax = axes[0]
+    markers = {1: "o", results["threads_all"]: "s"}
+    for env_id in envs:
+        short = env_id.split("/")[-1]
+        vec = [r for r in results["envs"][env_id]["throughput"] if r["env"] == "vector"]
+        for t in sorted({r["threads"] for r in vec}):
+            rr = [r for r in vec if r["threads"] == t]
+            ax.errorbar([r["num_envs"] for r in rr], [r["median_steps_per_s"] for r in rr],
+                        yerr=[r["iqr_steps_per_s"] / 2 for r in rr], marker=markers.get(t, "^"),
+                        capsize=3, label=f"{short} vector, {t} thread{'s' if t > 1 else ''}")
+        single = [r for r in results["envs"][env_id]["throughput"]
+                  if r["env"] == "single" and r["threads"] == 1 and r["actions"] == "random"]
+        if single:
+            ax.plot([1], [single[0]["median_steps_per_s"]], "k*", ms=11,
+                    label=f"{short} single env, 1 thread" if env_id == envs[0] else None)
+    ax.axhline(BAR_VECTOR, color="tab:red", ls="--", lw=1, label=f"bar: vector {BAR_VECTOR:.0f}/s (2 cores)")
+    ax.axhline(BAR_SINGLE, color="tab:gray", ls=":", lw=1, label=f"bar: single {BAR_SINGLE:.0f}/s (1 core)")
+    ax.set_xscale("log", base=2)
+    ax.set_xticks(VECTOR_SIZES, [str(n) for n in VECTOR_SIZES])
+    ax.set_xlabel("number of scenes N")
+    ax.set_ylabel("env steps / s (total, median of blocks)")
+    ax.set_title("Throughput, 0.1 s simulated per env step, random actions")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7.5)
+
+    ax = axes[1]
+    colors = {"physics": "tab:blue", "exposure": "tab:orange", "strain": "tab:green", "rest": "tab:gray"}
+    labels, stacks = [], []
+    for env_id in envs:
+        short = env_id.split("/")[-1].replace("Retraction-v0", "")
+        for b in results["envs"][env_id]["breakdown"]:
+            labels.append(f"{short}\nN={b['num_envs']}, {b['threads']}T")
+            stacks.append(b["ms_per_env_step"])
+    x = np.arange(len(labels))
+    bottom = np.zeros(len(labels))
+    for part, c in colors.items():
+        vals = np.array([s.get(part, 0.0) for s in stacks])
+        ax.bar(x, vals, bottom=bottom, color=c, label=part, width=0.6)
+        bottom += vals
+    ax.set_xticks(x, labels, fontsize=7.5)
+    ax.set_ylabel("ms per env step")
+    ax.set_title("Where an env step goes")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _markdown(results: dict) -> str:
+    m = results["machine"]
+    md = ("# Environment throughput\n\n"
+          f"Generated by `benchmarks/env_throughput.py` in {results['wall_s']:.0f} s on {m['cpu']} "
+          f"({m['cores']} cores, numba threading layer `{results['threading_layer']}`; load average "
+          f"{results['load_average_before'][0]:.1f} before, {results['load_average_after'][0]:.1f} after; "
+          f"all cores {100 * results['machine_busy_fraction']:.0f}% busy during the run, ours and others'): "
+          "the machine was shared, so these are medians of noisy blocks, and the blocks of all "
+          "configurations were interleaved (one of each per round) so that they saw the same load. "
+          "0.1 s simulated per env step (the default `control_dt`); rates include the resets of "
+          "episodes that end during the run. Chart: [env_throughput.png](../img/env_throughput.png).\n\n")
+    for env_id, res in results["envs"].items():
+        md += f"## {env_id}\n\n"
+        b0 = res["breakdown"][0]
+        md += (f"Mesh {b0['n_vertices']} vertices / {b0['n_tets']} tets / {b0['n_surface_triangles']} "
+               f"surface triangles; {b0['substeps_per_env_step']} explicit sub-steps per env step.\n\n")
+        rows = []
+        for r in res["throughput"]:
+            rows.append([r["env"], r["actions"], r["num_envs"], r["threads"],
+                         f"{r['median_steps_per_s']:.0f}", f"{r['iqr_steps_per_s']:.0f}",
+                         f"{1e3 / r['median_steps_per_s']:.2f}",
+                         "-" if r["cpu_rate_steps_per_s"] is None else f"{r['cpu_rate_steps_per_s']:.0f}",
+                         f"{r['busy_cores']:.2f}", r["blocks"]])
+        md += markdown_table(["env", "actions", "N", "threads", "env steps/s (median, wall)", "IQR",
+                              "ms per env step", "env steps/s by CPU time (1 thread)",
+                              "cores busy", "blocks"], rows)
+        md += "\nTime per env step (ms; mean over the run, random actions):\n\n"
+        rows = []
+        for b in res["breakdown"]:
+            ms = b["ms_per_env_step"]
+            rows.append([b["num_envs"], b["threads"], f"{ms['total']:.3f}"]
+                        + [f"{ms.get(k, 0):.3f} ({100 * b['share'].get(k, 0):.0f}%)"
+                           for k in ("physics", "exposure", "strain", "rest")]
+                        + [f"{b.get('physics_M_tet_substeps_per_s', float('nan')):.1f}"])
+        md += markdown_table(["N", "threads", "total", "physics", "exposure ray casting", "edge strain",
+                              "rest", "physics M tet-substeps/s"], rows)
+        md += "\n" + res["verdict"] + "\n\n"
+    return md
+
+
+def _verdict(rows) -> str:
+    single = [r for r in rows if r["env"] == "single" and r["threads"] == 1]
+    vec = [r for r in rows if r["env"] == "vector"]
+    best = max(vec, key=lambda r: r["median_steps_per_s"])
+    lines = []
+    for r in single:
+        ok = "meets" if r["median_steps_per_s"] >= BAR_SINGLE else "misses"
+        ok_cpu = "meets" if r["cpu_rate_steps_per_s"] >= BAR_SINGLE else "misses"
+        lines.append(f"- {r['env']} env, {r['actions']} actions, 1 thread: {r['median_steps_per_s']:.0f} env "
+                     f"steps/s by wall time ({ok}), {r['cpu_rate_steps_per_s']:.0f} by CPU time ({ok_cpu} "
+                     f"the {BAR_SINGLE:.0f}/s bar).")
+    ok = "meets" if best["median_steps_per_s"] >= BAR_VECTOR else "misses"
+    lines.append(f"- best vectorised: {best['median_steps_per_s']:.0f} env steps/s at N = {best['num_envs']}, "
+                 f"{best['threads']} thread(s) ({ok} the {BAR_VECTOR:.0f}/s bar).")
+    for n in VECTOR_SIZES:
+        by_t = {r["threads"]: r["median_steps_per_s"] for r in vec if r["num_envs"] == n}
+        if len(by_t) == 2:
+            t1, t2 = by_t[min(by_t)], by_t[max(by_t)]
+            lines.append(f"- N = {n}: {max(by_t)} threads / 1 thread = {t2 / t1:.2f}x")
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer and shorter blocks (smoke test)")
+    args = ap.parse_args()
+    rounds = 3 if args.quick else 9
+    env_steps_per_block = 40 if args.quick else 128
+    threads_all = numba.config.NUMBA_NUM_THREADS
+    env_ids = [e for e in ENV_IDS if e in gym.registry]
+    start = time.perf_counter()
+    load_before = os.getloadavg()
+    stat_before = _cpu_stat()
+    results = {"machine": machine_info(), "threads_all": threads_all, "control_dt_s": 0.1,
+               "bars": {"single_env_steps_per_s_one_core": BAR_SINGLE, "vector_env_steps_per_s_total": BAR_VECTOR},
+               "load_average_before": load_before, "envs": {}}
+    n_blocks = len(env_ids) * rounds * (5 + 2 * len(VECTOR_SIZES))
+    with tqdm(total=n_blocks, desc="blocks") as bar:
+        for env_id in env_ids:
+            configs = _single_configs(env_id, threads_all) + _vector_configs(env_id, threads_all)
+            rows = run_interleaved(configs, rounds, env_steps_per_block, bar)
+            bd = [breakdown(gym.make(env_id).unwrapped, 100 if args.quick else 300, 1, 1)]
+            nmax = VECTOR_SIZES[-1]
+            for t in (1, threads_all):
+                venv = gym.make_vec(env_id, num_envs=nmax, vectorization_mode="vector_entry_point")
+                bd.append(breakdown(venv, 4 if args.quick else 12, nmax, t))
+            results["envs"][env_id] = {"throughput": rows, "breakdown": bd, "verdict": _verdict(rows)}
+    results["threading_layer"] = numba.threading_layer()
+    results["load_average_after"] = os.getloadavg()
+    d = _cpu_stat() - stat_before
+    results["machine_busy_fraction"] = float(d[0] / max(d.sum(), 1.0))  # all processes, all cores
+    results["steal_fraction"] = float(d[2] / max(d.sum(), 1.0))
+    results["wall_s"] = time.perf_counter() - start
+    numba.set_num_threads(threads_all)
+    if not args.quick:
+        write_json("env_throughput.json", results)
+        md = _markdown(results)
+        (RESULTS / "env_throughput.md").write_text(md)
+        IMAGES.mkdir(parents=True, exist_ok=True)
+        _chart(results, IMAGES / "env_throughput.png")
+    else:
+        md = _markdown(results)
+        _chart(results, Path("/tmp/env_throughput_quick.png"))
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
