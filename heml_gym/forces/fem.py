@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels_fem
-from .base import ForceField
+from .base import ForceField, SameEnergyAsHeml
 
 
-class FemForce(ForceField):
+class FemForce(SameEnergyAsHeml, ForceField):
     """P1 FEM with ``F = Ds Dm^-1``, ``P = dPsi/dF`` and ``f = -V0 P Dm^-T`` per tet.
 
     Stresses come from each law's textbook formula in ``F`` (see
@@ -19,7 +19,6 @@ class FemForce(ForceField):
 
     def __init__(self, mesh, material):
         super().__init__(mesh, material)
-        self._hessian_field = None
         x = mesh.vertices[mesh.tets]
         dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)
         self.dm_inv = np.ascontiguousarray(np.linalg.inv(dm))
@@ -42,15 +41,3 @@ class FemForce(ForceField):
     def _add_forces_parallel(self, x, buf):
         kernels_fem.fem_forces_parallel(x, *self._args(), buf)
 
-    def hessian(self, x, project=True):
-        """Stiffness matrix ``d2W/dx2`` (N/m), a ``3n x 3n`` scipy CSR matrix.
-
-        The energy is the same P1 energy as HEML's for this mesh and law, so this is
-        HEML's analytic Hessian (see :meth:`heml_gym.HemlForce.hessian`); it lets the
-        implicit integrator run with this field's forces.
-        """
-        if self._hessian_field is None:
-            from .heml import HemlForce
-
-            self._hessian_field = HemlForce(self.mesh, self.material)
-        return self._hessian_field.hessian(x, project)

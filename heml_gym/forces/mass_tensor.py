@@ -33,7 +33,7 @@ import numpy as np
 
 from ..materials import StVenantKirchhoff
 from . import kernels_mass_tensor
-from .base import ForceField
+from .base import ForceField, SameEnergyAsHeml
 
 
 def shape_gradients(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -68,7 +68,7 @@ def mass_tensors(grads: np.ndarray, volumes: np.ndarray, mu: float, lam: float):
     return K, C, D
 
 
-class MassTensorForce(ForceField):
+class MassTensorForce(SameEnergyAsHeml, ForceField):
     """Nonlinear (StVK) mass-tensor force field with full per-tet tensors.
 
     Accepts only :class:`heml_gym.materials.StVenantKirchhoff`. Energies and forces equal
@@ -93,7 +93,6 @@ class MassTensorForce(ForceField):
                 f"got {type(material).__name__}"
             )
         super().__init__(mesh, material)
-        self._hessian_field = None
         m = mesh.n_tets
         grads = shape_gradients(mesh.vertices, mesh.tets)
         K, C, D = mass_tensors(grads, mesh.volumes, material.mu, material.lam)
@@ -123,15 +122,3 @@ class MassTensorForce(ForceField):
         m = self.mesh
         kernels_mass_tensor.mass_tensor_forces_parallel(x, m.vertices, m.tets, self.K, self.C, self.D, self._u, buf)
 
-    def hessian(self, x, project=True):
-        """Stiffness matrix ``d2W/dx2`` (N/m), a ``3n x 3n`` scipy CSR matrix.
-
-        The energy is the same P1 energy as HEML's for this mesh and law, so this is
-        HEML's analytic Hessian (see :meth:`heml_gym.HemlForce.hessian`); it lets the
-        implicit integrator run with this field's forces.
-        """
-        if self._hessian_field is None:
-            from .heml import HemlForce
-
-            self._hessian_field = HemlForce(self.mesh, self.material)
-        return self._hessian_field.hessian(x, project)
