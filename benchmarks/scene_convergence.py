@@ -281,6 +281,12 @@ def markdown(res: dict) -> str:
     return md
 
 
+def _ms_per_m(rows) -> float:
+    """Median CPU ms per million tet-sub-steps over the models with >= 1 M per step."""
+    big = [r["median_cpu_ms_per_step"] / r["M_tet_substeps_per_step"] for r in rows if r["M_tet_substeps_per_step"] >= 1]
+    return float(np.median(big)) if big else float("nan")
+
+
 def verdict(rows, reference: str) -> str:
     default = next(r for r in rows if r["model"] == label(DEFAULT))
     ok = [r for r in rows if r["within_5pct"] and r["model"] != reference and "jaw" not in r["model"]]
@@ -305,23 +311,25 @@ def charts(res: dict, runs: dict):
     rows = [r for r in res["table"] if r["model"] != res["reference"]]
     fig, ax = plt.subplots(1, 2, figsize=(12.5, 4.8))
     keys = ("force_rel_err_worst", "exposure_abs_err_worst")
-    for r in rows:
-        x = r["median_cpu_ms_per_step"]
+    for i, r in enumerate(rows):
+        x = r["M_tet_substeps_per_step"]
         c = "tab:green" if r["within_5pct"] else ("tab:purple" if "jaw" in r["model"] else "tab:red")
         mk = {0.25: "v", 0.5: "o", 0.9: "^"}.get(r["safety"], "s")
+        dy = {0.25: -12, 0.9: 12}.get(r["safety"], 3 - 11 * (i % 2))
         for a, key in zip(ax, keys):
             a.plot(x, 100 * r[key], mk, color=c, ms=8)
-            a.annotate(r["model"], (x, 100 * r[key]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+            a.annotate(r["model"], (x, 100 * r[key]), fontsize=7, xytext=(5, dy), textcoords="offset points")
     chk = res.get("check")
     if chk:
         for a, key in zip(ax, keys):
-            a.plot(chk["median_cpu_ms_per_step"], 100 * chk[key], "*", color="tab:gray", ms=12)
-            a.annotate(chk["model"] + " (finer than ref)", (chk["median_cpu_ms_per_step"], 100 * chk[key]),
+            a.plot(chk["M_tet_substeps_per_step"], 100 * chk[key], "*", color="tab:gray", ms=12)
+            a.annotate(chk["model"] + " (finer than ref)", (chk["M_tet_substeps_per_step"], 100 * chk[key]),
                        fontsize=7, xytext=(-70, 7), textcoords="offset points")
     for a, title in zip(ax, ("grasp force: max |F - F_ref| / max F_ref", "exposure: max |e - e_ref|")):
         a.axhline(100 * TOLERANCE, color="k", ls="--", lw=1, label="5% tolerance")
         a.set_xscale("log")
-        a.set_xlabel("cost: median CPU ms per env step (one thread)")
+        a.set_xlabel("cost: M tet-sub-steps per env step (physics is 80-95% of a step;\n"
+                     f"~{res['ms_per_M_tet_substeps']:.0f} CPU ms per M here, see the table for measured times)")
         a.set_ylabel("worst error over seeds (%)")
         a.set_title(title, fontsize=10)
         a.grid(alpha=0.3, which="both")
@@ -333,28 +341,32 @@ def charts(res: dict, runs: dict):
     fig.savefig(IMAGES / "scene_convergence.png", dpi=120)
     plt.close(fig)
 
-    seed = res["seeds"][0]
     show = [label(DEFAULT), "12x12x2 s=0.5", "16x16x2 s=0.5", "24x24x3 s=0.5 jaw=0mm", res["reference"],
-            CHECK[0] and label(CHECK[0])]
-    fig, ax = plt.subplots(1, 3, figsize=(14.5, 4.2))
-    for lab in show:
-        run = runs.get(lab, {}).get(seed)
-        if run is None:
-            continue
-        t = 0.1 * np.arange(1, len(run["exposure"]) + 1)
-        lw = 2.2 if lab in (res["reference"], label(DEFAULT)) else 1.1
-        for a, key in zip(ax, ("grasp_force", "exposure", "max_strain")):
-            a.plot(t, run[key], lw=lw, label=lab)
-    for a, name in zip(ax, ("grasp force (N)", "exposure", "largest edge strain")):
-        a.axvline(0.1 * res["windows"][0], color="k", lw=0.8, ls=":")
-        a.set_xlabel("time (s)")
-        a.set_ylabel(name)
-        a.grid(alpha=0.3)
-    ax[2].axhline(0.5, color="tab:orange", ls="--", lw=1, label="damage strain")
-    ax[2].axhline(1.0, color="tab:red", ls="-.", lw=1, label="tear strain")
-    ax[0].legend(fontsize=7)
-    ax[2].legend(fontsize=7)
-    fig.suptitle(f"Seed {seed}: the same gripper path on every model (dotted: the default's success)", fontsize=10)
+            label(CHECK[0])]
+    trace_seeds = res["seeds"][:2]
+    fig, axes = plt.subplots(len(trace_seeds), 3, figsize=(14.5, 3.9 * len(trace_seeds)), squeeze=False)
+    for row, seed in zip(axes, trace_seeds):
+        for lab in show:
+            run = runs.get(lab, {}).get(seed)
+            if run is None:
+                continue
+            t = 0.1 * np.arange(1, len(run["exposure"]) + 1)
+            lw = 2.2 if lab in (res["reference"], label(DEFAULT)) else 1.1
+            for a, key in zip(row, ("grasp_force", "exposure", "max_strain")):
+                a.plot(t, run[key], lw=lw, label=lab)
+        window = res["windows"][res["seeds"].index(seed)]
+        for a, name in zip(row, ("grasp force (N)", "exposure", "largest edge strain")):
+            a.axvline(0.1 * window, color="k", lw=0.8, ls=":")
+            a.set_xlabel("time (s)")
+            a.set_ylabel(name)
+            a.set_title(f"seed {seed}", fontsize=9)
+            a.grid(alpha=0.3)
+        row[2].axhline(0.5, color="tab:orange", ls="--", lw=1, label="damage strain")
+        row[2].axhline(1.0, color="tab:red", ls="-.", lw=1, label="tear strain")
+    axes[0, 0].legend(fontsize=7)
+    axes[0, 2].legend(fontsize=7)
+    fig.suptitle("The same gripper path on every model (dotted: the default's success, the end of its episode)",
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(IMAGES / "scene_convergence_traces.png", dpi=120)
     plt.close(fig)
@@ -385,6 +397,7 @@ def resummarise():
         cr["table"] = summarise(ctrl_runs, ctrl_models, cr["seeds"], cr["reference"],
                                 dict(zip(cr["seeds"], cr["windows"])))
     res["verdict"] = verdict(res["table"], ref)
+    res["ms_per_M_tet_substeps"] = _ms_per_m(res["table"])
     md = markdown(res)
     write_json("scene_convergence.json", res)
     (RESULTS / "scene_convergence.md").write_text(md)
@@ -435,6 +448,7 @@ def main():
                              "windows": [ctrl_windows[s] for s in ctrl_seeds],
                              "table": summarise(ctrl_runs, ctrl_models, list(ctrl_seeds), ctrl_ref, ctrl_windows)}
     res["verdict"] = verdict(rows, ref)
+    res["ms_per_M_tet_substeps"] = _ms_per_m(rows)
     res["wall_s"] = time.perf_counter() - start
     res["actions"] = {str(s): actions[s].tolist() for s in seeds}
     res["runs"] = {lab: {str(s): r for s, r in by_seed.items()} for lab, by_seed in runs.items()}

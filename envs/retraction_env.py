@@ -142,10 +142,17 @@ class RetractionVectorEnv(_ObservationMixin, VectorEnv):
         finished = self._needs_reset.copy()
         reward, terminated, truncated, info = self.task.step(a)
         if finished.any():  # next-step autoreset: these scenes start a new episode now
-            self.task.reset(np.flatnonzero(finished))
-            reward[finished] = 0.0
-            terminated[finished] = False
-            truncated[finished] = False
+            idx = np.flatnonzero(finished)
+            self.task.reset(idx)
+            reward[idx] = 0.0
+            terminated[idx] = False
+            truncated[idx] = False
+            for key, values in info.items():  # their info describes the new episode's start
+                if key.startswith("reward_") or values.dtype == bool:
+                    values[idx] = 0
+            info["exposure"][idx] = self.task.exposure[idx]
+            info["max_strain"][idx] = self.task.max_strain[idx]
+            info["grasp_force"][idx] = 0.0
         self._needs_reset = terminated | truncated
         return self._observations(self.task), reward, terminated, truncated, info
 

@@ -40,7 +40,7 @@ tissue surface vertices (m).
 
 The sum of (each reported in ``info`` under its name, weights in ``RewardWeights``):
 ``reward_exposure`` = 10 x (change of exposure this step); ``reward_grasp`` = 0.5 the
-first time a grasp holds tissue; ``reward_strain`` = -5 x (largest edge strain - 0.4, if
+first time a grasp holds tissue; ``reward_strain`` = -5 x (largest edge strain - 0.5, if
 positive); ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
 success. Exposure is the fraction of the tumour's camera-facing surface samples (64
 points) that the deformed tissue surface does not hide, by ray casting.
@@ -53,7 +53,7 @@ free edge); tissue E uniform in 2-5 kPa. ``reset(seed=...)`` fixes all of them.
 
 ## Episode End
 
-Terminated on success (exposure >= 0.8 with strain below 0.4), when the tissue tears
+Terminated on success (exposure >= 0.8 with strain below 0.5), when the tissue tears
 (edge strain >= 1.0) or when the simulation diverges (``info["simulation_diverged"]``;
 the observation stays finite). Truncated after 100 steps (10 s).
 

@@ -185,3 +185,18 @@ def test_rgb_array_render_shows_the_tumour_once_exposed():
             break
     assert info["exposure"] >= 0.8
     assert yellow(env.render()) > 0
+
+
+def test_vector_autoreset_step_reports_the_new_episode_not_the_old():
+    vec = TissueRetractionVectorEnv(num_envs=1)
+    obs, _ = vec.reset(seed=0)
+    policy = scripted_policy("TissueRetraction")
+    for _ in range(60):
+        obs, reward, terminated, truncated, info = vec.step(policy(obs[0])[None, :])
+        if terminated[0]:
+            break
+    assert terminated[0] and info["is_success"][0]
+    obs, reward, terminated, truncated, info = vec.step(np.zeros((1, 4), dtype=np.float32))
+    assert reward[0] == 0.0 and not terminated[0]
+    assert not info["is_success"][0] and info["reward_success"][0] == 0.0
+    assert info["exposure"][0] == obs[0][23]
