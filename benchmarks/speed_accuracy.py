@@ -27,7 +27,6 @@ Writes docs/benchmarks/speed_accuracy.json and .md, docs/img/speed_accuracy_*.pn
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -728,7 +727,7 @@ def plot_reference(ref, path):
         err = np.array([abs(r["tip_z"] - s["tip_z"]) for r in s["ladder"]]) / abs(s["tip_z"])
         ax.loglog(1.0 / ns, err, "o-", color=f"C{i}", label=f"{law} (fit p = {s['order_p']:.2f})")
         ax.axhline(s["relative_uncertainty"], color=f"C{i}", ls=":", lw=0.8)
-    ax.set_xlabel("cell size / box width ratio: 1 / n (n cells along x)")
+    ax.set_xlabel("1 / n  (n cells along x, cell size h = L / n)")
     ax.set_ylabel("|tip z - extrapolated| / |extrapolated|")
     ax.set_title("static: convergence under refinement\n(dotted: estimated reference uncertainty)", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
@@ -743,7 +742,10 @@ def plot_reference(ref, path):
                 label=f"extrapolated (± {100 * d['uncertainty_rel']:.1f} %)")
         ax.set_xlabel("time (s)")
         ax.set_ylabel("tip z displacement (mm)")
-        ax.set_title(f"dynamic reference, {law}: explicit HEML, safety {ref['settings']['ref_safety']}", fontsize=9)
+        title = f"dynamic reference, {law}: explicit HEML, safety {ref['settings']['ref_safety']}"
+        if d["uncertainty_rel"] > 0.1:
+            title += "\nNOT converged under refinement"
+        ax.set_title(title, fontsize=9)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
