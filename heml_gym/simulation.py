@@ -433,7 +433,7 @@ class Simulation:
                 if pcg is not None:
                     dx = pcg.solve(a, -gf, key=(pcg_key, project))
                 else:
-                    dx = spla.spsolve(a.tocsc(), -gf)
+                    dx = spla.spsolve(a.tocsc(), -gf, permc_spec="MMD_AT_PLUS_A")  # symmetric: 2x faster
                 slope = float(gf @ dx)
                 ok = bool(np.all(np.isfinite(dx)) and slope < 0)
                 if ok:
