@@ -200,6 +200,8 @@ class BatchedRetraction:
         }
         success = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~diverged
         terms["reward_success"] = np.where(success, w.success, 0.0)
+        # a diverged scene earns nothing: every term is zeroed, so they still add up
+        terms = {k: np.where(diverged, 0.0, v) for k, v in terms.items()}
         reward = sum(terms.values())
         torn = (self.max_strain >= st.tear_strain) & ~diverged
         terminated = success | torn | diverged
@@ -214,7 +216,6 @@ class BatchedRetraction:
             "tissue_torn": torn,
             "simulation_diverged": diverged,
         }
-        reward = np.where(diverged, 0.0, reward)
         return reward, terminated, truncated, info
 
     # ----------------------------------------------------------- measurements

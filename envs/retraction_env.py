@@ -9,7 +9,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from .core import STATE_SIZE, BatchedRetraction, RetractionScene, RewardWeights, TaskSettings
+from .core import BatchedRetraction, RetractionScene, RewardWeights, TaskSettings
 
 POINTCLOUD_SIZE = 64  # surface points in obs_mode="pointcloud"
 

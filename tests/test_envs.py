@@ -109,6 +109,7 @@ def test_diverged_simulation_ends_episode_with_flag_and_finite_obs():
         if terminated:
             break
     assert info["simulation_diverged"] and terminated and reward == 0.0
+    assert sum(v for key, v in info.items() if key.startswith("reward_")) == 0.0
 
 
 def test_bad_actions():
