@@ -151,9 +151,12 @@ class BatchedRetraction:
         self.max_strain[idx] = self._max_strain(idx)
 
     # ------------------------------------------------------------------- step
-    def step(self, actions: np.ndarray):
+    def step(self, actions: np.ndarray, active: np.ndarray | None = None):
         """Apply ``actions`` (N, 4) in [-1, 1] to every scene; returns reward, terminated,
-        truncated and a dict of per-scene arrays (the info)."""
+        truncated and a dict of per-scene arrays (the info).
+
+        Scenes outside the ``active`` mask (default: all) are not simulated (their results
+        are meaningless; the vector env resets them right after)."""
         st, w = self.settings, self.weights
         a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
         prev_exposure = self.exposure.copy()
@@ -183,7 +186,7 @@ class BatchedRetraction:
         for i in np.flatnonzero(self.grasping):
             idx = np.flatnonzero(self.held[i])
             self.sim.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
-        diverged = self.sim.step(st.control_dt, substeps=self.substeps)
+        diverged = self.sim.step(st.control_dt, active=active, substeps=self.substeps)
         self.steps += 1
         # measurements
         held_reaction = np.where(self.held[:, :, None], self.sim.reaction, 0.0).sum(axis=1)

@@ -140,7 +140,7 @@ class RetractionVectorEnv(_ObservationMixin, VectorEnv):
     def step(self, actions):
         a = _check_actions(actions, (self.num_envs, 4))
         finished = self._needs_reset.copy()
-        reward, terminated, truncated, info = self.task.step(a)
+        reward, terminated, truncated, info = self.task.step(a, active=~finished)
         if finished.any():  # next-step autoreset: these scenes start a new episode now
             idx = np.flatnonzero(finished)
             self.task.reset(idx)
