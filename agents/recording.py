@@ -42,7 +42,7 @@ Entities
 ``world/target``              :class:`rerun.Points3D`: the target (tumour) as a sphere of
                               the target radius, labelled with its exposure.
 ``plots/reward/<term>``       :class:`rerun.Scalars`: each ``reward_*`` term of the step's
-                              ``info`` (``exposure``, ``grasp``, ``strain``, ``effort``,
+                              ``info`` (``exposure``, ``lift``, ``grasp``, ``strain``, ``effort``,
                               ``success``) and ``total``, on step frames only (no reward at reset).
 ``plots/exposure/exposure``   exposure of the target (0..1), every frame;
 ``plots/exposure/success_threshold``  ``settings.success_exposure``, every frame.
@@ -59,11 +59,13 @@ A blueprint puts the 3D view of ``world`` beside a column of time-series views
 from __future__ import annotations
 
 import os
+from dataclasses import fields
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from heml_gym.envs.core import RewardWeights
 from heml_gym.envs.render_scene import JAWS_CLOSED, JAWS_OPEN, STRAINED, TISSUE, TUMOUR
 
 __all__ = ["record_rollouts", "FORCE_ARROW_SCALE", "SCALAR_ENTITIES", "REWARD_TERMS"]
@@ -71,7 +73,7 @@ __all__ = ["record_rollouts", "FORCE_ARROW_SCALE", "SCALAR_ENTITIES", "REWARD_TE
 #: metres of arrow per newton of grasp force in ``world/grasp_force``
 FORCE_ARROW_SCALE = 0.2
 #: reward terms of the task (``info["reward_<term>"]``), plotted under ``plots/reward/<term>``
-REWARD_TERMS = ("exposure", "grasp", "strain", "effort", "success")
+REWARD_TERMS = tuple(f.name for f in fields(RewardWeights))
 #: every scalar series entity, and whether it is logged on every frame (True) or on step
 #: frames only (False: the reward series)
 SCALAR_ENTITIES = {

@@ -36,6 +36,7 @@ class RewardWeights:
     """Weights of the reward terms (each term is reported in ``info`` under its name)."""
 
     exposure: float = 10.0  # times the change of exposure (0..1) this step
+    lift: float = 5.0  # times the change of lift progress (0..1) this step (shaping)
     grasp: float = 0.5  # once per episode, when a grasp first holds tissue
     strain: float = 5.0  # times the strain above the damage threshold
     effort: float = 0.01  # times |gripper velocity command|^2
@@ -53,6 +54,12 @@ class RetractionScene:
     positions (m); ``workspace_low``/``workspace_high``: the gripper is kept inside;
     ``stiffness_range``: E (Pa) drawn per episode; ``poisson``, ``density`` (kg/m^3),
     ``gravity`` (m/s^2), ``damping`` (1/s).
+
+    Retraction folds the tissue about a hinge line parallel to y through ``(x, z) =
+    hinge`` (m): ``fold_direction`` is +1 when the free tissue extends from the hinge
+    towards +x, -1 towards -x. ``edge_vertices`` are the free-edge vertices whose fold
+    angle about the hinge (rad, from rest, positive lifting the edge up) measures the lift
+    progress ``mean(clip(angle / fold_angle, 0, 1))``, a dense shaping signal.
     """
 
     name: str
@@ -72,6 +79,10 @@ class RetractionScene:
     density: float = 950.0
     gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     damping: float = 5.0
+    hinge: tuple[float, float] = (0.0, 0.0)
+    fold_direction: float = 1.0
+    fold_angle: float = np.pi / 2
+    edge_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     surface_faces: np.ndarray = field(init=False)
 
     def __post_init__(self):
@@ -116,6 +127,10 @@ class BatchedRetraction:
         surface = np.setdiff1d(s.mesh.surface_vertices, np.flatnonzero(self.sim.fixed))
         self._graspable = surface
         self._sphere = fibonacci_sphere(self.settings.exposure_samples)
+        self._edge = np.asarray(s.edge_vertices, dtype=np.int64)
+        if self._edge.size == 0:
+            raise ValueError(f"scene {s.name!r} has no edge_vertices to measure the lift by")
+        self._rest_angle = self._fold_angles(s.mesh.vertices[None, self._edge])[0]
         n = self.n
         self.gripper = np.zeros((n, 3))
         self.grasping = np.zeros(n, dtype=bool)
@@ -123,6 +138,7 @@ class BatchedRetraction:
         self.offsets = np.zeros((n, s.mesh.n_vertices, 3))
         self.target = np.zeros((n, 3))
         self.exposure = np.zeros(n)
+        self.lift = np.zeros(n)
         self.max_strain = np.zeros(n)
         self.grasp_force = np.zeros((n, 3))
         self.steps = np.zeros(n, dtype=np.int64)
@@ -148,6 +164,7 @@ class BatchedRetraction:
             self.grasp_force[i] = 0.0
         idx = np.atleast_1d(scenes)
         self.exposure[idx] = self._exposure(idx)
+        self.lift[idx] = self._lift(idx)
         self.max_strain[idx] = self._max_strain(idx)
 
     # ------------------------------------------------------------------- step
@@ -159,7 +176,7 @@ class BatchedRetraction:
         are meaningless; the vector env resets them right after)."""
         st, w = self.settings, self.weights
         a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
-        prev_exposure = self.exposure.copy()
+        prev_exposure, prev_lift = self.exposure.copy(), self.lift.copy()
         grasp_bonus = np.zeros(self.n)
         # grasp / release
         for i in range(self.n):
@@ -193,10 +210,12 @@ class BatchedRetraction:
         self.grasp_force = -held_reaction  # force the tissue pulls the gripper with
         all_scenes = np.arange(self.n)
         self.exposure = self._exposure(all_scenes)
+        self.lift = self._lift(all_scenes)
         self.max_strain = self._max_strain(all_scenes)
         # reward terms
         terms = {
             "reward_exposure": w.exposure * (self.exposure - prev_exposure),
+            "reward_lift": w.lift * (self.lift - prev_lift),
             "reward_grasp": grasp_bonus,
             "reward_strain": -w.strain * np.maximum(0.0, self.max_strain - st.damage_strain),
             "reward_effort": -w.effort * (a[:, :3] ** 2).sum(axis=1),
@@ -212,6 +231,7 @@ class BatchedRetraction:
         info = {
             **terms,
             "exposure": self.exposure.copy(),
+            "lift": self.lift.copy(),
             "max_strain": self.max_strain.copy(),
             "grasp_force": np.linalg.norm(self.grasp_force, axis=1),
             "grasping": self.grasping.copy(),
@@ -235,6 +255,23 @@ class BatchedRetraction:
         return visible_fraction_batch(points, self.scene.camera, self.sim.x[scenes],
                                       self.scene.surface_faces,
                                       sphere_center=self.target[scenes], sphere_radius=r)
+
+    def _fold_angles(self, x_edge: np.ndarray) -> np.ndarray:
+        """Angle (rad) of each edge vertex about the hinge, 0 along the free direction,
+        increasing as the edge lifts; in (-pi/2, 3 pi/2] so that folding back past
+        vertical does not wrap."""
+        s = self.scene
+        dx = s.fold_direction * (x_edge[..., 0] - s.hinge[0])
+        dz = x_edge[..., 2] - s.hinge[1]
+        angle = np.arctan2(dz, dx)
+        return np.where(angle <= -np.pi / 2, angle + 2 * np.pi, angle)
+
+    def _lift(self, scenes) -> np.ndarray:
+        """Lift progress in [0, 1]: mean over the edge vertices of their fold angle from
+        rest divided by the scene's ``fold_angle``, each clipped to [0, 1]."""
+        x_edge = self.sim.x[np.atleast_1d(scenes)][:, self._edge]
+        progress = (self._fold_angles(x_edge) - self._rest_angle) / self.scene.fold_angle
+        return np.nan_to_num(np.clip(progress, 0.0, 1.0)).mean(axis=1)
 
     def _max_strain(self, scenes) -> np.ndarray:
         """Largest engineering strain ``|l / L - 1|`` over the tissue's edges, per scene."""

@@ -43,6 +43,8 @@ from .retraction_env import RetractionEnv, RetractionVectorEnv
 
 DEFAULT_MESH_SIZE = 0.016
 ATTACHED_X = 0.045  # m: vertices beyond this are attached
+HINGE = (ATTACHED_X, 0.0)  # m: (x, z) of the line the lobe is lifted about
+EDGE_BAND = 0.012  # m: surface vertices this close to the thin edge (in x) measure the lift
 
 
 def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
@@ -73,6 +75,10 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
         workspace_high=np.array([0.10, 0.10, 0.20]),
         stiffness_range=(4e3, 8e3),
         density=1060.0,
+        hinge=HINGE,
+        fold_direction=-1.0,
+        fold_angle=0.6,
+        edge_vertices=mesh.surface_vertices[v[mesh.surface_vertices, 0] < lo[0] + EDGE_BAND],
     )
 
 

@@ -78,7 +78,7 @@ class RetractionEnv(_ObservationMixin, gym.Env):
 
     def _info_at_reset(self) -> dict[str, Any]:
         t = self.task
-        return {"exposure": float(t.exposure[0]), "max_strain": float(t.max_strain[0]),
+        return {"exposure": float(t.exposure[0]), "lift": float(t.lift[0]), "max_strain": float(t.max_strain[0]),
                 "grasp_force": 0.0, "is_success": False, "young_modulus": float(t.sim.young_modulus[0])}
 
     def step(self, action):
@@ -151,6 +151,7 @@ class RetractionVectorEnv(_ObservationMixin, VectorEnv):
                 if key.startswith("reward_") or values.dtype == bool:
                     values[idx] = 0
             info["exposure"][idx] = self.task.exposure[idx]
+            info["lift"][idx] = self.task.lift[idx]
             info["max_strain"][idx] = self.task.max_strain[idx]
             info["grasp_force"][idx] = 0.0
         self._needs_reset = terminated | truncated

@@ -53,10 +53,12 @@ class FoldBackPolicy:
 
 def scripted_policy(scene_name: str) -> FoldBackPolicy:
     """The scripted baseline of a scene family ("TissueRetraction" or "OrganRetraction")."""
+    from . import organ_retraction, tissue_retraction
+
     if scene_name == "TissueRetraction":  # fold the flap back over its attached edge
-        return FoldBackPolicy(hinge=(0.0, 0.008), direction=1.0, max_angle=1.9)
+        return FoldBackPolicy(hinge=tissue_retraction.HINGE, direction=1.0, max_angle=1.9)
     if scene_name == "OrganRetraction":  # lift the lobe's thin edge about its attachment
-        return FoldBackPolicy(hinge=(0.045, 0.0), direction=-1.0, max_angle=0.8)
+        return FoldBackPolicy(hinge=organ_retraction.HINGE, direction=-1.0, max_angle=0.8)
     raise ValueError(f"no scripted policy for scene {scene_name!r}")
 
 

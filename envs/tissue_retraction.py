@@ -39,7 +39,10 @@ tissue surface vertices (m).
 ## Rewards
 
 The sum of (each reported in ``info`` under its name, weights in ``RewardWeights``):
-``reward_exposure`` = 10 x (change of exposure this step); ``reward_grasp`` = 0.5 the
+``reward_exposure`` = 10 x (change of exposure this step); ``reward_lift`` = 5 x (change
+of lift progress this step), a potential-based shaping term (Ng et al. 1999) that pays
+for folding the free edge (x = 120 mm) back about the attached edge's top line, 1 at
+90 degrees (``info["lift"]``); ``reward_grasp`` = 0.5 the
 first time a grasp holds tissue; ``reward_strain`` = -5 x (largest edge strain - 0.5, if
 positive); ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
 success. Exposure is the fraction of the tumour's camera-facing surface samples (64
@@ -79,6 +82,7 @@ from .retraction_env import RetractionEnv, RetractionVectorEnv
 
 FLAP_SIZE = (0.12, 0.12, 0.008)
 DEFAULT_CELLS = (8, 8, 1)
+HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fold hinge
 
 
 def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
@@ -106,6 +110,10 @@ def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
         gripper_high=np.array([0.114, 0.08, 0.011]),
         workspace_low=np.array([-0.05, -0.05, 0.0]),
         workspace_high=np.array([0.20, 0.17, 0.15]),
+        hinge=HINGE,
+        fold_direction=1.0,
+        fold_angle=np.pi / 2,
+        edge_vertices=np.flatnonzero(np.isclose(v[:, 0], lx)),
     )
 
 

@@ -163,6 +163,36 @@ def test_reward_terms_add_up():
 
 
 @pytest.mark.parametrize("env_class", [TissueRetractionEnv, OrganRetractionEnv])
+@pytest.mark.parametrize("fraction", [0.25, 0.6, 1.0, 1.4])
+def test_lift_is_the_fold_angle_of_a_rigid_fold_about_the_hinge(env_class, fraction):
+    env = env_class()
+    env.reset(seed=0)
+    task, scene = env.task, env.task.scene
+    assert task.lift[0] == 0.0  # at rest
+    # fold the whole tissue rigidly about the hinge line by `fraction` of the scene's fold angle
+    angle = fraction * scene.fold_angle * scene.fold_direction
+    c, s = np.cos(angle), np.sin(angle)
+    rel = scene.mesh.vertices - np.array([scene.hinge[0], 0.0, scene.hinge[1]])
+    folded = rel.copy()
+    folded[:, 0] = c * rel[:, 0] - s * rel[:, 2]
+    folded[:, 2] = s * rel[:, 0] + c * rel[:, 2]
+    task.sim.x[0] = folded + np.array([scene.hinge[0], 0.0, scene.hinge[1]])
+    assert task._lift([0])[0] == pytest.approx(min(fraction, 1.0), abs=1e-12)
+
+
+def test_lift_reward_sums_to_the_final_lift_progress():
+    env = TissueRetractionEnv()
+    obs, _ = env.reset(seed=2)
+    policy, total, lifts = scripted_policy("TissueRetraction"), 0.0, []
+    for _ in range(15):
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        total += info["reward_lift"]
+        lifts.append(info["lift"])
+    assert np.all(np.diff(lifts) > 0)  # folding back raises the lift every step
+    assert total == pytest.approx(env.task.weights.lift * lifts[-1], rel=1e-12)
+
+
+@pytest.mark.parametrize("env_class", [TissueRetractionEnv, OrganRetractionEnv])
 def test_scripted_baseline_succeeds_in_ninety_percent(env_class):
     env = env_class()
     result = run_episodes(env, scripted_policy(env.task.scene.name), episodes=20, seed=1000)
