@@ -37,13 +37,13 @@ def _train(args) -> int:
 
 
 def _eval(args) -> int:
-    from .train import evaluate_policy, load_model, model_policy
+    from .train import evaluate_policy, load_policy
 
-    model, cfg = load_model(args.run_or_model)
+    policy, _, cfg = load_policy(args.run_or_model)
     env_id = args.env or (cfg.env.id if cfg else "heml_gym/TissueRetraction-v0")
     obs_mode = cfg.env.obs_mode if cfg else "state"
     max_steps = cfg.env.max_episode_steps if cfg else 100
-    result = evaluate_policy(model_policy(model), env_id, args.episodes, seed=args.seed, obs_mode=obs_mode,
+    result = evaluate_policy(policy, env_id, args.episodes, seed=args.seed, obs_mode=obs_mode,
                              max_episode_steps=max_steps)
     result["env"] = env_id
     print(json.dumps(result, indent=1))
@@ -65,12 +65,11 @@ def _rollout(args) -> int:
         env = gym.make(args.env)
         policy = scripted_policy(env.unwrapped.task.scene.name)
     else:
-        from .train import load_model, model_policy
+        from .train import load_policy
 
-        model, cfg = load_model(args.policy)
+        policy, _, cfg = load_policy(args.policy)
         env_id = cfg.env.id if cfg else args.env
         env = gym.make(env_id, obs_mode=cfg.env.obs_mode if cfg else "state")
-        policy = model_policy(model)
     summary = record_rollouts(env, policy, path=args.rrd, episodes=args.episodes, seed=args.seed,
                               spawn=args.spawn)
     print(json.dumps(summary, indent=1, default=str))

@@ -7,6 +7,7 @@ evaluation / checkpoint schedule::
       id: heml_gym/TissueRetraction-v0
       num_envs: 8
       obs_mode: state
+      normalize_observations: true   # VecNormalize statistics saved beside the model
     algorithm:
       name: PPO
       policy: MlpPolicy
@@ -40,6 +41,7 @@ class EnvConfig:
     num_envs: int = 8
     obs_mode: str = "state"
     max_episode_steps: int = 100
+    normalize_observations: bool = True  # running mean/std of observations (SB3 VecNormalize)
 
 
 @dataclass

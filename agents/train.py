@@ -1,15 +1,18 @@
 """Training and evaluation with Stable-Baselines3 on the batched retraction environments.
 
 A run lives in one folder: ``config.yaml`` (the resolved config), ``checkpoints/``,
-``tb/`` (TensorBoard), ``evaluations.json`` (success rate during training) and
-``model.zip`` (the final policy), so it can be evaluated, resumed or reproduced from the
-folder alone.
+``tb/`` (TensorBoard), ``evaluations.json`` (success rate during training),
+``model.zip`` (the final policy) and, when ``env.normalize_observations`` is on,
+``vecnormalize.pkl`` (the observation statistics the policy was trained with; each
+checkpoint has its own), so it can be evaluated, resumed or reproduced from the folder
+alone.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import pickle
 import re
 from pathlib import Path
 
@@ -18,7 +21,7 @@ import numpy as np
 import yaml
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
-from stable_baselines3.common.vec_env import VecMonitor
+from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
 
@@ -26,6 +29,7 @@ from .config import RunConfig, load_config
 from .vec_env import RetractionSb3VecEnv
 
 ALGORITHM_CLASSES = {"PPO": PPO, "SAC": SAC}
+NORMALIZER_FILE = "vecnormalize.pkl"
 
 
 def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
@@ -78,9 +82,31 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
             "mean_episode_length": float(np.mean(lengths))}
 
 
-def model_policy(model):
-    """An ``obs -> action`` callable from an SB3 model (deterministic)."""
-    return lambda obs: model.predict(obs, deterministic=True)[0]
+def model_policy(model, normalizer: VecNormalize | None = None):
+    """An ``obs -> action`` callable from an SB3 model (deterministic); ``normalizer``
+    (the run's VecNormalize statistics) maps raw observations to what the model saw."""
+    if normalizer is None:
+        return lambda obs: model.predict(obs, deterministic=True)[0]
+    return lambda obs: model.predict(normalizer.normalize_obs(obs), deterministic=True)[0]
+
+
+def normalizer_path(model_path: Path) -> Path:
+    """Where the observation statistics of a model file are: a checkpoint's own
+    ``model_vecnormalize_<N>_steps.pkl``, else ``vecnormalize.pkl`` beside the model."""
+    m = re.fullmatch(r"(.*)_(\d+)_steps\.zip", model_path.name)
+    if m:
+        return model_path.with_name(f"{m.group(1)}_vecnormalize_{m.group(2)}_steps.pkl")
+    return model_path.with_name(NORMALIZER_FILE)
+
+
+def load_normalizer(path: Path) -> VecNormalize:
+    """Observation statistics saved by :func:`train` (frozen: evaluation does not update them)."""
+    with open(path, "rb") as f:
+        normalizer = pickle.load(f)
+    if not isinstance(normalizer, VecNormalize):
+        raise ValueError(f"{path} does not hold VecNormalize statistics")
+    normalizer.training = False
+    return normalizer
 
 
 class SuccessEvalCallback(BaseCallback):
@@ -99,7 +125,8 @@ class SuccessEvalCallback(BaseCallback):
         return True
 
     def evaluate(self):
-        result = evaluate_policy(model_policy(self.model), self.cfg.env.id, self.cfg.evaluation.episodes,
+        policy = model_policy(self.model, self.model.get_vec_normalize_env())
+        result = evaluate_policy(policy, self.cfg.env.id, self.cfg.evaluation.episodes,
                                  obs_mode=self.cfg.env.obs_mode,
                                  max_episode_steps=self.cfg.env.max_episode_steps)
         result["timesteps"] = int(self.num_timesteps)
@@ -137,6 +164,16 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
         resume = Path(resume)
         if not resume.is_file():
             raise FileNotFoundError(f"checkpoint not found: {resume}")
+    if cfg.env.normalize_observations:
+        if resume is not None:  # continue with the statistics the checkpoint was trained with
+            stats = normalizer_path(resume)
+            if not stats.is_file():
+                raise FileNotFoundError(f"observation statistics of {resume} not found: {stats}")
+            env = VecNormalize.load(str(stats), env)
+            env.training = True
+        else:
+            env = VecNormalize(env, norm_obs=True, norm_reward=False)
+    if resume is not None:
         model = algo.load(resume, env=env, device="cpu", tensorboard_log=str(run_dir / "tb"))
     else:
         model = algo(cfg.algorithm.policy, env, seed=cfg.seed, device="cpu", verbose=0,
@@ -144,7 +181,8 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     evaluator = SuccessEvalCallback(cfg, run_dir / "evaluations.json")
     callbacks = [
         CheckpointCallback(save_freq=max(1, cfg.checkpoint.every_steps // cfg.env.num_envs),
-                           save_path=str(run_dir / "checkpoints"), name_prefix="model"),
+                           save_path=str(run_dir / "checkpoints"), name_prefix="model",
+                           save_vecnormalize=cfg.env.normalize_observations),
         evaluator,
     ]
     remaining = cfg.algorithm.total_timesteps - (model.num_timesteps if resume is not None else 0)
@@ -153,13 +191,34 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
                     reset_num_timesteps=resume is None, progress_bar=progress_bar,
                     tb_log_name=cfg.algorithm.name)
     model.save(run_dir / "model.zip")
+    if cfg.env.normalize_observations:
+        env.save(str(run_dir / NORMALIZER_FILE))
     final = evaluator.evaluate() if not evaluator.history or evaluator.history[-1]["timesteps"] != model.num_timesteps else evaluator.history[-1]
     env.close()
     return {"run_dir": str(run_dir), "timesteps": int(model.num_timesteps), "final_evaluation": final}
 
 
+def load_policy(path: str | Path):
+    """``(policy, model, cfg)`` from a ``.zip`` or a run folder: ``policy`` maps a raw
+    observation to an action, through the run's observation statistics when it has them."""
+    model, cfg, model_path = _load(path)
+    stats = normalizer_path(model_path)
+    if stats.is_file():
+        return model_policy(model, load_normalizer(stats)), model, cfg
+    if cfg is not None and cfg.env.normalize_observations:
+        raise FileNotFoundError(f"{model_path} was trained on normalised observations, but their "
+                                f"statistics are missing: {stats}")
+    return model_policy(model), model, cfg
+
+
 def load_model(path: str | Path):
-    """An SB3 model from a ``.zip`` or a run folder (its ``model.zip`` or latest checkpoint)."""
+    """An SB3 model from a ``.zip`` or a run folder (its ``model.zip`` or latest checkpoint)
+    and the run's config (or None); use :func:`load_policy` to act on raw observations."""
+    model, cfg, _ = _load(path)
+    return model, cfg
+
+
+def _load(path: str | Path):
     path = Path(path)
     if path.is_dir():
         cfg_path = path / "config.yaml"
@@ -178,7 +237,7 @@ def load_model(path: str | Path):
         if cfg_path.is_file():
             cfg = load_config(cfg_path)
     name = cfg.algorithm.name if cfg is not None else _algorithm_of(path)
-    return ALGORITHM_CLASSES[name].load(path, device="cpu"), cfg
+    return ALGORITHM_CLASSES[name].load(path, device="cpu"), cfg, path
 
 
 def _algorithm_of(path: Path) -> str:

@@ -5,12 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from stable_baselines3 import PPO
 
 from heml_gym.agents.cli import main
 from heml_gym.agents.config import ConfigError, config_from_dict, load_config
+from heml_gym.agents.train import load_normalizer, load_policy, normalizer_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -74,9 +76,25 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path):
     assert main(["eval", str(run), "--episodes", "2", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["episodes"] == 2 and len(result["success_ci95"]) == 2
-    # resume from the final model: the step count continues to the new total
+    # observation statistics: saved with the model and with every checkpoint, learned from
+    # the training observations, and applied by the loaded policy
+    stats = load_normalizer(run / "vecnormalize.pkl")
+    assert stats.obs_rms.count >= 1024 and not stats.training
+    assert all(normalizer_path(c).is_file() for c in checkpoints)
+    policy, loaded, _ = load_policy(run)
+    obs = np.array(stats.obs_rms.mean, dtype=np.float32) + 0.01
+    expected = loaded.predict(stats.normalize_obs(obs), deterministic=True)[0]
+    np.testing.assert_array_equal(policy(obs), expected)
+    assert not np.array_equal(stats.normalize_obs(obs), obs)
+    # resume from the final model: the step count continues to the new total, and the
+    # statistics continue from the saved ones
     first = model.num_timesteps
     assert main(["train", str(config), "--run-dir", str(run), "--resume", str(run / "model.zip"),
                  "--steps", str(first + 512), "--no-progress"]) == 0
     resumed = PPO.load(run / "model.zip", device="cpu")
     assert first + 512 <= resumed.num_timesteps < first + 512 + 4 * 64 + 1
+    assert load_normalizer(run / "vecnormalize.pkl").obs_rms.count > stats.obs_rms.count + 500
+    # a model whose statistics are lost is refused, not run on unnormalised observations
+    (run / "vecnormalize.pkl").unlink()
+    with pytest.raises(FileNotFoundError, match="statistics"):
+        load_policy(run / "model.zip")
