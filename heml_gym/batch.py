@@ -2,9 +2,10 @@
 
 Vectorised environments run N scenes that share a mesh but differ in state, stiffness
 and grasped vertices. :class:`BatchedSimulation` holds them as ``(N, n, 3)`` arrays and
-integrates all of them with explicit symplectic Euler in one call, ``prange`` over the
-scenes (each scene on one thread, so there is no race and no reduction). Units: m, s,
-kg, Pa, N.
+integrates all of them with explicit symplectic Euler in one call: the kernel
+(:func:`heml_gym.kernels_batch.lane_explicit_substeps`) runs the scenes in lockstep,
+vectorised across scenes, in blocks of scenes spread over the threads (no race and no
+reduction). Units: m, s, kg, Pa, N.
 
 Divergence is per scene: a scene whose state goes non-finite or too fast is flagged in
 the returned mask and keeps the state it had before the step; the others go on.
@@ -14,31 +15,17 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
+import numba
 import numpy as np
-from numba import prange
 
 from .forces.heml import HemlForce
+from .kernels_batch import LANES, lane_explicit_substeps
 from .kernels_dynamics import explicit_substeps_constant_psi1
 from .materials import NeoHookean
 from .mesh import TetMesh
 from .simulation import Simulation
 
 __all__ = ["BatchedSimulation"]
-
-
-@nb.njit(cache=True, parallel=True)
-def batched_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                              kinematic, kin_from, kin_to, max_speed, tets, inv_det, w, law,
-                              params, active, bad_vertex):
-    """``n_sub`` explicit sub-steps of every active scene; ``bad_vertex[s]`` >= 0 flags divergence."""
-    for s in prange(x.shape[0]):
-        if not active[s]:
-            continue
-        done, bad = explicit_substeps_constant_psi1(
-            x[s], v[s], f[s], reaction[s], mass, gravity, ext, alpha, h, n_sub, fixed,
-            kinematic[s], kin_from[s], kin_to[s], max_speed, tets, inv_det, w[s], law, params[s])
-        bad_vertex[s] = bad
 
 
 class BatchedSimulation:
@@ -96,6 +83,7 @@ class BatchedSimulation:
         self._ext = np.zeros((n, 3))
         self._weights = np.empty((N,) + self._base_weights.shape)
         self._params = np.empty((N, 2))
+        self._psi1 = np.empty(N)
         self.young_modulus = np.empty(N)
         self.set_young_modulus(np.broadcast_to(np.asarray(young_modulus, dtype=np.float64), (N,)))
         for s in range(N):
@@ -110,6 +98,7 @@ class BatchedSimulation:
             mat = NeoHookean(E=float(E), nu=self.poisson)
             self.young_modulus[s] = E
             self._params[s] = mat.params
+            self._psi1[s] = mat.constant_psi1
             self._weights[s] = mat.constant_psi1 * self._base_weights
 
     def critical_dt(self, young_modulus: float | None = None) -> float:
@@ -143,6 +132,12 @@ class BatchedSimulation:
         """Release every kinematic vertex of scene ``s``."""
         self.kinematic[s] = False
 
+    def _lanes(self) -> int:
+        """Scenes per block of the batched kernel: the scenes spread evenly over the
+        threads, in whole vectors of 4 float64, at most :data:`~heml_gym.kernels_batch.LANES`."""
+        per_thread = math.ceil(self.n_scenes / numba.get_num_threads())
+        return min(LANES, 4 * math.ceil(per_thread / 4))
+
     # ---------------------------------------------------------------- stepping
     def step(self, dt: float, active=None, substeps: int | None = None) -> np.ndarray:
         """Advance the active scenes by ``dt`` s; returns the mask of scenes that diverged.
@@ -156,22 +151,44 @@ class BatchedSimulation:
         n_sub = substeps or max(1, math.ceil(dt / (self.safety * self.critical_dt())))
         h = dt / n_sub
         x0, v0 = self.x.copy(), self.v.copy()
-        start = self.x.copy()
         bad = np.full(self.n_scenes, -1, dtype=np.int64)
         with np.errstate(all="ignore"):
-            if self.n_scenes == 1:  # no thread launch for one scene
+            if self.n_scenes == 1:  # one scene: the kernel vectorised across tets
                 if active[0]:
                     bad[0] = explicit_substeps_constant_psi1(
                         self.x[0], self.v[0], self._f[0], self.reaction[0], self.mass, self.gravity,
-                        self._ext, self.alpha, h, n_sub, self.fixed, self.kinematic[0], start[0],
+                        self._ext, self.alpha, h, n_sub, self.fixed, self.kinematic[0], x0[0],
                         self.targets[0], self.max_speed, self._tets, self._inv_det, self._weights[0],
                         self._law, self._params[0])[1]
-            else:
-                batched_explicit_substeps(
-                    self.x, self.v, self._f, self.reaction, self.mass, self.gravity, self._ext,
-                    self.alpha, h, n_sub, self.fixed, self.kinematic, start, self.targets,
-                    self.max_speed, self._tets, self._inv_det, self._weights, self._law,
-                    self._params, active, bad)
+            else:  # lane copies for the kernel vectorised across scenes
+                lanes = self._lanes()
+                blocks = math.ceil(self.n_scenes / lanes)
+                pad = blocks * lanes - self.n_scenes  # extra lanes repeat scene 0
+
+                def to_lanes(a):
+                    a = np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
+                    a = a.reshape((blocks, lanes) + a.shape[1:])
+                    return np.ascontiguousarray(np.moveaxis(a, 1, -1))
+
+                def from_lanes(a):
+                    return np.moveaxis(a, -1, 1).reshape((blocks * lanes,) + a.shape[1:-1])[:self.n_scenes]
+
+                xl, vl = to_lanes(self.x), to_lanes(self.v)
+                reaction = np.empty_like(xl)
+                bad_lanes = np.empty((blocks, lanes), dtype=np.int64)
+                lane_explicit_substeps(
+                    xl, vl, np.empty_like(xl), reaction, self.mass, self.gravity, self._ext,
+                    self.alpha, h, n_sub, self.fixed, to_lanes(self.kinematic), xl.copy(),
+                    to_lanes(self.targets), self.max_speed, self._tets, self._inv_det,
+                    self._base_weights, self._law, to_lanes(self._params[:, 0]),
+                    to_lanes(self._params[:, 1]), to_lanes(self._psi1), bad_lanes)
+                self.x[:] = from_lanes(xl)
+                self.v[:] = from_lanes(vl)
+                self.reaction[:] = from_lanes(reaction)
+                bad[:] = bad_lanes.reshape(-1)[:self.n_scenes]
+                bad[~active] = -1
+        self.x[~active] = x0[~active]  # inactive scenes are not advanced
+        self.v[~active] = v0[~active]
         diverged = bad >= 0
         self.x[diverged] = x0[diverged]
         self.v[diverged] = v0[diverged]
