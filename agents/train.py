@@ -1,7 +1,8 @@
 """Training and evaluation with Stable-Baselines3 on the batched retraction environments.
 
 A run lives in one folder: ``config.yaml`` (the resolved config), ``checkpoints/``,
-``tb/`` (TensorBoard), ``evaluations.json`` (success rate during training),
+``tb/`` (TensorBoard), ``evaluations.json`` (success rate, exposure, strain and the
+wall time so far, in seconds including evaluation, at each evaluation),
 ``model.zip`` (the final policy) and, when ``env.normalize_observations`` is on,
 ``vecnormalize.pkl`` (the observation statistics the policy was trained with; each
 checkpoint has its own), so it can be evaluated, resumed or reproduced from the folder
@@ -14,6 +15,7 @@ import json
 import math
 import pickle
 import re
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -117,6 +119,12 @@ class SuccessEvalCallback(BaseCallback):
         self.cfg, self.path = cfg, path
         self.history = json.loads(path.read_text()) if path.exists() else []
         self._next = (self.history[-1]["timesteps"] if self.history else 0) + cfg.evaluation.every_steps
+        # wall time (s) of the run so far, continued across resumes
+        self._wall_before = self.history[-1].get("wall_s", 0.0) if self.history else 0.0
+        self._started = time.perf_counter()
+
+    def _on_training_start(self) -> None:
+        self._started = time.perf_counter()
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
@@ -130,6 +138,7 @@ class SuccessEvalCallback(BaseCallback):
                                  obs_mode=self.cfg.env.obs_mode,
                                  max_episode_steps=self.cfg.env.max_episode_steps)
         result["timesteps"] = int(self.num_timesteps)
+        result["wall_s"] = self._wall_before + time.perf_counter() - self._started
         self.history.append(result)
         self.path.write_text(json.dumps(self.history, indent=1))
         self.logger.record("eval/success_rate", result["success_rate"])

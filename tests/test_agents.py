@@ -69,6 +69,7 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path):
     assert model.num_timesteps >= 1024
     history = json.loads((run / "evaluations.json").read_text())
     assert history and 0.0 <= history[-1]["success_rate"] <= 1.0
+    assert 0.0 < history[0]["wall_s"] < history[-1]["wall_s"]
     checkpoints = sorted((run / "checkpoints").glob("*.zip"))
     assert checkpoints
     # evaluate the saved run through the CLI
