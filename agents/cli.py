@@ -10,9 +10,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
+
+# Idle OpenMP workers (Numba's and PyTorch's) sleep instead of spinning: on a machine whose
+# cores are shared, spinning workers slow down the code that runs between parallel calls.
+# It has to be set before the OpenMP runtime starts, so here, before anything imports it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _train(args) -> int:
