@@ -171,7 +171,7 @@ def markdown(results: dict) -> str:
         + markdown_table(["env", "agent", "seed", "scenes", "env steps", "wall min", "first eval >= 90 % at (steps)",
                           "(wall min)", f"final success ({n} episodes)", "final exposure", "max strain",
                           "episode length"], rows)
-        + "\n\n![success vs env steps and wall time](../img/agent_results.png)\n"
+        + "\nChart: `docs/img/agent_results.png`.\n"
     )
 
 

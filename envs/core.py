@@ -53,7 +53,8 @@ class RetractionScene:
     ``target_radius`` (m); ``gripper_low``/``gripper_high``: box of gripper start
     positions (m); ``workspace_low``/``workspace_high``: the gripper is kept inside;
     ``stiffness_range``: E (Pa) drawn per episode; ``poisson``, ``density`` (kg/m^3),
-    ``gravity`` (m/s^2), ``damping`` (1/s).
+    ``gravity`` (m/s^2), ``damping`` (1/s); ``floor``: height (m) of the rigid plane the
+    tissue rests on (the organ under it), or None.
 
     Retraction folds the tissue about a hinge line parallel to y through ``(x, z) =
     hinge`` (m): ``fold_direction`` is +1 when the free tissue extends from the hinge
@@ -79,6 +80,7 @@ class RetractionScene:
     density: float = 950.0
     gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     damping: float = 5.0
+    floor: float | None = None
     hinge: tuple[float, float] = (0.0, 0.0)
     fold_direction: float = 1.0
     fold_angle: float = np.pi / 2
@@ -117,7 +119,8 @@ class BatchedRetraction:
         s = scene
         self.sim = BatchedSimulation(s.mesh, self.n, young_modulus=s.stiffness_range[1],
                                      poisson=s.poisson, density=s.density, gravity=s.gravity,
-                                     fixed=s.fixed, damping=s.damping, safety=self.settings.safety)
+                                     fixed=s.fixed, damping=s.damping, safety=self.settings.safety,
+                                     floor=s.floor)
         # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
         # scene and batch, so a scene's trajectory does not depend on its neighbours
         self.substeps = max(1, int(np.ceil(self.settings.control_dt / (

@@ -46,11 +46,14 @@ class BatchedSimulation:
         Mass-proportional Rayleigh damping ``alpha`` in 1/s.
     safety : float
         Sub-steps are at most ``safety`` times the critical step of the stiffest scene.
+    floor : float or None
+        Height (m) of a rigid, frictionless support plane ``z = floor`` that free vertices
+        cannot go below (the organ a tissue lies on); None for none.
     """
 
     def __init__(self, mesh: TetMesh, n_scenes: int, young_modulus=5e3, poisson=0.45,
                  density=1000.0, gravity=(0.0, 0.0, -9.81), fixed=None, damping=0.0,
-                 safety=0.5, max_speed=1e3):
+                 safety=0.5, max_speed=1e3, floor=None):
         if n_scenes < 1:
             raise ValueError(f"n_scenes must be >= 1, got {n_scenes}")
         self.mesh = mesh
@@ -61,6 +64,7 @@ class BatchedSimulation:
         self.alpha = float(damping)
         self.safety = float(safety)
         self.max_speed = float(max_speed)
+        self.floor_z = -math.inf if floor is None else float(floor)
         # a reference single-scene simulation: lumped masses, fixed mask, critical step
         self._reference_E = 1e3
         ref = Simulation(HemlForce(mesh, NeoHookean(E=self._reference_E, nu=poisson)), density,
@@ -159,7 +163,7 @@ class BatchedSimulation:
                         self.x[0], self.v[0], self._f[0], self.reaction[0], self.mass, self.gravity,
                         self._ext, self.alpha, h, n_sub, self.fixed, self.kinematic[0], x0[0],
                         self.targets[0], self.max_speed, self._tets, self._inv_det, self._weights[0],
-                        self._law, self._params[0])[1]
+                        self._law, self._params[0], self.floor_z)[1]
             else:  # lane copies for the kernel vectorised across scenes
                 lanes = self._lanes()
                 blocks = math.ceil(self.n_scenes / lanes)
@@ -181,7 +185,7 @@ class BatchedSimulation:
                     self.alpha, h, n_sub, self.fixed, to_lanes(self.kinematic), xl.copy(),
                     to_lanes(self.targets), self.max_speed, self._tets, self._inv_det,
                     self._base_weights, self._law, to_lanes(self._params[:, 0]),
-                    to_lanes(self._params[:, 1]), to_lanes(self._psi1), bad_lanes)
+                    to_lanes(self._params[:, 1]), to_lanes(self._psi1), bad_lanes, self.floor_z)
                 self.x[:] = from_lanes(xl)
                 self.v[:] = from_lanes(vl)
                 self.reaction[:] = from_lanes(reaction)

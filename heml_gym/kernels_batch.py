@@ -30,7 +30,7 @@ LANES = 32
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
 def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
                            kinematic, kin_from, kin_to, max_speed, tets, inv_det, base_w, law,
-                           p0, p1, psi1, bad_vertex):
+                           p0, p1, psi1, bad_vertex, floor_z):
     """``n_sub`` symplectic Euler sub-steps of length ``h`` (s) of every scene, in place.
 
     Scenes come in blocks of ``L`` <= :data:`LANES`: ``x, v, f, reaction, kin_from, kin_to`` are
@@ -40,8 +40,8 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
     ``(n, 3)`` external forces (N), shared; ``base_w``: ``(6, m)`` edge weights
     ``2 V0 a_k`` (m^3); ``psi1``: ``(B, L)`` the constant ``Psi_1`` (Pa) of each scene, so
     its spring weights are ``psi1 * base_w``; ``p0, p1``: ``(B, L)`` its Neo-Hookean
-    parameters (Pa). The update per vertex is that of
-    :func:`heml_gym.kernels_dynamics.symplectic_euler_update`.
+    parameters (Pa). The update per vertex, including the support plane ``z = floor_z``
+    (m; ``-inf`` for none), is that of :func:`heml_gym.kernels_dynamics.symplectic_euler_update`.
 
     ``bad_vertex[b, q]`` becomes the first vertex of the scene found non-finite or faster
     than ``max_speed`` (m/s), else -1. A tet whose J is not positive, normal and finite
@@ -144,8 +144,11 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
                         is_held = held[i, q]
                         vn = (target - xq) / h if is_held else vq + h * total / mi
                         rb[i, d, q] = mi * (vn - vq) / h - total if is_held else 0.0
-                        vb[i, d, q] = vn
                         xn = target if is_held else xq + h * vn
+                        below = d == 2 and xn < floor_z and not is_held  # resting on the support
+                        xn = floor_z if below else xn
+                        vn = max(vn, 0.0) if below else vn
+                        vb[i, d, q] = vn
                         xb[i, d, q] = xn
                         speed2[q] += vn * vn
                         size[q] += abs(xn)
