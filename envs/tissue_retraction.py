@@ -7,10 +7,12 @@ lies on an organ; its edge at ``x = 0`` is attached. Under it, hidden from a cam
 above, sits a tumour (a sphere of radius 8 mm). The agent moves a gripper, closes it on
 the flap near the free edge, and retracts the flap to expose the tumour without
 over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 2-5 kPa per
-episode, nu = 0.45, 950 kg/m^3), integrated explicitly. The organ under the flap is a
-rigid, frictionless plane (z = 0) that the flap rests on and cannot be pushed into; the
-flap's rest shape is where it lies, so gravity is off (with gravity, a flap this soft
-held by a grasper-sized patch tears under its own weight).
+episode, nu = 0.45, 950 kg/m^3), integrated explicitly; the organ under the flap is not
+simulated (no contact): the flap's rest shape is where it lies, so gravity is off. (Two
+alternatives were measured and rejected: with gravity, a flap this soft hanging from a
+grasper-sized patch tears under its own weight, edge strain above 1; resting it on a
+rigid plane at z = 0 (``RetractionScene.floor``) made random actions crush it against
+the plane, inverting elements, in half of the episodes.)
 
 ## Action Space
 
@@ -112,7 +114,6 @@ def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
         gripper_high=np.array([0.114, 0.08, 0.011]),
         workspace_low=np.array([-0.05, -0.05, 0.0]),
         workspace_high=np.array([0.20, 0.17, 0.15]),
-        floor=0.0,
         hinge=HINGE,
         fold_direction=1.0,
         fold_angle=np.pi / 2,
