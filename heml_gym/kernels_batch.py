@@ -20,7 +20,7 @@ import numpy as np
 from numba import prange
 
 from .fastlog import SMALLEST_NORMAL
-from .forces.kernels_heml import _store_tet_forces
+from .forces.kernels_heml import _store_tet_forces, edge_cofactors
 from .laws import volumetric_gradient_fast
 
 #: scenes per block (SIMD lanes); the arrays of :func:`lane_explicit_substeps` end in it
@@ -95,15 +95,7 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
                     cx = edges[6, q]
                     cy = edges[7, q]
                     cz = edges[8, q]
-                    c1x = by * cz - bz * cy
-                    c1y = bz * cx - bx * cz
-                    c1z = bx * cy - by * cx
-                    c2x = cy * az - cz * ay
-                    c2y = cz * ax - cx * az
-                    c2z = cx * ay - cy * ax
-                    c3x = ay * bz - az * by
-                    c3y = az * bx - ax * bz
-                    c3z = ax * by - ay * bx
+                    c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
                     jac = (ax * c1x + ay * c1y + az * c1z) * idet
                     good = jac >= SMALLEST_NORMAL and jac < math.inf
                     g = volumetric_gradient_fast(law, p0b[q], p1b[q], jac if good else 1.0) * (1.0 / 6.0)

@@ -231,15 +231,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             cx = edges[6, k]
             cy = edges[7, k]
             cz = edges[8, k]
-            c1x = by * cz - bz * cy
-            c1y = bz * cx - bx * cz
-            c1z = bx * cy - by * cx
-            c2x = cy * az - cz * ay
-            c2y = cz * ax - cx * az
-            c2z = cx * ay - cy * ax
-            c3x = ay * bz - az * by
-            c3y = az * bx - ax * bz
-            c3z = ax * by - ay * bx
+            c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
             jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
             good = jac >= SMALLEST_NORMAL and jac < math.inf
             n_bad += 0 if good else 1
@@ -260,15 +252,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
                 cx = edges[6, k]
                 cy = edges[7, k]
                 cz = edges[8, k]
-                c1x = by * cz - bz * cy
-                c1y = bz * cx - bx * cz
-                c1z = bx * cy - by * cx
-                c2x = cy * az - cz * ay
-                c2y = cz * ax - cx * az
-                c2z = cx * ay - cy * ax
-                c3x = ay * bz - az * by
-                c3y = az * bx - ax * bz
-                c3z = ax * by - ay * bx
+                c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
                 jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
                 if not (jac >= SMALLEST_NORMAL and jac < math.inf):
                     d1, d2, dj = law_gradient(law, p, 0.0, 0.0, jac)
@@ -295,6 +279,15 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             f[i3, 0] += work[9, k]
             f[i3, 1] += work[10, k]
             f[i3, 2] += work[11, k]
+
+
+@nb.njit(cache=True, inline="always")
+def edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """``b x c, c x a, a x b`` for the edges ``a, b, c`` from vertex 0 of a tet: the
+    gradients of ``det(Ds) = a . (b x c)`` with respect to vertices 1, 2, 3."""
+    return (by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx,
+            cy * az - cz * ay, cz * ax - cx * az, cx * ay - cy * ax,
+            ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
