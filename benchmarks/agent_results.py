@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json  # noqa: E402
 
 #: (config name, seeds)
-RUNS = [("tissue_ppo", (0, 1, 2)), ("tissue_sac", (0,)), ("organ_ppo", (0,)), ("organ_sac", (0,))]
+RUNS = [("tissue_ppo", (0, 1, 2)), ("organ_ppo", (0,)), ("tissue_sac", (0,)), ("organ_sac", (0,))]
 RUN_ROOT = ROOT / "runs" / "results"
 EVAL_SEED = 20_000
 BAR_SUCCESS, BAR_STEPS = 0.9, 1_000_000
