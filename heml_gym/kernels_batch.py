@@ -20,7 +20,7 @@ import numpy as np
 from numba import prange
 
 from .fastlog import SMALLEST_NORMAL
-from .forces.kernels_heml import _store_tet_forces, edge_cofactors
+from .forces.kernels_heml import _store_tet_forces, edge_cofactors, edge_vectors
 from .laws import volumetric_gradient_fast
 
 #: scenes per block (SIMD lanes); the arrays of :func:`lane_explicit_substeps` end in it
@@ -86,15 +86,7 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
                 w13 = base_w[4, t]
                 w23 = base_w[5, t]
                 for q in range(lanes):  # vectorises across scenes
-                    ax = edges[0, q]
-                    ay = edges[1, q]
-                    az = edges[2, q]
-                    bx = edges[3, q]
-                    by = edges[4, q]
-                    bz = edges[5, q]
-                    cx = edges[6, q]
-                    cy = edges[7, q]
-                    cz = edges[8, q]
+                    ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, q)
                     c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
                     jac = (ax * c1x + ay * c1y + az * c1z) * idet
                     good = jac >= SMALLEST_NORMAL and jac < math.inf

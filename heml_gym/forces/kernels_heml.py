@@ -222,15 +222,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
         n_bad = 0
         for k in range(size):  # vectorises: no calls, no branches, unit-stride arrays
             t = start + k
-            ax = edges[0, k]
-            ay = edges[1, k]
-            az = edges[2, k]
-            bx = edges[3, k]
-            by = edges[4, k]
-            bz = edges[5, k]
-            cx = edges[6, k]
-            cy = edges[7, k]
-            cz = edges[8, k]
+            ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
             c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
             jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
             good = jac >= SMALLEST_NORMAL and jac < math.inf
@@ -243,15 +235,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
         if n_bad:  # rare: inverted, flat or non-finite tets take the general path
             for k in range(size):
                 t = start + k
-                ax = edges[0, k]
-                ay = edges[1, k]
-                az = edges[2, k]
-                bx = edges[3, k]
-                by = edges[4, k]
-                bz = edges[5, k]
-                cx = edges[6, k]
-                cy = edges[7, k]
-                cz = edges[8, k]
+                ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
                 c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
                 jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
                 if not (jac >= SMALLEST_NORMAL and jac < math.inf):
@@ -279,6 +263,13 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             f[i3, 0] += work[9, k]
             f[i3, 1] += work[10, k]
             f[i3, 2] += work[11, k]
+
+
+@nb.njit(cache=True, inline="always")
+def edge_vectors(edges, k):
+    """The edges ``a, b, c`` (from vertex 0) of the tet in lane ``k`` of a gathered block."""
+    return (edges[0, k], edges[1, k], edges[2, k], edges[3, k], edges[4, k], edges[5, k],
+            edges[6, k], edges[7, k], edges[8, k])
 
 
 @nb.njit(cache=True, inline="always")
