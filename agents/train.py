@@ -225,14 +225,9 @@ def load_policy(path: str | Path):
     return model_policy(model), model, cfg
 
 
-def load_model(path: str | Path):
-    """An SB3 model from a ``.zip`` or a run folder (its ``model.zip`` or latest checkpoint)
-    and the run's config (or None); use :func:`load_policy` to act on raw observations."""
-    model, cfg, _ = _load(path)
-    return model, cfg
-
-
 def _load(path: str | Path):
+    """``(model, cfg or None, model file)`` from a ``.zip`` or a run folder (its
+    ``model.zip`` or latest checkpoint)."""
     path = Path(path)
     if path.is_dir():
         cfg_path = path / "config.yaml"
