@@ -96,15 +96,8 @@ def heml_forces_chunk(x, tets, coef, q, use_q, law, p, f, lo, hi):
         a5 = coef[t, 7]
         i_1 = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3 + a4 * s4 + a5 * s5
         # d det(Ds) / d x_1, x_2, x_3
-        c1x = e02y * e03z - e02z * e03y
-        c1y = e02z * e03x - e02x * e03z
-        c1z = e02x * e03y - e02y * e03x
-        c2x = e03y * e01z - e03z * e01y
-        c2y = e03z * e01x - e03x * e01z
-        c2z = e03x * e01y - e03y * e01x
-        c3x = e01y * e02z - e01z * e02y
-        c3y = e01z * e02x - e01x * e02z
-        c3z = e01x * e02y - e01y * e02x
+        c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(
+            e01x, e01y, e01z, e02x, e02y, e02z, e03x, e03y, e03z)
         jac = (e01x * c1x + e01y * c1y + e01z * c1z) * coef[t, 1]
         if use_q:
             qs0, qs1, qs2, qs3, qs4, qs5 = _qs(q, t, s0, s1, s2, s3, s4, s5)

@@ -61,6 +61,7 @@ import numba as nb
 import numpy as np
 
 from ..laws import law_gradient, law_hessian
+from .kernels_heml import edge_cofactors
 
 try:  # Numba's private switch to compile a function without reference counting
     from numba.core.options import DefaultOptions as _DefaultOptions
@@ -168,15 +169,7 @@ def heml_element_hessian(x, tets, coef, q, use_q, law, p, t, ke, ev, sv, qsv, g3
     d2x, d2y, d2z = ev[1, 0], ev[1, 1], ev[1, 2]
     d3x, d3y, d3z = ev[2, 0], ev[2, 1], ev[2, 2]
     # d det / d d_i: c1 = d2 x d3, c2 = d3 x d1, c3 = d1 x d2
-    c1x = d2y * d3z - d2z * d3y
-    c1y = d2z * d3x - d2x * d3z
-    c1z = d2x * d3y - d2y * d3x
-    c2x = d3y * d1z - d3z * d1y
-    c2y = d3z * d1x - d3x * d1z
-    c2z = d3x * d1y - d3y * d1x
-    c3x = d1y * d2z - d1z * d2y
-    c3y = d1z * d2x - d1x * d2z
-    c3z = d1x * d2y - d1y * d2x
+    c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(d1x, d1y, d1z, d2x, d2y, d2z, d3x, d3y, d3z)
     jac = (d1x * c1x + d1y * c1y + d1z * c1z) * inv_det
     ps1, ps2, psj, h11, h12, h1j, h22, h2j, hjj = _law_derivatives(law, p, i_1, i_2, jac)
 
