@@ -45,11 +45,9 @@ def _qs(q, t, s0, s1, s2, s3, s4, s5):
 @nb.njit(cache=True)
 def heml_forces_chunk(x, tets, coef, q, use_q, law, p, f, lo, hi):
     """Add the HEML elastic forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``."""
-    for t in range(lo, hi):
-        i0 = tets[t, 0]
-        i1 = tets[t, 1]
-        i2 = tets[t, 2]
-        i3 = tets[t, 3]
+    for t_signed in range(lo, hi):
+        t = np.uint64(t_signed)
+        i0, i1, i2, i3 = tet_vertices(tets, t)
         x0x = x[i0, 0]
         x0y = x[i0, 1]
         x0z = x[i0, 2]
@@ -194,12 +192,9 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
     work = np.empty((12, BLOCK), dtype=x.dtype)
     for start in range(lo, hi, BLOCK):
         size = min(BLOCK, hi - start)
+        first = np.uint64(start)
         for k in range(size):
-            t = start + k
-            i0 = tets[t, 0]
-            i1 = tets[t, 1]
-            i2 = tets[t, 2]
-            i3 = tets[t, 3]
+            i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
             x0x = x[i0, 0]
             x0y = x[i0, 1]
             x0z = x[i0, 2]
@@ -214,7 +209,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             edges[8, k] = x[i3, 2] - x0z
         n_bad = 0
         for k in range(size):  # vectorises: no calls, no branches, unit-stride arrays
-            t = start + k
+            t = first + np.uint64(k)
             ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
             c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
             jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
@@ -239,11 +234,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
                                       c3x * g, c3y * g, c3z * g,
                                       w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
         for k in range(size):
-            t = start + k
-            i0 = tets[t, 0]
-            i1 = tets[t, 1]
-            i2 = tets[t, 2]
-            i3 = tets[t, 3]
+            i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
             f[i0, 0] += work[0, k]
             f[i0, 1] += work[1, k]
             f[i0, 2] += work[2, k]
@@ -256,6 +247,18 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             f[i3, 0] += work[9, k]
             f[i3, 1] += work[10, k]
             f[i3, 2] += work[11, k]
+
+
+@nb.njit(cache=True, inline="always")
+def tet_vertices(tets, t):
+    """The four vertex indices of tet ``t`` as unsigned integers.
+
+    Numba wraps negative signed indices around (``i < 0 -> i + n``), a select on every
+    access that stops LLVM from vectorising unit-stride loads (it emits gathers) and
+    costs the scalar loads too; unsigned indices (and an unsigned ``t``) skip it. Measured
+    on the Neo-Hookean block kernel: 35 -> 16 ns per tet on one thread.
+    """
+    return np.uint64(tets[t, 0]), np.uint64(tets[t, 1]), np.uint64(tets[t, 2]), np.uint64(tets[t, 3])
 
 
 @nb.njit(cache=True, inline="always")
@@ -342,10 +345,7 @@ def reduce_chunks(buf):
 @nb.njit(cache=True, inline="always")
 def tet_invariants(x, tets, coef, q, use_q, t):
     """``(I1, I2, J)`` of tet ``t`` at positions ``x`` (I2 = 0 unless ``use_q``)."""
-    i0 = tets[t, 0]
-    i1 = tets[t, 1]
-    i2 = tets[t, 2]
-    i3 = tets[t, 3]
+    i0, i1, i2, i3 = tet_vertices(tets, t)
     ax = x[i1, 0] - x[i0, 0]
     ay = x[i1, 1] - x[i0, 1]
     az = x[i1, 2] - x[i0, 2]
@@ -384,7 +384,8 @@ def tet_invariants(x, tets, coef, q, use_q, t):
 def heml_energy_chunk(x, tets, coef, q, use_q, law, p, lo, hi):
     """Elastic energy (J) of tets ``lo..hi-1`` at positions ``x`` (m): sum of ``V0 Psi``."""
     total = 0.0
-    for t in range(lo, hi):
+    for t_signed in range(lo, hi):
+        t = np.uint64(t_signed)
         i_1, i_2, jac = tet_invariants(x, tets, coef, q, use_q, t)
         total += coef[t, 0] * law_energy(law, p, i_1, i_2, jac)
     return total
