@@ -8,7 +8,10 @@ import scipy.sparse.linalg as spla
 
 import heml_gym as hg
 from heml_gym import materials as M
-from heml_gym.linear_solvers import FreeSubmatrix, LaggedFactorPCG, pcg
+import pytest
+
+from heml_gym.linear_solvers import (DiagonalAdd, EnvelopeCholesky, FreeSubmatrix, LaggedFactorPCG,
+                                    NotPositiveDefinite, pcg)
 
 
 def stiffness(scale=1.0):
@@ -32,7 +35,8 @@ def test_free_submatrix_equals_fancy_indexing():
     np.testing.assert_array_equal(sub(a, free2).toarray(), a[free2][:, free2].toarray())
 
 
-def test_pcg_and_lagged_factor_solve_to_tolerance():
+@pytest.mark.parametrize("factorization", ["cholesky", "lu"])
+def test_pcg_and_lagged_factor_solve_to_tolerance(factorization):
     a0, a1 = stiffness(1.0), stiffness(3.0)
     b = np.random.default_rng(1).standard_normal(a0.shape[0])
     exact = spla.spsolve(a1.tocsc(), b)
@@ -42,7 +46,7 @@ def test_pcg_and_lagged_factor_solve_to_tolerance():
     assert np.linalg.norm(a1 @ x - b) <= 1e-10 * np.linalg.norm(b)
     assert np.abs(x - exact).max() <= 1e-8 * np.abs(exact).max()
 
-    solver = LaggedFactorPCG(rtol=1e-10, max_iter=50)
+    solver = LaggedFactorPCG(rtol=1e-10, max_iter=50, factorization=factorization)
     solver.solve(a0, b, key="k")
     assert solver.factorizations == 1
     x = solver.solve(a1, b, key="k")  # reuses the old factorisation
@@ -50,8 +54,59 @@ def test_pcg_and_lagged_factor_solve_to_tolerance():
     assert np.abs(x - exact).max() <= 1e-8 * np.abs(exact).max()
     solver.solve(a1, b, key="other")  # a new key refactorises
     assert solver.factorizations == 2
-    tight = LaggedFactorPCG(rtol=1e-14, max_iter=1)
+    tight = LaggedFactorPCG(rtol=1e-14, max_iter=1, factorization=factorization)
     tight.solve(a0, b)
     x = tight.solve(a1, b)  # CG cannot converge in 1 iteration: falls back to a fresh factor
     assert tight.factorizations == 2
     assert np.abs(x - exact).max() <= 1e-8 * np.abs(exact).max()
+
+
+def test_envelope_cholesky_solves_and_reuses_its_analysis():
+    a0, a1 = stiffness(1.0), stiffness(3.0)
+    b = np.random.default_rng(2).standard_normal(a0.shape[0])
+    chol = EnvelopeCholesky(a0)
+    np.testing.assert_allclose(chol.solve(b), spla.spsolve(a0.tocsc(), b), rtol=1e-10, atol=0)
+    first = chol._first
+    chol.factor(a1)  # same pattern: new values, same analysis
+    assert chol._first is first
+    x = chol.solve(b)
+    assert np.linalg.norm(a1 @ x - b) <= 1e-12 * np.linalg.norm(b)
+    np.testing.assert_array_equal(b, b.copy())  # solve leaves b alone
+
+
+def test_envelope_cholesky_orders_to_a_small_envelope():
+    a = stiffness()
+    n = a.shape[0]
+    shuffle = np.random.default_rng(3).permutation(n)
+    scrambled = a[shuffle][:, shuffle].tocsr()
+    natural_envelope = int(np.sum(np.arange(n) - np.minimum.reduceat(
+        np.minimum(scrambled.indices, np.repeat(np.arange(n), np.diff(scrambled.indptr))),
+        scrambled.indptr[:-1]) + 1))
+    chol = EnvelopeCholesky(scrambled)
+    assert chol.envelope_size < 0.6 * natural_envelope  # reverse Cuthill-McKee was taken
+    b = np.random.default_rng(4).standard_normal(n)
+    x = chol.solve(b)
+    assert np.linalg.norm(scrambled @ x - b) <= 1e-12 * np.linalg.norm(b)
+
+
+def test_envelope_cholesky_rejects_indefinite_matrices():
+    a = stiffness()
+    indefinite = (a - sp.diags(np.full(a.shape[0], 2.0 * a.diagonal().max()))).tocsr()
+    with pytest.raises(NotPositiveDefinite, match="pivot"):
+        EnvelopeCholesky(indefinite)
+    solver = LaggedFactorPCG(factorization="cholesky")
+    assert np.all(np.isnan(solver.solve(indefinite, np.ones(a.shape[0]))))  # Newton then projects
+    assert solver.factorizations == 0
+    with pytest.raises(ValueError, match="factorization"):
+        LaggedFactorPCG(factorization="qr")
+
+
+def test_diagonal_add_matches_sparse_sum():
+    add = DiagonalAdd()
+    values = np.random.default_rng(5).random(stiffness().shape[0])
+    for scale in (1.0, 2.0):
+        a = stiffness(scale)
+        expected = (a + sp.diags(values)).toarray()
+        np.testing.assert_array_equal(add(a.copy(), values).toarray(), expected)
+    no_diagonal = sp.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]]))
+    np.testing.assert_array_equal(add(no_diagonal, np.array([2.0, 3.0])).toarray(), [[2.0, 1.0], [1.0, 3.0]])

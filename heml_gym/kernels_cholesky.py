@@ -1,0 +1,86 @@
+"""Numba kernels of a sparse Cholesky factorisation in envelope (skyline) storage.
+
+Row ``i`` of the lower factor ``L`` is stored densely from its first nonzero column
+``first[i]`` to the diagonal, at ``values[ptr[i] : ptr[i + 1]]`` (``ptr[i + 1] - ptr[i] =
+i - first[i] + 1``). Cholesky creates no fill outside the envelope of ``A``, so with a
+bandwidth-reducing ordering (reverse Cuthill-McKee) the factor of a mesh's stiffness
+matrix stays small, and every inner loop is a dot product or an update over a contiguous
+stretch of memory, which vectorises. Indices are unsigned: Numba's wrap-around of negative
+signed indices would turn those contiguous loads into gathers. See
+:class:`heml_gym.linear_solvers.EnvelopeCholesky`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+_FAST = {"reassoc", "contract", "nsz", "arcp"}  # lets the dot products vectorise
+
+
+@nb.njit(cache=True, inline="always")
+def _row(first, ptr, i):
+    """``(first column, offset)`` of row ``i``: ``values[offset + k]`` is ``L[i, k]``."""
+    f = np.uint64(first[i])
+    return f, np.uint64(ptr[i]) - f
+
+
+@nb.njit(cache=True, fastmath=_FAST)
+def envelope_cholesky(first, ptr, values):
+    """Factorise in place ``values`` (the envelope of a symmetric matrix's lower triangle)
+    into ``L`` with ``A = L L^T`` (up-looking, row by row).
+
+    Returns -1 on success, else the row whose pivot was not positive (the matrix is not
+    positive definite; ``values`` is then left partly factorised).
+    """
+    n = first.shape[0]
+    for i_signed in range(n):
+        i = np.uint64(i_signed)
+        fi, pi = _row(first, ptr, i)
+        for j in range(fi, i):
+            fj, pj = _row(first, ptr, j)
+            s = values[pi + j]
+            for k in range(max(fi, fj), j):
+                s -= values[pi + k] * values[pj + k]
+            values[pi + j] = s / values[pj + j]
+        d = values[pi + i]
+        for k in range(fi, i):
+            d -= values[pi + k] * values[pi + k]
+        if not d > 0.0:
+            return i_signed
+        values[pi + i] = math.sqrt(d)
+    return -1
+
+
+@nb.njit(cache=True, fastmath=_FAST)
+def envelope_solve(first, ptr, values, b, x):
+    """Solve ``L L^T x = b`` with the factor from :func:`envelope_cholesky` (``x`` is
+    overwritten; ``b`` is kept)."""
+    n = first.shape[0]
+    for i_signed in range(n):  # forward: L y = b
+        i = np.uint64(i_signed)
+        fi, pi = _row(first, ptr, i)
+        s = b[i]
+        for k in range(fi, i):
+            s -= values[pi + k] * x[k]
+        x[i] = s / values[pi + i]
+    for i_signed in range(n - 1, -1, -1):  # backward: L^T x = y, row by row of L
+        i = np.uint64(i_signed)
+        fi, pi = _row(first, ptr, i)
+        xi = x[i] / values[pi + i]
+        x[i] = xi
+        for k in range(fi, i):
+            x[k] -= values[pi + k] * xi
+
+
+@nb.njit(cache=True)
+def scatter_into_envelope(data, target, values):
+    """``values[:] = 0``, then ``values[target[e]] += data[e]`` for the kept entries
+    (``target[e] >= 0``) of a CSR matrix's ``data``."""
+    values[:] = 0.0
+    for e in range(data.shape[0]):
+        t = target[e]
+        if t >= 0:
+            values[t] += data[e]
