@@ -95,6 +95,9 @@ class HemlForce(ForceField):
         super().__init__(mesh, material)
         self.use_q = bool(material.needs_i2)
         self.coef, self.q = heml_coefficients(mesh.vertices, mesh.tets, self.use_q)
+        # constant-major copies for the blocked force kernel (a block reads each contiguously)
+        self.coef_t = np.ascontiguousarray(self.coef.T)
+        self.q_t = np.ascontiguousarray(self.q.T)
         self._law = np.int64(material.law_id)
         self._params = np.ascontiguousarray(material.params, dtype=np.float64)
         # Constant Psi_1 (Neo-Hookean): the I1 part is a fixed spring network, its weights
@@ -115,6 +118,9 @@ class HemlForce(ForceField):
     def _energy_parallel(self, x, n_chunks):
         return kernels_heml.heml_energy_parallel(x, *self._args(), n_chunks)
 
+    def _force_args(self):
+        return self.mesh.tets, self.coef_t, self.q_t, self.use_q, self._law, self._params
+
     def _split_args(self):
         return self.mesh.tets, self.inv_det, self.spring_weights, self._law, self._params
 
@@ -122,13 +128,13 @@ class HemlForce(ForceField):
         if self.split:
             kernels_heml.constant_psi1_forces_chunk(x, *self._split_args(), f, 0, self.mesh.n_tets)
         else:
-            kernels_heml.heml_forces_chunk(x, *self._args(), f, 0, self.n_elements)
+            kernels_heml.heml_forces_chunk(x, *self._force_args(), f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
         if self.split:
             kernels_heml.constant_psi1_forces_parallel(x, *self._split_args(), buf)
         else:
-            kernels_heml.heml_forces_parallel(x, *self._args(), buf)
+            kernels_heml.heml_forces_parallel(x, *self._force_args(), buf)
 
     def hessian(self, x, project=True):
         """Stiffness matrix ``d2W/dx2`` (N/m) at ``x``: a ``3n x 3n`` scipy CSR matrix.

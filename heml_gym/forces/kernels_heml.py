@@ -11,6 +11,12 @@ At run time, with ``e_k = x_b - x_a`` for edge ``k = (a, b)``:
 * edge weight ``w_k = 2 V0 (Psi_1 a_k + Psi_2 (Q s)_k)``: ``f_a += w_k e_k``, ``f_b -= w_k e_k``,
 * volume term ``f_a -= Psi_J / 6 * d det(Ds) / d x_a`` (cross products of the edges).
 
+The force kernels work in blocks of :data:`BLOCK` tets (gather the edges, compute in
+loops that vectorise across the block, scatter), reading the per-tet constants
+constant-major (``coef_t (8, m)``, ``q_t (21, m)``); indices are unsigned (see
+:func:`tet_vertices`). Neo-Hookean, whose ``Psi_1`` is constant, has a kernel of its own
+with precomputed spring weights.
+
 Each kernel comes as a serial ``*_chunk`` over a range of tets and a ``*_parallel``
 wrapper. The parallel one is race-free: tets are split into ``buf.shape[0]`` contiguous
 chunks, each chunk adds into its own ``(n, 3)`` slice of ``buf``, and the slices are then
@@ -27,6 +33,7 @@ from numba import prange
 
 from ..fastlog import SMALLEST_NORMAL
 from ..laws import law_energy, law_gradient, volumetric_gradient_fast
+from ..materials import ST_VENANT_KIRCHHOFF, STABLE_NEO_HOOKEAN
 
 
 @nb.njit(cache=True, inline="always")
@@ -42,133 +49,147 @@ def _qs(q, t, s0, s1, s2, s3, s4, s5):
     return qs0, qs1, qs2, qs3, qs4, qs5
 
 
-@nb.njit(cache=True)
-def heml_forces_chunk(x, tets, coef, q, use_q, law, p, f, lo, hi):
-    """Add the HEML elastic forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``."""
-    for t_signed in range(lo, hi):
-        t = np.uint64(t_signed)
-        i0, i1, i2, i3 = tet_vertices(tets, t)
-        x0x = x[i0, 0]
-        x0y = x[i0, 1]
-        x0z = x[i0, 2]
-        x1x = x[i1, 0]
-        x1y = x[i1, 1]
-        x1z = x[i1, 2]
-        x2x = x[i2, 0]
-        x2y = x[i2, 1]
-        x2z = x[i2, 2]
-        x3x = x[i3, 0]
-        x3y = x[i3, 1]
-        x3z = x[i3, 2]
-        # edge vectors e_k = x_b - x_a
-        e01x = x1x - x0x
-        e01y = x1y - x0y
-        e01z = x1z - x0z
-        e02x = x2x - x0x
-        e02y = x2y - x0y
-        e02z = x2z - x0z
-        e03x = x3x - x0x
-        e03y = x3y - x0y
-        e03z = x3z - x0z
-        e12x = x2x - x1x
-        e12y = x2y - x1y
-        e12z = x2z - x1z
-        e13x = x3x - x1x
-        e13y = x3y - x1y
-        e13z = x3z - x1z
-        e23x = x3x - x2x
-        e23y = x3y - x2y
-        e23z = x3z - x2z
-        s0 = e01x * e01x + e01y * e01y + e01z * e01z
-        s1 = e02x * e02x + e02y * e02y + e02z * e02z
-        s2 = e03x * e03x + e03y * e03y + e03z * e03z
-        s3 = e12x * e12x + e12y * e12y + e12z * e12z
-        s4 = e13x * e13x + e13y * e13y + e13z * e13z
-        s5 = e23x * e23x + e23y * e23y + e23z * e23z
-        v0 = coef[t, 0]
-        a0 = coef[t, 2]
-        a1 = coef[t, 3]
-        a2 = coef[t, 4]
-        a3 = coef[t, 5]
-        a4 = coef[t, 6]
-        a5 = coef[t, 7]
-        i_1 = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3 + a4 * s4 + a5 * s5
-        # d det(Ds) / d x_1, x_2, x_3
-        c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(
-            e01x, e01y, e01z, e02x, e02y, e02z, e03x, e03y, e03z)
-        jac = (e01x * c1x + e01y * c1y + e01z * c1z) * coef[t, 1]
-        if use_q:
-            qs0, qs1, qs2, qs3, qs4, qs5 = _qs(q, t, s0, s1, s2, s3, s4, s5)
-            i_2 = 0.5 * (s0 * qs0 + s1 * qs1 + s2 * qs2 + s3 * qs3 + s4 * qs4 + s5 * qs5)
-            d1, d2, dj = law_gradient(law, p, i_1, i_2, jac)
-            v2 = 2.0 * v0
-            w1 = v2 * d1
-            w2 = v2 * d2
-            w01 = w1 * a0 + w2 * qs0
-            w02 = w1 * a1 + w2 * qs1
-            w03 = w1 * a2 + w2 * qs2
-            w12 = w1 * a3 + w2 * qs3
-            w13 = w1 * a4 + w2 * qs4
-            w23 = w1 * a5 + w2 * qs5
-        else:
-            d1, d2, dj = law_gradient(law, p, i_1, 0.0, jac)
-            w1 = 2.0 * v0 * d1
-            w01 = w1 * a0
-            w02 = w1 * a1
-            w03 = w1 * a2
-            w12 = w1 * a3
-            w13 = w1 * a4
-            w23 = w1 * a5
-        g = dj * (1.0 / 6.0)
-        # edge forces: zero-rest-length springs with state-dependent weights
-        e01x *= w01
-        e01y *= w01
-        e01z *= w01
-        e02x *= w02
-        e02y *= w02
-        e02z *= w02
-        e03x *= w03
-        e03y *= w03
-        e03z *= w03
-        e12x *= w12
-        e12y *= w12
-        e12z *= w12
-        e13x *= w13
-        e13y *= w13
-        e13z *= w13
-        e23x *= w23
-        e23y *= w23
-        e23z *= w23
-        c1x *= g
-        c1y *= g
-        c1z *= g
-        c2x *= g
-        c2y *= g
-        c2z *= g
-        c3x *= g
-        c3y *= g
-        c3z *= g
-        f[i0, 0] += e01x + e02x + e03x + c1x + c2x + c3x
-        f[i0, 1] += e01y + e02y + e03y + c1y + c2y + c3y
-        f[i0, 2] += e01z + e02z + e03z + c1z + c2z + c3z
-        f[i1, 0] += e12x + e13x - e01x - c1x
-        f[i1, 1] += e12y + e13y - e01y - c1y
-        f[i1, 2] += e12z + e13z - e01z - c1z
-        f[i2, 0] += e23x - e02x - e12x - c2x
-        f[i2, 1] += e23y - e02y - e12y - c2y
-        f[i2, 2] += e23z - e02z - e12z - c2z
-        f[i3, 0] -= e03x + e13x + e23x + c3x
-        f[i3, 1] -= e03y + e13y + e23y + c3y
-        f[i3, 2] -= e03z + e13z + e23z + c3z
+@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
+    """Add the HEML forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``, any law.
+
+    ``coef_t (8, m)`` and ``q_t (21, m)`` are the per-tet constants stored constant-major
+    (``q_t`` is read only if ``use_q``). Tets are processed in blocks of :data:`BLOCK`:
+    gather the edges; compute the squared edge lengths, ``Q s``, the invariants and the
+    cross products in loops that vectorise; the law's derivatives per tet; the edge
+    weights and forces (vectorised); scatter.
+    """
+    edges = np.empty((9, BLOCK), dtype=x.dtype)
+    qs = np.zeros((6, BLOCK), dtype=x.dtype)  # stays zero unless use_q
+    inv = np.empty((3, BLOCK), dtype=x.dtype)
+    grad = np.empty((3, BLOCK), dtype=x.dtype)
+    work = np.empty((12, BLOCK), dtype=x.dtype)
+    for start in range(lo, hi, BLOCK):
+        size = min(BLOCK, hi - start)
+        first = np.uint64(start)
+        for k in range(size):
+            i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
+            x0x = x[i0, 0]
+            x0y = x[i0, 1]
+            x0z = x[i0, 2]
+            edges[0, k] = x[i1, 0] - x0x
+            edges[1, k] = x[i1, 1] - x0y
+            edges[2, k] = x[i1, 2] - x0z
+            edges[3, k] = x[i2, 0] - x0x
+            edges[4, k] = x[i2, 1] - x0y
+            edges[5, k] = x[i2, 2] - x0z
+            edges[6, k] = x[i3, 0] - x0x
+            edges[7, k] = x[i3, 1] - x0y
+            edges[8, k] = x[i3, 2] - x0z
+        for k in range(size):  # invariants: vectorises
+            t = first + np.uint64(k)
+            ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
+            s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
+            inv[0, k] = (coef_t[2, t] * s0 + coef_t[3, t] * s1 + coef_t[4, t] * s2
+                         + coef_t[5, t] * s3 + coef_t[6, t] * s4 + coef_t[7, t] * s5)
+            inv[2, k] = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)) * coef_t[1, t]
+            if use_q:
+                q0, q1, q2, q3, q4, q5 = _qs_t(q_t, t, s0, s1, s2, s3, s4, s5)
+                qs[0, k] = q0
+                qs[1, k] = q1
+                qs[2, k] = q2
+                qs[3, k] = q3
+                qs[4, k] = q4
+                qs[5, k] = q5
+                inv[1, k] = 0.5 * (s0 * q0 + s1 * q1 + s2 * q2 + s3 * q3 + s4 * q4 + s5 * q5)
+            else:
+                inv[1, k] = 0.0
+        law_gradients(law, p, inv, grad, size)
+        for k in range(size):  # edge weights and forces: vectorises
+            t = first + np.uint64(k)
+            ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
+            c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
+            v2 = 2.0 * coef_t[0, t]
+            w1 = v2 * grad[0, k]
+            w2 = v2 * grad[1, k] if use_q else 0.0
+            g = grad[2, k] * (1.0 / 6.0)
+            _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
+                              c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
+                              c3x * g, c3y * g, c3z * g,
+                              w1 * coef_t[2, t] + w2 * qs[0, k], w1 * coef_t[3, t] + w2 * qs[1, k],
+                              w1 * coef_t[4, t] + w2 * qs[2, k], w1 * coef_t[5, t] + w2 * qs[3, k],
+                              w1 * coef_t[6, t] + w2 * qs[4, k], w1 * coef_t[7, t] + w2 * qs[5, k])
+        scatter_block(f, tets, first, size, work)
+
+
+@nb.njit(cache=True, inline="always")
+def law_gradients(law, p, inv, grad, size):
+    """``grad[:, k] = law_gradient(law, p, *inv[:, k])`` for lanes ``k < size``.
+
+    The laws whose derivatives call no library function (Stable Neo-Hookean, StVK) get a
+    loop of their own, with the law a constant, so that it vectorises.
+    """
+    if law == STABLE_NEO_HOOKEAN:
+        for k in range(size):
+            grad[0, k], grad[1, k], grad[2, k] = law_gradient(STABLE_NEO_HOOKEAN, p, inv[0, k], inv[1, k], inv[2, k])
+    elif law == ST_VENANT_KIRCHHOFF:
+        for k in range(size):
+            grad[0, k], grad[1, k], grad[2, k] = law_gradient(ST_VENANT_KIRCHHOFF, p, inv[0, k], inv[1, k], inv[2, k])
+    else:
+        for k in range(size):
+            grad[0, k], grad[1, k], grad[2, k] = law_gradient(law, p, inv[0, k], inv[1, k], inv[2, k])
+
+
+@nb.njit(cache=True, inline="always")
+def squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """``s_k = |e_k|^2`` of the six edges (order of ``EDGE_PAIRS``) from the edges ``a, b, c``
+    from vertex 0 (m^2)."""
+    dx = bx - ax
+    dy = by - ay
+    dz = bz - az
+    ex = cx - ax
+    ey = cy - ay
+    ez = cz - az
+    fx = cx - bx
+    fy = cy - by
+    fz = cz - bz
+    return (ax * ax + ay * ay + az * az, bx * bx + by * by + bz * bz, cx * cx + cy * cy + cz * cz,
+            dx * dx + dy * dy + dz * dz, ex * ex + ey * ey + ez * ez, fx * fx + fy * fy + fz * fz)
+
+
+@nb.njit(cache=True, inline="always")
+def _qs_t(q_t, t, s0, s1, s2, s3, s4, s5):
+    """``Q s`` for tet ``t`` with Q's 21 upper-triangle entries stored as ``q_t[:, t]``."""
+    qs0 = q_t[0, t] * s0 + q_t[1, t] * s1 + q_t[2, t] * s2 + q_t[3, t] * s3 + q_t[4, t] * s4 + q_t[5, t] * s5
+    qs1 = q_t[1, t] * s0 + q_t[6, t] * s1 + q_t[7, t] * s2 + q_t[8, t] * s3 + q_t[9, t] * s4 + q_t[10, t] * s5
+    qs2 = q_t[2, t] * s0 + q_t[7, t] * s1 + q_t[11, t] * s2 + q_t[12, t] * s3 + q_t[13, t] * s4 + q_t[14, t] * s5
+    qs3 = q_t[3, t] * s0 + q_t[8, t] * s1 + q_t[12, t] * s2 + q_t[15, t] * s3 + q_t[16, t] * s4 + q_t[17, t] * s5
+    qs4 = q_t[4, t] * s0 + q_t[9, t] * s1 + q_t[13, t] * s2 + q_t[16, t] * s3 + q_t[18, t] * s4 + q_t[19, t] * s5
+    qs5 = q_t[5, t] * s0 + q_t[10, t] * s1 + q_t[14, t] * s2 + q_t[17, t] * s3 + q_t[19, t] * s4 + q_t[20, t] * s5
+    return qs0, qs1, qs2, qs3, qs4, qs5
+
+
+@nb.njit(cache=True, inline="always")
+def scatter_block(f, tets, first, size, work):
+    """Add the forces ``work[:, k]`` of the block's tets ``first + k`` into ``f`` (N)."""
+    for k in range(size):
+        i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
+        f[i0, 0] += work[0, k]
+        f[i0, 1] += work[1, k]
+        f[i0, 2] += work[2, k]
+        f[i1, 0] += work[3, k]
+        f[i1, 1] += work[4, k]
+        f[i1, 2] += work[5, k]
+        f[i2, 0] += work[6, k]
+        f[i2, 1] += work[7, k]
+        f[i2, 2] += work[8, k]
+        f[i3, 0] += work[9, k]
+        f[i3, 1] += work[10, k]
+        f[i3, 2] += work[11, k]
 
 
 @nb.njit(cache=True, parallel=True)
-def heml_forces_parallel(x, tets, coef, q, use_q, law, p, buf):
+def heml_forces_parallel(x, tets, coef_t, q_t, use_q, law, p, buf):
     """HEML forces over all tets, one chunk per thread, summed into ``buf[0]`` (zero on entry)."""
     n_chunks = buf.shape[0]
     m = tets.shape[0]
     for c in prange(n_chunks):
-        heml_forces_chunk(x, tets, coef, q, use_q, law, p, buf[c], c * m // n_chunks, (c + 1) * m // n_chunks)
+        heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, buf[c], c * m // n_chunks, (c + 1) * m // n_chunks)
     reduce_chunks(buf)
 
 
@@ -233,20 +254,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
                                       c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
                                       c3x * g, c3y * g, c3z * g,
                                       w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
-        for k in range(size):
-            i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
-            f[i0, 0] += work[0, k]
-            f[i0, 1] += work[1, k]
-            f[i0, 2] += work[2, k]
-            f[i1, 0] += work[3, k]
-            f[i1, 1] += work[4, k]
-            f[i1, 2] += work[5, k]
-            f[i2, 0] += work[6, k]
-            f[i2, 1] += work[7, k]
-            f[i2, 2] += work[8, k]
-            f[i3, 0] += work[9, k]
-            f[i3, 1] += work[10, k]
-            f[i3, 2] += work[11, k]
+        scatter_block(f, tets, first, size, work)
 
 
 @nb.njit(cache=True, inline="always")
@@ -355,21 +363,7 @@ def tet_invariants(x, tets, coef, q, use_q, t):
     cx = x[i3, 0] - x[i0, 0]
     cy = x[i3, 1] - x[i0, 1]
     cz = x[i3, 2] - x[i0, 2]
-    dx = bx - ax
-    dy = by - ay
-    dz = bz - az
-    ex = cx - ax
-    ey = cy - ay
-    ez = cz - az
-    fx = cx - bx
-    fy = cy - by
-    fz = cz - bz
-    s0 = ax * ax + ay * ay + az * az
-    s1 = bx * bx + by * by + bz * bz
-    s2 = cx * cx + cy * cy + cz * cz
-    s3 = dx * dx + dy * dy + dz * dz
-    s4 = ex * ex + ey * ey + ez * ez
-    s5 = fx * fx + fy * fy + fz * fz
+    s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
     i_1 = (coef[t, 2] * s0 + coef[t, 3] * s1 + coef[t, 4] * s2
            + coef[t, 5] * s3 + coef[t, 6] * s4 + coef[t, 7] * s5)
     i_2 = 0.0
