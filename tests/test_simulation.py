@@ -147,6 +147,28 @@ def test_implicit_is_finite_and_dissipates_at_100x_critical_step():
     assert energies[-1] < 0.05 * e0
 
 
+@pytest.mark.parametrize("linear_solver", ["pcg", "direct"])
+def test_implicit_default_tolerance_tracks_a_tight_solve(linear_solver):
+    """The default inexact Newton (1e-3 of the weight, CG to 1e-2 with a lagged Cholesky
+    preconditioner) stays on the trajectory of a 1e-10 solve: a sagging flap, 1/30 s steps."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.006), (6, 6, 1))
+    clamp = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.0))
+
+    def trajectory(**kw):
+        sim = hg.Simulation(hg.HemlForce(mesh, M.NeoHookean(E=20e3, nu=0.43)), RHO, fixed=clamp,
+                            linear_solver=linear_solver, **kw)
+        out = []
+        for _ in range(15):
+            sim.step(1 / 30)
+            out.append(sim.x.copy())
+        return np.array(out)
+
+    loose, tight = trajectory(), trajectory(newton_tol=1e-10)
+    sag = -(tight[..., 2] - mesh.vertices[None, :, 2]).min()
+    assert sag > 0.01  # a large deflection, not a linear one
+    assert np.linalg.norm(loose - tight, axis=2).max() < 1e-3 * sag
+
+
 def test_static_hanging_body_reaction_balances_weight():
     mesh = hg.box_mesh((0.03, 0.02, 0.05), (3, 2, 5))
     top = np.flatnonzero(np.isclose(mesh.vertices[:, 2], 0.05))
