@@ -67,20 +67,7 @@ def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
     for start in range(lo, hi, BLOCK):
         size = min(BLOCK, hi - start)
         first = np.uint64(start)
-        for k in range(size):
-            i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
-            x0x = x[i0, 0]
-            x0y = x[i0, 1]
-            x0z = x[i0, 2]
-            edges[0, k] = x[i1, 0] - x0x
-            edges[1, k] = x[i1, 1] - x0y
-            edges[2, k] = x[i1, 2] - x0z
-            edges[3, k] = x[i2, 0] - x0x
-            edges[4, k] = x[i2, 1] - x0y
-            edges[5, k] = x[i2, 2] - x0z
-            edges[6, k] = x[i3, 0] - x0x
-            edges[7, k] = x[i3, 1] - x0y
-            edges[8, k] = x[i3, 2] - x0z
+        gather_block(x, tets, first, size, edges)
         for k in range(size):  # invariants: vectorises
             t = first + np.uint64(k)
             ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
@@ -165,6 +152,25 @@ def _qs_t(q_t, t, s0, s1, s2, s3, s4, s5):
 
 
 @nb.njit(cache=True, inline="always")
+def gather_block(x, tets, first, size, edges):
+    """``edges[:, k]`` = the edges ``a, b, c`` from vertex 0 (m) of the block's tets ``first + k``."""
+    for k in range(size):
+        i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
+        x0x = x[i0, 0]
+        x0y = x[i0, 1]
+        x0z = x[i0, 2]
+        edges[0, k] = x[i1, 0] - x0x
+        edges[1, k] = x[i1, 1] - x0y
+        edges[2, k] = x[i1, 2] - x0z
+        edges[3, k] = x[i2, 0] - x0x
+        edges[4, k] = x[i2, 1] - x0y
+        edges[5, k] = x[i2, 2] - x0z
+        edges[6, k] = x[i3, 0] - x0x
+        edges[7, k] = x[i3, 1] - x0y
+        edges[8, k] = x[i3, 2] - x0z
+
+
+@nb.njit(cache=True, inline="always")
 def scatter_block(f, tets, first, size, work):
     """Add the forces ``work[:, k]`` of the block's tets ``first + k`` into ``f`` (N)."""
     for k in range(size):
@@ -214,20 +220,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
     for start in range(lo, hi, BLOCK):
         size = min(BLOCK, hi - start)
         first = np.uint64(start)
-        for k in range(size):
-            i0, i1, i2, i3 = tet_vertices(tets, first + np.uint64(k))
-            x0x = x[i0, 0]
-            x0y = x[i0, 1]
-            x0z = x[i0, 2]
-            edges[0, k] = x[i1, 0] - x0x
-            edges[1, k] = x[i1, 1] - x0y
-            edges[2, k] = x[i1, 2] - x0z
-            edges[3, k] = x[i2, 0] - x0x
-            edges[4, k] = x[i2, 1] - x0y
-            edges[5, k] = x[i2, 2] - x0z
-            edges[6, k] = x[i3, 0] - x0x
-            edges[7, k] = x[i3, 1] - x0y
-            edges[8, k] = x[i3, 2] - x0z
+        gather_block(x, tets, first, size, edges)
         n_bad = 0
         for k in range(size):  # vectorises: no calls, no branches, unit-stride arrays
             t = first + np.uint64(k)
