@@ -1,7 +1,9 @@
 """Force-evaluation throughput (tets per second) of every force field vs mesh size.
 
 For box meshes from about 1k to 1M tets, times ``field.forces(x, out=...)`` on a
-deformed state, single thread and all Numba threads, median over repeated calls.
+deformed state, single thread and all Numba threads, median over repeated calls; the
+thread counts alternate in 5 rounds (the machine is shared and its load drifts), and the
+speed-up is the median of the per-round ratios.
 Writes docs/benchmarks/force_throughput.json, .md and docs/img/force_throughput.png.
 
     python benchmarks/force_throughput.py [--quick]
@@ -32,6 +34,7 @@ FIELDS = {
     "Mass-spring": lambda mesh: hg.MassSpringForce(mesh, M.NeoHookean(E=E, nu=NU)),
 }
 CELLS = [6, 10, 16, 26, 38, 55]  # 6 c^3 tets: 1.3k ... 1.0M
+ROUNDS = 5  # interleaved rounds per case
 
 
 def deformed(mesh: hg.TetMesh) -> np.ndarray:
@@ -54,12 +57,21 @@ def main(argv=None):
         field = FIELDS[name](mesh)
         x = deformed(mesh)
         out = np.empty_like(x)
+        # thread counts interleaved in rounds, so that every count sees the same machine
+        # load; the speed-up is the median of the per-round ratios
+        per_round = {threads: [] for threads in thread_counts}
+        for _ in range(ROUNDS):
+            for threads in thread_counts:
+                numba.set_num_threads(threads)
+                per_round[threads].append(median_time(lambda: field.forces(x, out=out), min_reps=3,
+                                                      budget_s=1.0 / ROUNDS)["median_s"])
         for threads in thread_counts:
-            numba.set_num_threads(threads)
-            t = median_time(lambda: field.forces(x, out=out), budget_s=1.0)
+            med = float(np.median(per_round[threads]))
+            ratio = np.array(per_round[1]) / np.array(per_round[threads])
             rows.append({
                 "field": name, "n_tets": mesh.n_tets, "n_vertices": mesh.n_vertices,
-                "threads": threads, **t, "tets_per_s": mesh.n_tets / t["median_s"],
+                "threads": threads, "median_s": med, "round_medians_s": per_round[threads],
+                "tets_per_s": mesh.n_tets / med, "speedup_vs_1": float(np.median(ratio)),
             })
         numba.set_num_threads(all_threads)
         del field
@@ -98,12 +110,13 @@ def write_report(rows, thread_counts):
     table = []
     for name in FIELDS:
         for n in sorted({r["n_tets"] for r in rows}):
-            rate = {r["threads"]: r["tets_per_s"] for r in rows if r["field"] == name and r["n_tets"] == n}
-            if not rate:
+            mine = {r["threads"]: r for r in rows if r["field"] == name and r["n_tets"] == n}
+            if not mine:
                 continue
-            row = [name, f"{n:,}"] + [f"{rate[t] / 1e6:.1f}" for t in thread_counts]
+            row = [name, f"{n:,}"] + [f"{mine[t]['tets_per_s'] / 1e6:.1f}" for t in thread_counts]
             if len(thread_counts) > 1:
-                row.append(f"{rate[thread_counts[-1]] / rate[1]:.2f}x")
+                last = mine[thread_counts[-1]]
+                row.append(f"{last.get('speedup_vs_1', last['tets_per_s'] / mine[1]['tets_per_s']):.2f}x")
             table.append(row)
     (RESULTS / "force_throughput.md").write_text(markdown_table(header, table))
     print(markdown_table(header, table))

@@ -95,9 +95,13 @@ class HemlForce(ForceField):
         super().__init__(mesh, material)
         self.use_q = bool(material.needs_i2)
         self.coef, self.q = heml_coefficients(mesh.vertices, mesh.tets, self.use_q)
-        # constant-major copies for the blocked force kernel (a block reads each contiguously)
+        # constant-major copies for the blocked force kernels (a block reads each contiguously)
         self.coef_t = np.ascontiguousarray(self.coef.T)
         self.q_t = np.ascontiguousarray(self.q.T)
+        # 32-bit vertex indices for the force kernels: less memory traffic per tet (on 1 M
+        # tets, 2 threads: 97 against 77 M tets/s with the 64-bit ones)
+        small = mesh.n_vertices < np.iinfo(np.int32).max
+        self._force_tets = np.ascontiguousarray(mesh.tets, dtype=np.int32 if small else np.int64)
         self._law = np.int64(material.law_id)
         self._params = np.ascontiguousarray(material.params, dtype=np.float64)
         # Constant Psi_1 (Neo-Hookean): the I1 part is a fixed spring network, its weights
@@ -119,10 +123,10 @@ class HemlForce(ForceField):
         return kernels_heml.heml_energy_parallel(x, *self._args(), n_chunks)
 
     def _force_args(self):
-        return self.mesh.tets, self.coef_t, self.q_t, self.use_q, self._law, self._params
+        return self._force_tets, self.coef_t, self.q_t, self.use_q, self._law, self._params
 
     def _split_args(self):
-        return self.mesh.tets, self.inv_det, self.spring_weights, self._law, self._params
+        return self._force_tets, self.inv_det, self.spring_weights, self._law, self._params
 
     def _add_forces_serial(self, x, f):
         if self.split:
