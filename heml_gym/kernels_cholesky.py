@@ -8,6 +8,10 @@ matrix stays small, and every inner loop is a dot product or an update over a co
 stretch of memory, which vectorises. Indices are unsigned: Numba's wrap-around of negative
 signed indices would turn those contiguous loads into gathers. See
 :class:`heml_gym.linear_solvers.EnvelopeCholesky`.
+
+:func:`pcg_envelope` runs conjugate gradients preconditioned by such a factor entirely in
+Numba (CSR products, the two triangular solves and the vector updates), with no Python
+between iterations.
 """
 
 from __future__ import annotations
@@ -84,3 +88,73 @@ def scatter_into_envelope(data, target, values):
         t = target[e]
         if t >= 0:
             values[t] += data[e]
+
+
+@nb.njit(cache=True)
+def csr_matvec(indptr, indices, data, x, y):
+    """``y = A x`` for the CSR matrix ``(data, indices, indptr)``. Scalar on purpose: rows
+    of ~30 entries and an indexed load each run 2.7x slower when LLVM vectorises them
+    with gathers (``fastmath``)."""
+    for i in range(y.shape[0]):
+        s = 0.0
+        for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
+            s += data[k] * x[np.uint64(indices[k])]
+        y[i] = s
+
+
+@nb.njit(cache=True)
+def envelope_precondition(first, ptr, values, inverse, r, z, work_b, work_x):
+    """``z = A^-1 r`` with ``A = P^T L L^T P``: ``inverse[i]`` is row ``i``'s position in the
+    factor's order; ``work_b``, ``work_x`` are scratch vectors."""
+    n = r.shape[0]
+    for i in range(n):
+        work_b[np.uint64(inverse[i])] = r[i]
+    envelope_solve(first, ptr, values, work_b, work_x)
+    for i in range(n):
+        z[i] = work_x[np.uint64(inverse[i])]
+
+
+@nb.njit(cache=True)
+def pcg_envelope(indptr, indices, data, b, first, ptr, values, inverse, rtol, max_iter, x):
+    """Conjugate gradients on the CSR matrix ``A`` from ``x0 = P^-1 b``, preconditioned by an
+    envelope Cholesky factor ``P`` (of an earlier matrix). ``x`` receives the solution.
+
+    Returns ``(iterations, converged)``; converged means ``|b - A x| <= rtol |b|``. Stops
+    unconverged when ``A`` is not positive definite along a search direction.
+    """
+    n = b.shape[0]
+    r = np.empty(n)
+    z = np.empty(n)
+    p = np.empty(n)
+    ap = np.empty(n)
+    work_b = np.empty(n)
+    work_x = np.empty(n)
+    b_norm = math.sqrt(np.dot(b, b))
+    envelope_precondition(first, ptr, values, inverse, b, x, work_b, work_x)
+    csr_matvec(indptr, indices, data, x, ap)
+    for i in range(n):
+        r[i] = b[i] - ap[i]
+    tol = rtol * b_norm
+    if b_norm == 0.0 or math.sqrt(np.dot(r, r)) <= tol:
+        return 0, True
+    envelope_precondition(first, ptr, values, inverse, r, z, work_b, work_x)
+    p[:] = z
+    rz = np.dot(r, z)
+    for k in range(1, max_iter + 1):
+        csr_matvec(indptr, indices, data, p, ap)
+        pap = np.dot(p, ap)
+        if not pap > 0.0:  # not positive definite along p (or NaN)
+            return k, False
+        step = rz / pap
+        for i in range(n):
+            x[i] += step * p[i]
+            r[i] -= step * ap[i]
+        if math.sqrt(np.dot(r, r)) <= tol:
+            return k, True
+        envelope_precondition(first, ptr, values, inverse, r, z, work_b, work_x)
+        rz_new = np.dot(r, z)
+        beta = rz_new / rz
+        for i in range(n):
+            p[i] = z[i] + beta * p[i]
+        rz = rz_new
+    return max_iter, False

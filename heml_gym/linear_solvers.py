@@ -18,7 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from .kernels_cholesky import envelope_cholesky, envelope_solve, scatter_into_envelope
+from .kernels_cholesky import envelope_cholesky, envelope_solve, pcg_envelope, scatter_into_envelope
 
 
 class FreeSubmatrix:
@@ -146,6 +146,18 @@ class EnvelopeCholesky:
         envelope_solve(self._first, self._ptr, self._values, self._b, self._x)
         return self._x[self._inverse]
 
+    def pcg(self, a: sp.csr_matrix, b: np.ndarray, rtol: float, max_iter: int):
+        """Solve ``a x = b`` by conjugate gradients preconditioned with this factorisation
+        (of an earlier matrix), in one Numba call. Returns ``(x, iterations, converged)``
+        as :func:`pcg`."""
+        a = a.tocsr()
+        x = np.empty(a.shape[0])
+        iterations, converged = pcg_envelope(
+            a.indptr, a.indices, np.ascontiguousarray(a.data, dtype=np.float64),
+            np.ascontiguousarray(b, dtype=np.float64), self._first, self._ptr, self._values,
+            self._inverse, float(rtol), int(max_iter), x)
+        return x, int(iterations), bool(converged)
+
 
 class LaggedFactorPCG:
     """Solve SPD systems by CG preconditioned with an earlier system's factorisation.
@@ -200,7 +212,10 @@ class LaggedFactorPCG:
             if not self._factor(a, key):
                 return np.full_like(b, np.nan)
             return self._lu.solve(b)
-        x, iterations, converged = pcg(a, b, self._lu.solve, self.rtol, self.max_iter)
+        if isinstance(self._lu, EnvelopeCholesky):
+            x, iterations, converged = self._lu.pcg(a, b, self.rtol, self.max_iter)
+        else:
+            x, iterations, converged = pcg(a, b, self._lu.solve, self.rtol, self.max_iter)
         self.last_iterations = iterations
         if converged:
             return x
