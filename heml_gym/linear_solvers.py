@@ -6,8 +6,8 @@ slowly from one solve to the next. :class:`LaggedFactorPCG` factorises the matri
 then solves the following systems by conjugate gradients preconditioned with that old
 factorisation, and refactorises only when CG needs more than ``max_iter`` iterations or
 when the set of free dofs changes. The factorisation is :class:`EnvelopeCholesky` (Numba,
-envelope storage after a bandwidth-reducing ordering) for symmetric positive definite
-matrices, SuperLU's LU otherwise. :class:`FreeSubmatrix` extracts the free-dof block of a
+envelope storage after a bandwidth-reducing ordering; a matrix it finds indefinite is
+reported, so that Newton can take its projected Hessian) or, on request, SuperLU's LU. :class:`FreeSubmatrix` extracts the free-dof block of a
 CSR matrix of fixed pattern by one gather of its data.
 """
 
@@ -165,8 +165,9 @@ class LaggedFactorPCG:
     ``rtol``: CG stops at ``|r| <= rtol |b|``. ``max_iter``: past this many CG
     iterations the current matrix is factorised afresh and used directly. ``key``
     (e.g. the free-dof mask and the time step) forces a new factorisation when it changes.
-    ``factorization``: ``"cholesky"`` (:class:`EnvelopeCholesky`; a matrix that is not
-    positive definite is factorised by LU instead) or ``"lu"`` (SuperLU).
+    ``factorization``: ``"cholesky"`` (:class:`EnvelopeCholesky`, CG in one Numba call;
+    a matrix found not positive definite gives a NaN solution) or ``"lu"`` (SuperLU, CG
+    in Python).
     Counters: ``factorizations``, ``last_iterations``.
     """
 
