@@ -97,6 +97,11 @@ def test_envelope_cholesky_rejects_indefinite_matrices():
     solver = LaggedFactorPCG(factorization="cholesky")
     assert np.all(np.isnan(solver.solve(indefinite, np.ones(a.shape[0]))))  # Newton then projects
     assert solver.factorizations == 0
+    # a positive definite factor kept, then an indefinite system: CG meets negative
+    # curvature, the refactorisation fails, the answer is NaN again (not a wrong solve)
+    solver.solve(a, np.ones(a.shape[0]), key="k")
+    assert solver.factorizations == 1
+    assert np.all(np.isnan(solver.solve(indefinite, np.ones(a.shape[0]), key="k")))
     with pytest.raises(ValueError, match="factorization"):
         LaggedFactorPCG(factorization="qr")
 
