@@ -183,6 +183,11 @@ def heml_hessian_data(force, x, project: bool = True, method: str = "analytic",
     else:
         out.fill(0.0)
     m = force.mesh
+    if mode == kh.NO_PROJECTION and force.split:  # Neo-Hookean: fixed springs + volume term
+        kh.heml_split_hessian_kernel(x, m.tets, force.inv_det, force.spring_weights, force._law,
+                                     force._params, hd.blk, hd.pattern.row_stride, out)
+        hd.n_clamped = 0
+        return out
     hd.n_clamped = kh.heml_hessian_kernel(
         x, m.tets, force.coef, force.q, force.use_q, force._law, force._params, hd.dm_inv,
         mode, hd.blk, hd.pattern.row_stride, out, _NO_ELEMENTS)
