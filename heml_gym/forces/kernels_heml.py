@@ -263,6 +263,18 @@ def tet_vertices(tets, t):
 
 
 @nb.njit(cache=True, inline="always")
+def tet_edges(x, tets, t):
+    """The edges ``a, b, c`` from vertex 0 of tet ``t`` at positions ``x`` (m)."""
+    i0, i1, i2, i3 = tet_vertices(tets, t)
+    x0x = x[i0, 0]
+    x0y = x[i0, 1]
+    x0z = x[i0, 2]
+    return (x[i1, 0] - x0x, x[i1, 1] - x0y, x[i1, 2] - x0z,
+            x[i2, 0] - x0x, x[i2, 1] - x0y, x[i2, 2] - x0z,
+            x[i3, 0] - x0x, x[i3, 1] - x0y, x[i3, 2] - x0z)
+
+
+@nb.njit(cache=True, inline="always")
 def edge_vectors(edges, k):
     """The edges ``a, b, c`` (from vertex 0) of the tet in lane ``k`` of a gathered block."""
     return (edges[0, k], edges[1, k], edges[2, k], edges[3, k], edges[4, k], edges[5, k],
@@ -346,16 +358,7 @@ def reduce_chunks(buf):
 @nb.njit(cache=True, inline="always")
 def tet_invariants(x, tets, coef, q, use_q, t):
     """``(I1, I2, J)`` of tet ``t`` at positions ``x`` (I2 = 0 unless ``use_q``)."""
-    i0, i1, i2, i3 = tet_vertices(tets, t)
-    ax = x[i1, 0] - x[i0, 0]
-    ay = x[i1, 1] - x[i0, 1]
-    az = x[i1, 2] - x[i0, 2]
-    bx = x[i2, 0] - x[i0, 0]
-    by = x[i2, 1] - x[i0, 1]
-    bz = x[i2, 2] - x[i0, 2]
-    cx = x[i3, 0] - x[i0, 0]
-    cy = x[i3, 1] - x[i0, 1]
-    cz = x[i3, 2] - x[i0, 2]
+    ax, ay, az, bx, by, bz, cx, cy, cz = tet_edges(x, tets, t)
     s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
     i_1 = (coef[t, 2] * s0 + coef[t, 3] * s1 + coef[t, 4] * s2
            + coef[t, 5] * s3 + coef[t, 6] * s4 + coef[t, 7] * s5)

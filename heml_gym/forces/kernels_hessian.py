@@ -61,7 +61,7 @@ import numba as nb
 import numpy as np
 
 from ..laws import law_gradient, law_hessian
-from .kernels_heml import edge_cofactors
+from .kernels_heml import edge_cofactors, tet_edges
 
 try:  # Numba's private switch to compile a function without reference counting
     from numba.core.options import DefaultOptions as _DefaultOptions
@@ -117,6 +117,30 @@ def _add_skew(ke, a, b, s, vx, vy, vz):
     ke[rb + 2, ra + 1] -= s * vx
     ke[rb, ra + 2] -= s * vy
     ke[rb + 1, ra + 2] += s * vx
+
+
+@nb.njit(cache=True, inline="always")
+def _add_det_hessian(ke, s, d1x, d1y, d1z, d2x, d2y, d2z, d3x, d3y, d3z):
+    """``ke += s d2 det(Ds) / dx2`` for the edges ``d_i = x_i - x_0``: zero diagonal blocks,
+    skew off-diagonal blocks (see the module docstring)."""
+    _add_skew(ke, 1, 2, -s, d3x, d3y, d3z)
+    _add_skew(ke, 1, 3, s, d2x, d2y, d2z)
+    _add_skew(ke, 2, 3, -s, d1x, d1y, d1z)
+    _add_skew(ke, 0, 1, s, d2x - d3x, d2y - d3y, d2z - d3z)
+    _add_skew(ke, 0, 2, s, d3x - d1x, d3y - d1y, d3z - d1z)
+    _add_skew(ke, 0, 3, s, d1x - d2x, d1y - d2y, d1z - d2z)
+
+
+@nb.njit(cache=True, inline="always")
+def _add_edge_spring(ke, k, wk):
+    """``ke += wk [[I, -I], [-I, I]]`` on the vertices of edge ``k`` (a linear spring, N/m)."""
+    ra = 3 * _EA[k]
+    rb = 3 * _EB[k]
+    for d in range(3):
+        ke[ra + d, ra + d] += wk
+        ke[rb + d, rb + d] += wk
+        ke[ra + d, rb + d] -= wk
+        ke[rb + d, ra + d] -= wk
 
 
 @nb.njit(cache=True)
@@ -255,23 +279,10 @@ def heml_element_hessian(x, tets, coef, q, use_q, law, p, t, ke, ev, sv, qsv, g3
 
     # edge Laplacian: sum_k V0 Psi'_k d2 s_k, d2 s_k = 2 [[I, -I], [-I, I]]
     for k in range(6):
-        wk = 2.0 * v0 * (ps1 * coef[t, 2 + k] + ps2 * qsv[k])
-        ra = 3 * _EA[k]
-        rb = 3 * _EB[k]
-        for d in range(3):
-            ke[ra + d, ra + d] += wk
-            ke[rb + d, rb + d] += wk
-            ke[ra + d, rb + d] -= wk
-            ke[rb + d, ra + d] -= wk
+        _add_edge_spring(ke, k, 2.0 * v0 * (ps1 * coef[t, 2 + k] + ps2 * qsv[k]))
 
     # V0 Psi_J d2J = Psi_J / 6 d2 det(Ds)
-    sj = v0 * inv_det * psj
-    _add_skew(ke, 1, 2, -sj, d3x, d3y, d3z)
-    _add_skew(ke, 1, 3, sj, d2x, d2y, d2z)
-    _add_skew(ke, 2, 3, -sj, d1x, d1y, d1z)
-    _add_skew(ke, 0, 1, sj, d2x - d3x, d2y - d3y, d2z - d3z)
-    _add_skew(ke, 0, 2, sj, d3x - d1x, d3y - d1y, d3z - d1z)
-    _add_skew(ke, 0, 3, sj, d1x - d2x, d1y - d2y, d1z - d2z)
+    _add_det_hessian(ke, v0 * inv_det * psj, d1x, d1y, d1z, d2x, d2y, d2z, d3x, d3y, d3z)
     return ps1, ps2, psj, h11, h12, h1j, h22, h2j, hjj
 
 
@@ -621,25 +632,6 @@ def add_element_blocks(ke, t, tets, blk, row_stride, data):
                 data[row + np.uint64(2)] += ke[kr, kc + 2]
 
 
-@nb.njit(cache=True, inline="always")
-def _skew_into(ke, r, c, sign, vx, vy, vz):
-    """``ke[3r:3r+3, 3c:3c+3] += sign [v]_x`` and the transposed block at ``(c, r)``."""
-    r3 = 3 * r
-    c3 = 3 * c
-    ke[r3, c3 + 1] -= sign * vz
-    ke[r3, c3 + 2] += sign * vy
-    ke[r3 + 1, c3] += sign * vz
-    ke[r3 + 1, c3 + 2] -= sign * vx
-    ke[r3 + 2, c3] -= sign * vy
-    ke[r3 + 2, c3 + 1] += sign * vx
-    ke[c3 + 1, r3] -= sign * vz
-    ke[c3 + 2, r3] += sign * vy
-    ke[c3, r3 + 1] += sign * vz
-    ke[c3 + 2, r3 + 1] -= sign * vx
-    ke[c3, r3 + 2] -= sign * vy
-    ke[c3 + 1, r3 + 2] += sign * vx
-
-
 @nb.njit(cache=True)
 def heml_split_hessian_kernel(x, tets, inv_det, w, law, params, blk, row_stride, data):
     """Exact Hessian of a law with constant ``Psi_1`` (Neo-Hookean) added into the CSR
@@ -652,19 +644,7 @@ def heml_split_hessian_kernel(x, tets, inv_det, w, law, params, blk, row_stride,
     ke = np.empty((12, 12))
     g = np.empty(12)
     for t in range(tets.shape[0]):
-        i0 = tets[t, 0]
-        i1 = tets[t, 1]
-        i2 = tets[t, 2]
-        i3 = tets[t, 3]
-        ax = x[i1, 0] - x[i0, 0]
-        ay = x[i1, 1] - x[i0, 1]
-        az = x[i1, 2] - x[i0, 2]
-        bx = x[i2, 0] - x[i0, 0]
-        by = x[i2, 1] - x[i0, 1]
-        bz = x[i2, 2] - x[i0, 2]
-        cx = x[i3, 0] - x[i0, 0]
-        cy = x[i3, 1] - x[i0, 1]
-        cz = x[i3, 2] - x[i0, 2]
+        ax, ay, az, bx, by, bz, cx, cy, cz = tet_edges(x, tets, t)
         c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
         idet = inv_det[t]
         jac = (ax * c1x + ay * c1y + az * c1z) * idet
@@ -685,22 +665,9 @@ def heml_split_hessian_kernel(x, tets, inv_det, w, law, params, blk, row_stride,
         for r in range(12):
             for c in range(12):
                 ke[r, c] = curvature * g[r] * g[c]
-        s = psj / 6.0  # Psi_J d2 det / 6: skew blocks
-        _skew_into(ke, 1, 2, -s, cx, cy, cz)
-        _skew_into(ke, 1, 3, s, bx, by, bz)
-        _skew_into(ke, 2, 3, -s, ax, ay, az)
-        _skew_into(ke, 0, 1, s, bx - cx, by - cy, bz - cz)
-        _skew_into(ke, 0, 2, s, cx - ax, cy - ay, cz - az)
-        _skew_into(ke, 0, 3, s, ax - bx, ay - by, az - bz)
+        _add_det_hessian(ke, psj / 6.0, ax, ay, az, bx, by, bz, cx, cy, cz)  # Psi_J d2 det / 6
         for k in range(6):  # fixed springs on the six edges
-            wk = w[k, t]
-            a3 = 3 * _EA[k]
-            b3 = 3 * _EB[k]
-            for d in range(3):
-                ke[a3 + d, a3 + d] += wk
-                ke[b3 + d, b3 + d] += wk
-                ke[a3 + d, b3 + d] -= wk
-                ke[b3 + d, a3 + d] -= wk
+            _add_edge_spring(ke, k, w[k, t])
         add_element_blocks(ke, t, tets, blk, row_stride, data)
 
 
