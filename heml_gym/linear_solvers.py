@@ -18,7 +18,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from .kernels_cholesky import envelope_cholesky, envelope_solve, pcg_envelope, scatter_into_envelope
+from .kernels_cholesky import envelope_cholesky, envelope_precondition, pcg_envelope, scatter_into_envelope
 
 
 class FreeSubmatrix:
@@ -142,9 +142,10 @@ class EnvelopeCholesky:
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``A^-1 b`` (a new array)."""
-        self._b[self._inverse] = b
-        envelope_solve(self._first, self._ptr, self._values, self._b, self._x)
-        return self._x[self._inverse]
+        x = np.empty(len(b))
+        envelope_precondition(self._first, self._ptr, self._values, self._inverse,
+                              np.ascontiguousarray(b, dtype=np.float64), x, self._b, self._x)
+        return x
 
     def pcg(self, a: sp.csr_matrix, b: np.ndarray, rtol: float, max_iter: int):
         """Solve ``a x = b`` by conjugate gradients preconditioned with this factorisation
