@@ -103,7 +103,7 @@ class Simulation:
         ``newton_tol`` times the total load (weight plus external forces; in zero gravity
         and without load, ``E h_min^2``). The default 1e-3 (0.1 % of the weight) moved
         a 1/30 s trajectory of the LapGym-size slab by 0.02 mm from a 1e-9 solve, against
-        a 117 mm sag and 69 mm of time-discretisation error (1/30 vs 1/240 s steps)
+        a 125 mm sag and 69 mm of time-discretisation error (1/30 vs 1/240 s steps)
         (``benchmarks/simulation_speed.py``).
     max_newton : int
         Implicit: Newton iterations per step at most.
