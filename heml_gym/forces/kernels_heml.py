@@ -36,19 +36,6 @@ from ..laws import law_energy, law_gradient, volumetric_gradient_fast
 from ..materials import ST_VENANT_KIRCHHOFF, STABLE_NEO_HOOKEAN
 
 
-@nb.njit(cache=True, inline="always")
-def _qs(q, t, s0, s1, s2, s3, s4, s5):
-    """``Q s`` for tet ``t`` with Q stored as 21 upper-triangle entries, row by row."""
-    r = q[t]
-    qs0 = r[0] * s0 + r[1] * s1 + r[2] * s2 + r[3] * s3 + r[4] * s4 + r[5] * s5
-    qs1 = r[1] * s0 + r[6] * s1 + r[7] * s2 + r[8] * s3 + r[9] * s4 + r[10] * s5
-    qs2 = r[2] * s0 + r[7] * s1 + r[11] * s2 + r[12] * s3 + r[13] * s4 + r[14] * s5
-    qs3 = r[3] * s0 + r[8] * s1 + r[12] * s2 + r[15] * s3 + r[16] * s4 + r[17] * s5
-    qs4 = r[4] * s0 + r[9] * s1 + r[13] * s2 + r[16] * s3 + r[18] * s4 + r[19] * s5
-    qs5 = r[5] * s0 + r[10] * s1 + r[14] * s2 + r[17] * s3 + r[19] * s4 + r[20] * s5
-    return qs0, qs1, qs2, qs3, qs4, qs5
-
-
 @nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
 def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
     """Add the HEML forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``, any law.
@@ -72,9 +59,7 @@ def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
             t = first + np.uint64(k)
             ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
             s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
-            inv[0, k] = (coef_t[2, t] * s0 + coef_t[3, t] * s1 + coef_t[4, t] * s2
-                         + coef_t[5, t] * s3 + coef_t[6, t] * s4 + coef_t[7, t] * s5)
-            inv[2, k] = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)) * coef_t[1, t]
+            inv[0, k], inv[2, k] = i1_and_j(coef_t, t, ax, ay, az, bx, by, bz, cx, cy, cz, s0, s1, s2, s3, s4, s5)
             if use_q:
                 q0, q1, q2, q3, q4, q5 = _qs_t(q_t, t, s0, s1, s2, s3, s4, s5)
                 qs[0, k] = q0
@@ -356,36 +341,37 @@ def reduce_chunks(buf):
 
 
 @nb.njit(cache=True, inline="always")
-def tet_invariants(x, tets, coef, q, use_q, t):
-    """``(I1, I2, J)`` of tet ``t`` at positions ``x`` (I2 = 0 unless ``use_q``)."""
-    ax, ay, az, bx, by, bz, cx, cy, cz = tet_edges(x, tets, t)
-    s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
-    i_1 = (coef[t, 2] * s0 + coef[t, 3] * s1 + coef[t, 4] * s2
-           + coef[t, 5] * s3 + coef[t, 6] * s4 + coef[t, 7] * s5)
-    i_2 = 0.0
-    if use_q:
-        qs0, qs1, qs2, qs3, qs4, qs5 = _qs(q, t, s0, s1, s2, s3, s4, s5)
-        i_2 = 0.5 * (s0 * qs0 + s1 * qs1 + s2 * qs2 + s3 * qs3 + s4 * qs4 + s5 * qs5)
+def i1_and_j(coef_t, t, ax, ay, az, bx, by, bz, cx, cy, cz, s0, s1, s2, s3, s4, s5):
+    """``(I1, J)`` of tet ``t`` from its edges ``a, b, c`` from vertex 0 (m) and its squared
+    edge lengths ``s`` (m^2)."""
+    i_1 = (coef_t[2, t] * s0 + coef_t[3, t] * s1 + coef_t[4, t] * s2
+           + coef_t[5, t] * s3 + coef_t[6, t] * s4 + coef_t[7, t] * s5)
     det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-    return i_1, i_2, det * coef[t, 1]
+    return i_1, det * coef_t[1, t]
 
 
 @nb.njit(cache=True)
-def heml_energy_chunk(x, tets, coef, q, use_q, law, p, lo, hi):
+def heml_energy_chunk(x, tets, coef_t, q_t, use_q, law, p, lo, hi):
     """Elastic energy (J) of tets ``lo..hi-1`` at positions ``x`` (m): sum of ``V0 Psi``."""
     total = 0.0
     for t_signed in range(lo, hi):
         t = np.uint64(t_signed)
-        i_1, i_2, jac = tet_invariants(x, tets, coef, q, use_q, t)
-        total += coef[t, 0] * law_energy(law, p, i_1, i_2, jac)
+        ax, ay, az, bx, by, bz, cx, cy, cz = tet_edges(x, tets, t)
+        s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
+        i_1, jac = i1_and_j(coef_t, t, ax, ay, az, bx, by, bz, cx, cy, cz, s0, s1, s2, s3, s4, s5)
+        i_2 = 0.0
+        if use_q:
+            q0, q1, q2, q3, q4, q5 = _qs_t(q_t, t, s0, s1, s2, s3, s4, s5)
+            i_2 = 0.5 * (s0 * q0 + s1 * q1 + s2 * q2 + s3 * q3 + s4 * q4 + s5 * q5)
+        total += coef_t[0, t] * law_energy(law, p, i_1, i_2, jac)
     return total
 
 
 @nb.njit(cache=True, parallel=True)
-def heml_energy_parallel(x, tets, coef, q, use_q, law, p, n_chunks):
+def heml_energy_parallel(x, tets, coef_t, q_t, use_q, law, p, n_chunks):
     """Total elastic energy (J), one chunk of tets per thread."""
     m = tets.shape[0]
     total = 0.0
     for c in prange(n_chunks):
-        total += heml_energy_chunk(x, tets, coef, q, use_q, law, p, c * m // n_chunks, (c + 1) * m // n_chunks)
+        total += heml_energy_chunk(x, tets, coef_t, q_t, use_q, law, p, c * m // n_chunks, (c + 1) * m // n_chunks)
     return total
