@@ -7,8 +7,9 @@ then solves the following systems by conjugate gradients preconditioned with tha
 factorisation, and refactorises only when CG needs more than ``max_iter`` iterations or
 when the set of free dofs changes. The factorisation is :class:`EnvelopeCholesky` (Numba,
 envelope storage after a bandwidth-reducing ordering; a matrix it finds indefinite is
-reported, so that Newton can take its projected Hessian) or, on request, SuperLU's LU. :class:`FreeSubmatrix` extracts the free-dof block of a
-CSR matrix of fixed pattern by one gather of its data.
+reported, so that Newton can take its projected Hessian) or, on request, SuperLU's LU.
+:class:`FreeSubmatrix` extracts the free-dof block of a CSR matrix of fixed pattern by one
+gather of its data.
 """
 
 from __future__ import annotations
@@ -89,8 +90,8 @@ class EnvelopeCholesky:
     :meth:`factor` with a matrix of the same pattern only scatters and factorises.
 
     On the 1,440-dof system of a LapGym-size slab (15 x 15 x 1 cells) this factorises in
-    about 1 ms and solves in about 0.03 ms on one core, against 5.8 and 0.17 ms for
-    SuperLU's LU (``benchmarks/simulation_speed.py``). Its cost grows with the square of
+    about 2 ms and solves in about 0.06 ms on one core, against 5.8 and 0.17 ms for
+    SuperLU's LU (measured alone; ``benchmarks/simulation_speed.py`` times the whole step). Its cost grows with the square of
     the bandwidth, so it suits meshes with a short dimension (slabs, flaps, lobes); for
     bulky 3D meshes a nested-dissection factorisation has less fill.
     """
