@@ -15,7 +15,8 @@ import numpy as np
 from heml_gym.batch import BatchedSimulation
 from heml_gym.mesh import TetMesh
 
-from .geometry import fibonacci_sphere, visible_fraction, visible_fraction_batch
+from .geometry import fibonacci_sphere, point_triangle_distance, visible_fraction, visible_fraction_batch
+from .strain_gauges import StrainGauges
 
 #: Names and order of the state-observation entries (see the env docstrings).
 STATE_FIELDS = (
@@ -61,6 +62,17 @@ class RetractionScene:
     towards +x, -1 towards -x. ``edge_vertices`` are the free-edge vertices whose fold
     angle about the hinge (rad, from rest, positive lifting the edge up) measures the lift
     progress ``mean(clip(angle / fold_angle, 0, 1))``, a dense shaping signal.
+
+    ``grasp_patch``: the vertices the jaws hold, a fixed piece of tissue (the same
+    material on every mesh of the scene, so that the grasp force converges with the
+    mesh); closing within ``grasp_reach`` of any of them holds all of them. None: the
+    jaws hold the nearest surface vertex and every other within ``jaw_radius``.
+
+    ``strain_gauge``: the gauge length (m) that tissue strain is measured over (see
+    :mod:`heml_gym.envs.strain_gauges`): the largest strain reported, penalised and
+    checked for tearing is that of segments this long between material points, not
+    that of the mesh's edges, so that it has a fine-mesh limit. ``safety``: the explicit
+    sub-step as a fraction of the critical step, unless the task settings give one.
     """
 
     name: str
@@ -85,10 +97,18 @@ class RetractionScene:
     fold_direction: float = 1.0
     fold_angle: float = np.pi / 2
     edge_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    grasp_patch: np.ndarray | None = None
+    strain_gauge: float = 0.015
+    safety: float = 0.5
     surface_faces: np.ndarray = field(init=False)
 
     def __post_init__(self):
         self.surface_faces = self.mesh.boundary_faces
+        if self.grasp_patch is not None:
+            patch = np.setdiff1d(np.asarray(self.grasp_patch, dtype=np.int64), self.fixed)
+            if patch.size == 0:
+                raise ValueError(f"scene {self.name!r}: grasp_patch holds no free vertex")
+            self.grasp_patch = patch
 
 
 @dataclass
@@ -99,12 +119,12 @@ class TaskSettings:
     max_speed: float = 0.05  # m/s of the gripper at action 1
     grasp_reach: float = 0.012  # m: closing grasps tissue only if a surface vertex is this close
     jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
-    damage_strain: float = 0.5  # edge strain above which the strain penalty applies
-    tear_strain: float = 1.0  # edge strain that ends the episode (tissue torn)
+    damage_strain: float = 0.5  # gauge strain above which the strain penalty applies
+    tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
     max_steps: int = 100  # steps before truncation
-    exposure_samples: int = 64  # points on the target sphere for exposure
-    safety: float = 0.5  # explicit sub-step safety factor
+    exposure_samples: int = 256  # points on the target sphere for exposure
+    safety: float | None = None  # explicit sub-step safety factor; None: the scene's
 
 
 class BatchedRetraction:
@@ -117,18 +137,25 @@ class BatchedRetraction:
         self.settings = settings or TaskSettings()
         self.weights = weights or RewardWeights()
         s = scene
+        self.safety = s.safety if self.settings.safety is None else float(self.settings.safety)
         self.sim = BatchedSimulation(s.mesh, self.n, young_modulus=s.stiffness_range[1],
                                      poisson=s.poisson, density=s.density, gravity=s.gravity,
-                                     fixed=s.fixed, damping=s.damping, safety=self.settings.safety,
+                                     fixed=s.fixed, damping=s.damping, safety=self.safety,
                                      floor=s.floor)
         # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
         # scene and batch, so a scene's trajectory does not depend on its neighbours
         self.substeps = max(1, int(np.ceil(self.settings.control_dt / (
-            self.settings.safety * self.sim.critical_dt(s.stiffness_range[1])))))
+            self.safety * self.sim.critical_dt(s.stiffness_range[1])))))
         self._edges = s.mesh.edges
-        self._rest_length = s.mesh.edge_lengths()
+        self.gauges = StrainGauges(s.mesh, s.strain_gauge)
         surface = np.setdiff1d(s.mesh.surface_vertices, np.flatnonzero(self.sim.fixed))
         self._graspable = surface
+        if s.grasp_patch is not None:  # the patch's surface triangles (or its edges), for its reach
+            faces = s.surface_faces[np.isin(s.surface_faces, s.grasp_patch).all(axis=1)]
+            if len(faces) == 0:  # a line of vertices: its edges, as degenerate triangles
+                e = self._edges[np.isin(self._edges, s.grasp_patch).all(axis=1)]
+                faces = np.column_stack([e, e[:, 1]])
+            self._patch_faces = faces
         self._sphere = fibonacci_sphere(self.settings.exposure_samples)
         self._edge = np.asarray(s.edge_vertices, dtype=np.int64)
         if self._edge.size == 0:
@@ -185,9 +212,7 @@ class BatchedRetraction:
         for i in range(self.n):
             close = a[i, 3] > 0.0
             if close and not self.grasping[i]:
-                d = np.linalg.norm(self.sim.x[i, self._graspable] - self.gripper[i], axis=1)
-                held = (d <= st.jaw_radius) | (d == d.min())
-                picked = self._graspable[held & (d <= st.grasp_reach)]
+                picked = self._jaw_vertices(i)
                 if picked.size:
                     self.grasping[i] = True
                     self.held[i, picked] = True
@@ -203,6 +228,11 @@ class BatchedRetraction:
         # move the gripper, drive the held tissue
         self.gripper = np.clip(self.gripper + a[:, :3] * st.max_speed * st.control_dt,
                                self.scene.workspace_low, self.scene.workspace_high)
+        if self.scene.floor is not None:  # held tissue cannot be pressed below where it rests
+            rest_z = self.scene.mesh.vertices[:, 2]
+            for i in np.flatnonzero(self.grasping):
+                held = self.held[i]
+                self.gripper[i, 2] = max(self.gripper[i, 2], (rest_z[held] - self.offsets[i, held, 2]).max())
         for i in np.flatnonzero(self.grasping):
             idx = np.flatnonzero(self.held[i])
             self.sim.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
@@ -244,6 +274,19 @@ class BatchedRetraction:
         }
         return reward, terminated, truncated, info
 
+    def _jaw_vertices(self, i: int) -> np.ndarray:
+        """The tissue vertices that closing the gripper of scene ``i`` holds (maybe none)."""
+        st, patch = self.settings, self.scene.grasp_patch
+        if patch is not None:  # within reach of the patch's surface (or of its vertices)
+            x, f = self.sim.x[i], self._patch_faces
+            d = np.linalg.norm(x[patch] - self.gripper[i], axis=1)
+            if len(f):
+                d = np.minimum(d.min(), point_triangle_distance(self.gripper[i], x[f[:, 0]], x[f[:, 1]], x[f[:, 2]]))
+            return patch if d.min() <= st.grasp_reach else patch[:0]
+        d = np.linalg.norm(self.sim.x[i, self._graspable] - self.gripper[i], axis=1)
+        held = (d <= st.jaw_radius) | (d == d.min())
+        return self._graspable[held & (d <= st.grasp_reach)]
+
     # ----------------------------------------------------------- measurements
     def _exposure(self, scenes) -> np.ndarray:
         """Fraction of the camera-facing target surface samples the tissue does not hide."""
@@ -277,11 +320,8 @@ class BatchedRetraction:
         return np.nan_to_num(np.clip(progress, 0.0, 1.0)).mean(axis=1)
 
     def _max_strain(self, scenes) -> np.ndarray:
-        """Largest engineering strain ``|l / L - 1|`` over the tissue's edges, per scene."""
-        x = self.sim.x[np.atleast_1d(scenes)]
-        e = self._edges
-        length = np.linalg.norm(x[:, e[:, 1]] - x[:, e[:, 0]], axis=2)
-        return np.abs(length / self._rest_length - 1.0).max(axis=1)
+        """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per scene."""
+        return self.gauges.max_strain(self.sim.x[np.atleast_1d(scenes)])
 
     # ------------------------------------------------------------ observation
     def state_observation(self) -> np.ndarray:

@@ -519,3 +519,29 @@ def visible_fraction_batch(points, eye, x, faces, eps: float = 1e-9, sphere_cent
     if out.size and out.min() < 0.0:
         raise ValueError(f"faces must index the {x.shape[1]} vertices of x")
     return out
+
+
+def point_triangle_distance(p, a, b, c) -> np.ndarray:
+    """Distance (m) from the point ``p`` (3,) to each triangle ``(a[k], b[k], c[k])`` (each (T, 3)).
+
+    The closest point is found region by region (vertex, edge or face; Ericson,
+    *Real-Time Collision Detection*, 5.1.5), so degenerate triangles are handled as
+    their edges.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    a, b, c = (np.atleast_2d(np.asarray(t, dtype=np.float64)) for t in (a, b, c))
+    best = np.minimum(np.linalg.norm(a - p, axis=1),
+                      np.minimum(np.linalg.norm(b - p, axis=1), np.linalg.norm(c - p, axis=1)))
+    for s, e in ((a, b), (b, c), (c, a)):  # edges
+        d = e - s
+        t = np.clip(np.einsum("ij,ij->i", p - s, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
+        best = np.minimum(best, np.linalg.norm(s + t[:, None] * d - p, axis=1))
+    n = np.cross(b - a, c - a)  # interior: the projection inside all three edges
+    nn = np.einsum("ij,ij->i", n, n)
+    ok = nn > 1e-300
+    q = p - (np.einsum("ij,ij->i", p - a, n) / np.where(ok, nn, 1.0))[:, None] * n
+    inside = ok.copy()
+    for s, e in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ij,ij->i", np.cross(e - s, q - s), n) >= 0
+    plane = np.abs(np.einsum("ij,ij->i", p - a, n)) / np.sqrt(np.where(ok, nn, 1.0))
+    return np.where(inside, np.minimum(best, plane), best)

@@ -41,17 +41,29 @@ from heml_gym.organs import liver_lobe_mesh
 from .core import RetractionScene
 from .retraction_env import RetractionEnv, RetractionVectorEnv
 
-DEFAULT_MESH_SIZE = 0.016
-ATTACHED_X = 0.045  # m: vertices beyond this are attached
-HINGE = (ATTACHED_X, 0.0)  # m: (x, z) of the line the lobe is lifted about
+DEFAULT_MESH_SIZE = 0.007
+BASE_X = 0.065  # m: the lobe is cut off here (its base) and attached along the base's bottom edge
+#: m: the jaws hold the lobe along this segment across its top face near the thin edge,
+#: imprinted on the mesh, so that it is the same line of tissue at any mesh size
+GRASP_LINE = ((-0.055, -0.02, 0.035 - 0.25 * 0.055), (-0.055, 0.02, 0.035 - 0.25 * 0.055))
+HINGE = (BASE_X, 0.0)  # m: (x, z) of the line the lobe is lifted about
 EDGE_BAND = 0.012  # m: surface vertices this close to the thin edge (in x) measure the lift
+
+
+def _on_segment(v: np.ndarray, a, b, tol: float = 1e-7) -> np.ndarray:
+    """Indices of the points of ``v`` (n, 3) within ``tol`` m of the segment ``a``-``b``."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    d = b - a
+    t = np.clip((v - a) @ d / (d @ d), 0.0, 1.0)
+    return np.flatnonzero(np.linalg.norm(a + t[:, None] * d - v, axis=1) <= tol)
 
 
 def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
     """The liver-lobe scene meshed at ``mesh_size`` metres."""
-    mesh = liver_lobe_mesh(mesh_size=mesh_size)
+    mesh = liver_lobe_mesh(mesh_size=mesh_size, lines=(GRASP_LINE,), base_x=BASE_X)
     v = mesh.vertices
-    fixed = np.flatnonzero(v[:, 0] > ATTACHED_X)
+    fixed = np.flatnonzero(np.isclose(v[:, 0], BASE_X, atol=1e-7) & np.isclose(v[:, 2], 0.0, atol=1e-7))
+    patch = _on_segment(v, *GRASP_LINE)
 
     def nearest_surface(p):
         s = mesh.surface_vertices
@@ -69,8 +81,8 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
         target_low=np.array([-0.035, -0.02, -0.023]),
         target_high=np.array([-0.010, 0.02, -0.023]),
         target_radius=0.008,
-        gripper_low=np.array([-0.072, -0.01, 0.019]),
-        gripper_high=np.array([-0.066, 0.01, 0.022]),
+        gripper_low=np.array([-0.058, -0.01, 0.024]),
+        gripper_high=np.array([-0.052, 0.01, 0.027]),
         workspace_low=np.array([-0.15, -0.10, 0.0]),
         workspace_high=np.array([0.10, 0.10, 0.20]),
         stiffness_range=(4e3, 8e3),
@@ -79,6 +91,9 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
         fold_direction=-1.0,
         fold_angle=0.6,
         edge_vertices=mesh.surface_vertices[v[mesh.surface_vertices, 0] < lo[0] + EDGE_BAND],
+        grasp_patch=patch,
+        gravity=(0.0, 0.0, -9.81),
+        floor=0.0,
     )
 
 

@@ -86,12 +86,14 @@ from .retraction_env import RetractionEnv, RetractionVectorEnv
 
 FLAP_SIZE = (0.12, 0.12, 0.008)
 DEFAULT_CELLS = (8, 8, 1)
+MIRRORED = True
+STIFFNESS_RANGE = (4e3, 8e3)  # Pa: E drawn per episode
 HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fold hinge
 
 
 def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
     """The fat-flap scene with a ``cells`` hex grid (6 tets per cell)."""
-    mesh = box_mesh(FLAP_SIZE, cells)
+    mesh = box_mesh(FLAP_SIZE, cells, mirrored=MIRRORED)
     v = mesh.vertices
     lx, ly, lz = FLAP_SIZE
     fixed = np.flatnonzero(np.isclose(v[:, 0], 0.0))
@@ -118,6 +120,11 @@ def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
         fold_direction=1.0,
         fold_angle=np.pi / 2,
         edge_vertices=np.flatnonzero(np.isclose(v[:, 0], lx)),
+        grasp_patch=np.flatnonzero(np.isclose(v[:, 0], lx) & np.isclose(v[:, 2], lz)),
+        gravity=(0.0, 0.0, -9.81),
+        floor=0.0,
+        stiffness_range=STIFFNESS_RANGE,
+        safety=0.75,
     )
 
 

@@ -84,6 +84,7 @@ class BatchedSimulation:
         self.targets = np.zeros((N, n, 3))
         self.reaction = np.zeros((N, n, 3))
         self._f = np.zeros((N, n, 3))
+        self._sub_reaction = np.zeros((n, 3))
         self._ext = np.zeros((n, 3))
         self._weights = np.empty((N,) + self._base_weights.shape)
         self._params = np.empty((N, 2))
@@ -160,7 +161,8 @@ class BatchedSimulation:
             if self.n_scenes == 1:  # one scene: the kernel vectorised across tets
                 if active[0]:
                     bad[0] = explicit_substeps_constant_psi1(
-                        self.x[0], self.v[0], self._f[0], self.reaction[0], self.mass, self.gravity,
+                        self.x[0], self.v[0], self._f[0], self.reaction[0], self._sub_reaction,
+                        self.mass, self.gravity,
                         self._ext, self.alpha, h, n_sub, self.fixed, self.kinematic[0], x0[0],
                         self.targets[0], self.max_speed, self._tets, self._inv_det, self._weights[0],
                         self._law, self._params[0], self.floor_z)[1]

@@ -43,6 +43,9 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
     parameters (Pa). The update per vertex, including the support plane ``z = floor_z``
     (m; ``-inf`` for none), is that of :func:`heml_gym.kernels_dynamics.symplectic_euler_update`.
 
+    ``reaction`` receives the constraint forces (N) on fixed and held vertices averaged over
+    the sub-steps (the impulse over the step divided by its length).
+
     ``bad_vertex[b, q]`` becomes the first vertex of the scene found non-finite or faster
     than ``max_speed`` (m/s), else -1. A tet whose J is not positive, normal and finite
     gives NaN forces (Neo-Hookean is undefined there), so such a scene is flagged too.
@@ -64,6 +67,8 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
         size = np.empty(LANES)
         for q in range(lanes):
             bad[q] = -1
+        rb[:] = 0.0
+        inv_n = 1.0 / n_sub
         for k in range(1, n_sub + 1):
             frac = k / n_sub
             fb[:] = 0.0
@@ -113,7 +118,7 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
                         const = ext[i, d] + mi * gravity[d]
                         for q in range(lanes):
                             vq = vb[i, d, q]
-                            rb[i, d, q] = -(fb[i, d, q] + const - alpha * mi * vq) - mi * vq / h
+                            rb[i, d, q] += (-(fb[i, d, q] + const - alpha * mi * vq) - mi * vq / h) * inv_n
                             vb[i, d, q] = 0.0
                     continue
                 speed2[:] = 0.0
@@ -127,7 +132,7 @@ def lane_explicit_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_su
                         target = start[i, d, q] + frac * (end[i, d, q] - start[i, d, q])
                         is_held = held[i, q]
                         vn = (target - xq) / h if is_held else vq + h * total / mi
-                        rb[i, d, q] = mi * (vn - vq) / h - total if is_held else 0.0
+                        rb[i, d, q] += (mi * (vn - vq) / h - total) * inv_n if is_held else 0.0
                         xn = target if is_held else xq + h * vn
                         below = d == 2 and xn < floor_z and not is_held  # resting on the support
                         xn = floor_z if below else xn

@@ -58,21 +58,28 @@ def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinema
 
 
 @nb.njit(cache=True)
-def explicit_substeps_constant_psi1(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub,
-                                    fixed, kinematic, kin_from, kin_to, max_speed,
+def explicit_substeps_constant_psi1(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h,
+                                    n_sub, fixed, kinematic, kin_from, kin_to, max_speed,
                                     tets, inv_det, w, law, p, floor_z=-math.inf):
     """``n_sub`` symplectic Euler sub-steps of a constant-``Psi_1`` HEML body in one call.
 
     The force kernel is :func:`~heml_gym.forces.kernels_heml.constant_psi1_forces_chunk`
     (arguments ``tets, inv_det, w, law, p``); the rest as
-    :func:`symplectic_euler_update`. Returns ``(sub-steps done, first bad vertex or -1)``.
+    :func:`symplectic_euler_update`. ``reaction`` receives the constraint forces (N)
+    averaged over the sub-steps, ``sub_reaction`` (scratch, same shape) those of each one.
+    Returns ``(sub-steps done, first bad vertex or -1)``.
     """
     m = tets.shape[0]
+    reaction[:, :] = 0.0
     for k in range(1, n_sub + 1):
         f[:, :] = 0.0
         constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, 0, m)
         bad = symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinematic,
-                                      kin_from, kin_to, k / n_sub, max_speed, reaction, floor_z)
+                                      kin_from, kin_to, k / n_sub, max_speed, sub_reaction, floor_z)
         if bad >= 0:
             return k, bad
+        for i in range(x.shape[0]):
+            if fixed[i] or kinematic[i]:
+                for d in range(3):
+                    reaction[i, d] += sub_reaction[i, d] / n_sub
     return n_sub, -1

@@ -216,6 +216,7 @@ def box_mesh(
     size: tuple[float, float, float] = (1.0, 1.0, 1.0),
     cells: tuple[int, int, int] | int = 4,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    mirrored: bool = False,
 ) -> TetMesh:
     """Structured box ``[origin, origin + size]`` (metres) on a hex grid, 6 tets per cell.
 
@@ -227,6 +228,11 @@ def box_mesh(
         Number of hex cells along each axis (an int applies to all three).
     origin : (3,) float
         Position of the minimum corner in metres.
+    mirrored : bool
+        False: every cell is split the same way (its tets share the diagonal from its
+        minimum corner). True: a cell with an odd index along an axis is split as the
+        mirror image along that axis, so the diagonals alternate from cell to cell (the
+        faces still conform); the mesh then has the box's mirror symmetries.
     """
     size = np.asarray(size, dtype=np.float64)
     cells_arr = np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,))
@@ -244,8 +250,10 @@ def box_mesh(
 
     i, j, k = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
     i, j, k = i.ravel(), j.ravel(), k.ravel()
+    fi, fj, fk = ((i & 1, j & 1, k & 1) if mirrored else (0, 0, 0))  # flip the odd cells
     corners = np.stack(
-        [vid(i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)) for c in range(8)], axis=1
+        [vid(i + ((c & 1) ^ fi), j + (((c >> 1) & 1) ^ fj), k + (((c >> 2) & 1) ^ fk)) for c in range(8)],
+        axis=1,
     )
     tets = corners[:, _KUHN].reshape(-1, 4)
     return TetMesh(vertices, tets, reorient=True)

@@ -252,7 +252,8 @@ class Simulation:
             self.kinematic[self._vertex_mask(vertices, "detached")] = False
 
     def reaction_forces(self, vertices=None) -> np.ndarray:
-        """Force (N) that the constraints exerted on fixed and kinematic vertices in the last step.
+        """Force (N) that the constraints exerted on fixed and kinematic vertices in the last
+        step, averaged over its sub-steps (the impulse over the step divided by its length).
 
         For a vertex held at rest this balances the elastic force, gravity and external
         forces on it; summed over a gripper's vertices it is the grasp force on the tissue
@@ -342,11 +343,12 @@ class Simulation:
                     for k in range(1, substeps + 1):
                         targets = start_targets + (self._targets - start_targets) * (k / substeps)
                         if self.integrator == "explicit":
-                            reaction = self._explicit_substep(h, targets)
+                            sub_reaction = self._explicit_substep(h, targets)
                         else:
-                            reaction, it, res = self._implicit_substep(h, targets)
+                            sub_reaction, it, res = self._implicit_substep(h, targets)
                             stats.newton_iterations += it
                             stats.residual = max(stats.residual, res)
+                        reaction += sub_reaction / substeps
                         self._check()
         except SimulationDiverged:
             self.x, self.v = x0, v0
@@ -376,14 +378,15 @@ class Simulation:
         """``substeps`` symplectic Euler sub-steps: one force kernel and one update kernel each."""
         n = self.mesh.n_vertices
         f = np.zeros((n, 3))
-        reaction = np.zeros((n, 3))
+        reaction = np.zeros((n, 3))  # the mean over the sub-steps
+        sub_reaction = np.zeros((n, 3))
         field = self.field
         if isinstance(field, HemlForce) and field.split and field._threads() == 1:
             # Neo-Hookean HEML: every sub-step inside one compiled call
             done, bad = kernels_dynamics.explicit_substeps_constant_psi1(
-                self.x, self.v, f, reaction, self.mass, self.gravity, self.external_forces,
-                self.damping.alpha, h, substeps, self.fixed, self.kinematic, start_targets,
-                self._targets, self.max_speed, *field._split_args())
+                self.x, self.v, f, reaction, sub_reaction, self.mass, self.gravity,
+                self.external_forces, self.damping.alpha, h, substeps, self.fixed, self.kinematic,
+                start_targets, self._targets, self.max_speed, *field._split_args())
             if bad >= 0:
                 self._check()
                 raise SimulationDiverged(self.step_count, f"vertex {bad} went non-finite or too fast")
@@ -393,10 +396,11 @@ class Simulation:
             bad = kernels_dynamics.symplectic_euler_update(
                 self.x, self.v, f, self.mass, self.gravity, self.external_forces,
                 self.damping.alpha, h, self.fixed, self.kinematic, start_targets, self._targets,
-                k / substeps, self.max_speed, reaction)
+                k / substeps, self.max_speed, sub_reaction)
             if bad >= 0:
                 self._check()  # names the reason and the elements
                 raise SimulationDiverged(self.step_count, f"vertex {bad} went non-finite or too fast")
+            reaction += sub_reaction / substeps
         return reaction
 
     def _explicit_substep(self, h, targets):
