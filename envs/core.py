@@ -15,7 +15,7 @@ import numpy as np
 from heml_gym.batch import BatchedSimulation
 from heml_gym.mesh import TetMesh
 
-from .geometry import fibonacci_sphere, point_triangle_distance, visible_fraction, visible_fraction_batch
+from .geometry import fibonacci_sphere, nearest_triangle_distance, visible_fraction, visible_fraction_batch
 from .strain_gauges import StrainGauges
 
 #: Names and order of the state-observation entries (see the env docstrings).
@@ -278,11 +278,10 @@ class BatchedRetraction:
         """The tissue vertices that closing the gripper of scene ``i`` holds (maybe none)."""
         st, patch = self.settings, self.scene.grasp_patch
         if patch is not None:  # within reach of the patch's surface (or of its vertices)
-            x, f = self.sim.x[i], self._patch_faces
-            d = np.linalg.norm(x[patch] - self.gripper[i], axis=1)
-            if len(f):
-                d = np.minimum(d.min(), point_triangle_distance(self.gripper[i], x[f[:, 0]], x[f[:, 1]], x[f[:, 2]]))
-            return patch if d.min() <= st.grasp_reach else patch[:0]
+            x = self.sim.x[i]
+            nearest = min(np.linalg.norm(x[patch] - self.gripper[i], axis=1).min(),
+                          nearest_triangle_distance(self.gripper[i], x, self._patch_faces))
+            return patch if nearest <= st.grasp_reach else patch[:0]
         d = np.linalg.norm(self.sim.x[i, self._graspable] - self.gripper[i], axis=1)
         held = (d <= st.jaw_radius) | (d == d.min())
         return self._graspable[held & (d <= st.grasp_reach)]

@@ -35,8 +35,7 @@ def _import_gmsh():
     return gmsh
 
 
-def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float,
-                    size_at: Callable[[float, float, float], float] | None = None) -> TetMesh:
+def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float) -> TetMesh:
     """Tetrahedralise the OCC solid(s) that ``build_fn(gmsh)`` adds to a fresh model.
 
     ``build_fn`` receives the ``gmsh`` module and adds entities through
@@ -61,13 +60,11 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float,
         gmsh.option.setNumber("Mesh.ElementOrder", 1)
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
-        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.0 if size_at else mesh_size)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", mesh_size)
         gmsh.option.setNumber("Mesh.MeshSizeMax", mesh_size)
         gmsh.model.add("heml_gym_solid")
         build_fn(gmsh)
         gmsh.model.occ.synchronize()
-        if size_at is not None:  # finer where size_at asks for it
-            gmsh.model.mesh.setSizeCallback(lambda dim, tag, x, y, z, lc: min(mesh_size, size_at(x, y, z)))
         if not gmsh.model.getEntities(3):
             raise ValueError("build_fn created no 3D entity to mesh")
         gmsh.model.mesh.generate(3)
@@ -146,8 +143,7 @@ def uterus_mesh(mesh_size: float = 0.0035) -> TetMesh:
     return gmsh_solid_mesh(build, mesh_size)
 
 
-def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = None,
-                    size_at=None) -> TetMesh:
+def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = None) -> TetMesh:
     """Flattened, wedge-like liver lobe (metres).
 
     A half-ellipsoid of semi-axes (0.08, 0.05, 0.05) m (0.16 x 0.10 x 0.05 m overall)
@@ -179,7 +175,7 @@ def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = 
         if segments:
             occ.fragment(body, segments)
 
-    return gmsh_solid_mesh(build, mesh_size, size_at)
+    return gmsh_solid_mesh(build, mesh_size)
 
 
 def fat_flap_mesh(
