@@ -85,7 +85,7 @@ def _rollout(args) -> int:
 
 
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
-              "env_throughput", "scene_convergence", "convergence_checks"]
+              "env_throughput", "scene_convergence"]
 
 
 def _bench(args) -> int:

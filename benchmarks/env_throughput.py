@@ -7,7 +7,7 @@ registered), with the default ``control_dt`` = 0.1 s simulated per env step:
    and the scripted fold-back policy (policy call included in the loop), numba threads
    = 1 and = all. One row also goes through ``gym.make`` (its checker wrappers).
 2. Time breakdown of the single env step (random actions, one thread): physics
-   (``task.sim.step``), exposure ray casting (``task._exposure``), edge strain
+   (``task.sim.step``), exposure ray casting (``task._exposure``), gauge strain
    (``task._max_strain``) and the rest (grasp logic, observation, reward, gymnasium
    plumbing), by timing those task internals in place.
 3. Vector env (``gym.make_vec(..., vectorization_mode="vector_entry_point")``, i.e.
@@ -357,7 +357,7 @@ def _markdown(results: dict) -> str:
                         + [f"{ms.get(k, 0):.3f} ({100 * b['share'].get(k, 0):.0f}%)"
                            for k in ("physics", "exposure", "strain", "rest")]
                         + [f"{b.get('physics_M_tet_substeps_per_s', float('nan')):.1f}"])
-        md += markdown_table(["N", "threads", "total", "physics", "exposure ray casting", "edge strain",
+        md += markdown_table(["N", "threads", "total", "physics", "exposure ray casting", "gauge strain",
                               "rest", "physics M tet-substeps/s"], rows)
         md += "\n" + res["verdict"] + "\n\n"
     md += _notes(results)
@@ -384,6 +384,9 @@ def _notes(results: dict) -> str:
     bd1 = res["breakdown"][0]
     bdn = res["breakdown"][1]
     tet_sub = bd1["n_tets"] * bd1["substeps_per_env_step"]
+    from heml_gym.envs.tissue_retraction import tissue_scene
+
+    flap = tissue_scene()
     return (
         "## Notes\n\n"
         f"- **The machine was not ours.** All cores were {100 * results['machine_busy_fraction']:.0f}% busy "
@@ -408,7 +411,7 @@ def _notes(results: dict) -> str:
         f"sub-steps x {bd1['n_tets']} tets = {tet_sub / 1e3:.0f}k tet-sub-steps per env step at "
         f"{bd1.get('physics_M_tet_substeps_per_s', float('nan')):.0f}-"
         f"{bdn.get('physics_M_tet_substeps_per_s', float('nan')):.0f} M/s. Exposure ray casting costs "
-        f"{1e3 * bd1['ms_per_env_step']['exposure']:.0f} us per step, the edge strain "
+        f"{1e3 * bd1['ms_per_env_step']['exposure']:.0f} us per step, the gauge strain "
         f"{1e3 * bd1['ms_per_env_step']['strain']:.0f} us, everything else (grasp logic, observation, reward, "
         f"gymnasium) {1e3 * bd1['ms_per_env_step']['rest']:.0f} us (single env) and "
         f"{1e3 * bdn['ms_per_env_step']['rest']:.0f} us per env step batched.\n"
@@ -417,9 +420,8 @@ def _notes(results: dict) -> str:
         f"{BAR_SINGLE:.0f}. Vectorised: {best:.0f} env steps/s in total at best, against {BAR_VECTOR:.0f} "
         f"({per_core:.0f} on one thread). The batched kernel runs the scenes in lockstep, vectorised across "
         "scenes (heml_gym/kernels_batch.py), which is why a batch beats the single env per core; what is left "
-        "is the sub-step count, set by the stiffest E the scene can draw (5 kPa) at safety 0.5. Safety 0.9 "
-        "(79 sub-steps instead of 143) diverged in 3 of 151 episodes of random extreme actions on the flap and "
-        "68 of 259 on the lobe (0 at safety 0.5), so it is not the default.\n"
+        f"is the sub-step count, set by the stiffest E the flap can draw ({flap.stiffness_range[1] / 1e3:g} kPa) "
+        f"at safety {flap.safety:g} (why that safety: docs/scene_convergence.md).\n"
     )
 
 
@@ -496,7 +498,9 @@ def main():
     with tqdm(total=n_blocks, desc="blocks") as bar:
         for env_id in env_ids:
             configs = _single_configs(env_id, threads_all) + _vector_configs(env_id, threads_all)
-            rows = run_interleaved(configs, rounds, env_steps_per_block, bar)
+            # the 7 mm lobe is ~25x the flap's cost per step: shorter blocks
+            block = env_steps_per_block if "Tissue" in env_id else max(8, env_steps_per_block // 4)
+            rows = run_interleaved(configs, rounds, block, bar)
             bd = [breakdown(gym.make(env_id).unwrapped, 100 if args.quick else 300, 1, 1)]
             nmax = VECTOR_SIZES[-1]
             for t in (1, threads_all):

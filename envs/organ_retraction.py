@@ -2,34 +2,44 @@
 
 ## Description
 
-A soft liver-like lobe (160 x 100 x 44 mm, meshed with gmsh; thin towards -x) is
-attached at its thick end (x > 45 mm). Beneath it, behind its thin edge, lies a structure
-to expose (a sphere of radius 8 mm, e.g. a gallbladder neck), hidden from a laparoscope
-placed in front of and above the thin edge (at (-170, 0, 120) mm, looking under the
-edge). The agent grasps the lobe near its thin edge and lifts it. Neo-Hookean HEML tissue (E drawn in
-4-8 kPa, nu = 0.45, 1060 kg/m^3), explicit integration, no contact with the organs below
-(gravity off: the lobe rests in its rest shape).
+A soft liver-like lobe (145 x 100 x 44 mm, meshed with gmsh; thin towards -x) lies on
+the organs below (a rigid, frictionless plane at z = 0) and is attached along the bottom
+edge of its base (the cut face at x = 65 mm, where it would join the rest of the liver),
+about which it can turn. Beneath it, behind its thin edge, lies a structure to expose (a
+sphere of radius 8 mm, e.g. a gallbladder neck), hidden from a laparoscope placed in
+front of and above the thin edge (at (-170, 0, 120) mm, looking under the edge). The
+agent grasps the lobe near its thin edge and lifts it. Neo-Hookean HEML tissue (E drawn
+in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, explicit integration at half the
+critical step. The mesh (7 mm elements, about 1,300 vertices and 5,200 tets) is the
+coarsest whose grasp force and exposure stay within 5 % of a fine one
+(docs/scene_convergence.md): lifting the lobe peels it off its support, and how far it
+peels depends on its bending stiffness, which coarse linear tets overestimate.
 
 ## Action Space, Observation Space, Rewards, Episode End
 
 As for ``TissueRetraction-v0`` (see :mod:`heml_gym.envs.tissue_retraction`): the same
 4-D action, 24-D state (the four tracked points are the lobe's thin-edge corners and
-middle, and its top centre), the same reward terms and thresholds.
+middle, and its top centre), the same reward terms and thresholds, strain over the same
+15 mm gauge. The jaws hold the lobe along a 40 mm line across its top face 25 mm behind
+the thin edge (x = -55 mm, imprinted on the mesh so that it is the same tissue at any
+mesh size).
 
 ## Starting State
 
-Tissue at rest; target centre uniform in x -35..-10 mm, y -20..20 mm, 23 mm below the
-lobe's flat face; gripper uniform in x -72..-66 mm, y -10..10 mm, z 19-22 mm (above the
-thin edge); E uniform in 4-8 kPa.
+Tissue at rest on its support; target centre uniform in x -35..-10 mm, y -20..20 mm,
+23 mm below the lobe's flat face; gripper uniform in x -58..-52 mm, y -10..10 mm,
+z 24-27 mm (above the grasp line); E uniform in 4-8 kPa.
 
 ## Arguments
 
 ``obs_mode``, ``render_mode``, ``settings``, ``weights`` as for TissueRetraction;
-``mesh_size`` (m, gmsh element size; default 16 mm: ~200 vertices / 560 tets).
+``mesh_size`` (m, gmsh element size; default 7 mm).
 
 ## Version History
 
-v0: initial version.
+v0: initial version; the scene as described here since the convergence redesign (base
+hinge, line grasp, gravity on a support plane, 7 mm mesh; it was a 16 mm lobe clamped
+over its thick third, without gravity).
 """
 
 from __future__ import annotations

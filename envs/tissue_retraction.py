@@ -4,24 +4,24 @@
 
 A flap of fat tissue (120 x 120 x 8 mm, the size of LapGym's tissue-retraction slab)
 lies on an organ; its edge at ``x = 0`` is attached. Under it, hidden from a camera
-above, sits a tumour (a sphere of radius 8 mm). The agent moves a gripper, closes it on
-the flap near the free edge, and retracts the flap to expose the tumour without
-over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 2-5 kPa per
-episode, nu = 0.45, 950 kg/m^3), integrated explicitly; the organ under the flap is not
-simulated (no contact): the flap's rest shape is where it lies, so gravity is off. (Two
-alternatives were measured and rejected: with gravity, a flap this soft hanging from a
-grasper-sized patch tears under its own weight, edge strain above 1; resting it on a
-rigid plane at z = 0 (``RetractionScene.floor``) made random actions crush it against
-the plane, inverting elements, in half of the episodes.)
+above, sits a tumour (a sphere of radius 8 mm, in the organ). The agent moves a gripper,
+closes it on the flap's free edge, and retracts the flap to expose the tumour without
+over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 4-8 kPa per
+episode, nu = 0.45, 950 kg/m^3) under gravity, resting on the organ: a rigid,
+frictionless plane at z = 0 (``RetractionScene.floor``). It is integrated explicitly
+(symplectic Euler, sub-steps at 0.75 of the critical step). The mesh is 8 x 8 x 1 hex
+cells of 6 tets (384 tets), the cheapest model whose grasp force and exposure stay within
+5 % of a fine one (docs/scene_convergence.md).
 
 ## Action Space
 
 ``Box(-1, 1, (4,), float32)``: gripper velocity along x, y, z in units of
-``max_speed`` (0.05 m/s), and a grasp command (> 0 close, <= 0 open). Closing with a
-tissue surface vertex within ``grasp_reach`` (12 mm) grasps the nearest one and every
-other within ``jaw_radius`` (5 mm): on the default mesh (15 mm spacing) one vertex, on
-finer meshes a patch. Opening releases them. Out-of-range actions are clipped; non-finite ones raise ``ValueError``.
-Each step simulates ``control_dt`` = 0.1 s.
+``max_speed`` (0.05 m/s), and a grasp command (> 0 close, <= 0 open). The jaws clamp the
+free edge along its top line (``RetractionScene.grasp_patch``: the vertices at x = 120 mm,
+z = 8 mm, the same line of tissue on every mesh, free to rotate about it): closing with
+that line within ``grasp_reach`` (12 mm) holds all of it, opening releases it. Held tissue
+cannot be pressed below where it rests. Out-of-range actions are clipped; non-finite ones
+raise ``ValueError``. Each step simulates ``control_dt`` = 0.1 s.
 
 ## Observation Space
 
@@ -31,10 +31,10 @@ Each step simulates ``control_dt`` = 0.1 s.
 |---|---|---|---|---|
 | 0-2 | gripper position | -0.5 | 0.5 | m |
 | 3 | grasping (0 or 1) | 0 | 1 | - |
-| 4-6 | grasp force (force of the tissue on the gripper) | -20 | 20 | N |
+| 4-6 | grasp force (force of the tissue on the gripper, mean over the step) | -20 | 20 | N |
 | 7-9 | target (tumour centre) position | -0.5 | 0.5 | m |
 | 10-21 | four tracked tissue points (free-edge corners and middle, flap centre) | -0.5 | 0.5 | m |
-| 22 | largest edge strain of the tissue | 0 | 5 | - |
+| 22 | largest gauge strain of the tissue (over 15 mm, see below) | 0 | 5 | - |
 | 23 | exposure of the target | 0 | 1 | - |
 
 ``obs_mode="pointcloud"``: ``Dict(state=<the above>, points=Box(64, 3))``: 64 fixed
@@ -47,21 +47,26 @@ The sum of (each reported in ``info`` under its name, weights in ``RewardWeights
 of lift progress this step), a potential-based shaping term (Ng et al. 1999) that pays
 for folding the free edge (x = 120 mm) back about the attached edge's top line, 1 at
 90 degrees (``info["lift"]``); ``reward_grasp`` = 0.5 the
-first time a grasp holds tissue; ``reward_strain`` = -5 x (largest edge strain - 0.5, if
+first time a grasp holds tissue; ``reward_strain`` = -5 x (largest gauge strain - 0.5, if
 positive); ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
-success. Exposure is the fraction of the tumour's camera-facing surface samples (64
-points) that the deformed tissue surface does not hide, by ray casting.
+success. Exposure is the fraction of the tumour's camera-facing surface samples (256
+points) that the deformed tissue surface does not hide, by ray casting. Tissue strain is
+measured over a 15 mm gauge (:mod:`heml_gym.envs.strain_gauges`): the largest
+``|l / L - 1|`` of segments between material points 15 mm apart on the flap's mid-plane,
+not of the mesh's edges, whose strain next to the grasp grows without bound as the mesh
+is refined.
 
 ## Starting State
 
-Tissue at rest; tumour centre uniform in x 50-90 mm, y 35-85 mm, 20 mm below the
-flap's underside (its top 12 mm below); gripper uniform in x 108-114 mm, y 40-80 mm, z 9-11 mm (just above the
-free edge); tissue E uniform in 2-5 kPa. ``reset(seed=...)`` fixes all of them.
+Tissue at rest on the organ; tumour centre uniform in x 50-90 mm, y 35-85 mm, 20 mm below
+the flap's underside (its top 12 mm below); gripper uniform in x 108-114 mm, y 40-80 mm,
+z 9-11 mm (just above the free edge); tissue E uniform in 4-8 kPa. ``reset(seed=...)``
+fixes all of them.
 
 ## Episode End
 
-Terminated on success (exposure >= 0.8 with strain below 0.5), when the tissue tears
-(edge strain >= 1.0) or when the simulation diverges (``info["simulation_diverged"]``;
+Terminated on success (exposure >= 0.8 with gauge strain below 0.5), when the tissue
+tears (gauge strain >= 1.0) or when the simulation diverges (``info["simulation_diverged"]``;
 the observation stays finite). Truncated after 100 steps (10 s).
 
 ## Arguments
@@ -72,7 +77,8 @@ the observation stays finite). Truncated after 100 steps (10 s).
 
 ## Version History
 
-v0: initial version.
+v0: initial version; the scene as described here since the convergence redesign (a line
+clamp, gravity on a support plane, gauge strain, step-mean grasp force).
 """
 
 from __future__ import annotations
@@ -86,14 +92,14 @@ from .retraction_env import RetractionEnv, RetractionVectorEnv
 
 FLAP_SIZE = (0.12, 0.12, 0.008)
 DEFAULT_CELLS = (8, 8, 1)
-MIRRORED = True
 STIFFNESS_RANGE = (4e3, 8e3)  # Pa: E drawn per episode
 HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fold hinge
 
 
-def tissue_scene(cells=DEFAULT_CELLS) -> RetractionScene:
-    """The fat-flap scene with a ``cells`` hex grid (6 tets per cell)."""
-    mesh = box_mesh(FLAP_SIZE, cells, mirrored=MIRRORED)
+def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> RetractionScene:
+    """The fat-flap scene with a ``cells`` hex grid (6 tets per cell; ``mirrored``: each
+    cell split as the mirror image of its neighbours, see :func:`heml_gym.mesh.box_mesh`)."""
+    mesh = box_mesh(FLAP_SIZE, cells, mirrored=mirrored)
     v = mesh.vertices
     lx, ly, lz = FLAP_SIZE
     fixed = np.flatnonzero(np.isclose(v[:, 0], 0.0))

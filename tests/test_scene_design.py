@@ -1,0 +1,191 @@
+"""The pieces that make the retraction scenes converge with the mesh: grasp patches of fixed
+tissue, gauge-length strain, the support plane, mirrored box splits, imprinted lobe lines."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from heml_gym import box_mesh
+from heml_gym.envs.core import TaskSettings
+from heml_gym.envs.geometry import nearest_triangle_distance
+from heml_gym.envs.organ_retraction import BASE_X, GRASP_LINE, organ_scene
+from heml_gym.envs.retraction_env import RetractionEnv
+from heml_gym.envs.strain_gauges import StrainGauges, locate
+from heml_gym.envs.tissue_retraction import FLAP_SIZE, TissueRetractionEnv, tissue_scene
+from heml_gym.organs import liver_lobe_mesh
+
+
+def test_nearest_triangle_distance_matches_dense_sampling():
+    rng = np.random.default_rng(3)
+    u, v = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
+    inside = u + v <= 1
+    for _ in range(50):
+        tri, p = rng.normal(size=(3, 3)), 2 * rng.normal(size=3)
+        samples = tri[0] + u[inside, None] * (tri[1] - tri[0]) + v[inside, None] * (tri[2] - tri[0])
+        sampled = np.linalg.norm(samples - p, axis=1).min()
+        d = nearest_triangle_distance(p, tri, np.array([[0, 1, 2]]))
+        assert d <= sampled + 1e-12 and sampled - d < 2e-2
+    x = np.array([[0.0, 0, 0], [1, 0, 0]])
+    assert nearest_triangle_distance([0.5, 2, 0], x, np.array([[0, 1, 1]])) == pytest.approx(2.0)  # a segment
+    assert nearest_triangle_distance([3, 0, 0], x, np.array([[0, 1, 1]])) == pytest.approx(2.0)
+    assert nearest_triangle_distance([3, 0, 0], x, np.zeros((0, 3), dtype=np.int64)) == np.inf
+
+
+def test_locate_reproduces_points_and_flags_outside():
+    mesh = box_mesh((0.1, 0.05, 0.02), (3, 2, 2), mirrored=True)
+    rng = np.random.default_rng(0)
+    points = rng.uniform([0, 0, 0], [0.1, 0.05, 0.02], (40, 3))
+    tet, w = locate(mesh, np.vstack([points, [[0.2, 0.0, 0.0]]]))
+    assert tet[-1] == -1 and np.all(tet[:-1] >= 0)
+    assert np.all(w[:-1] >= -1e-9)
+    np.testing.assert_allclose(np.einsum("pk,pkd->pd", w[:-1], mesh.vertices[mesh.tets[tet[:-1]]]), points, atol=1e-15)
+
+
+@pytest.mark.parametrize("cells", [(8, 8, 1), (16, 16, 2)])
+def test_gauge_strain_is_exact_for_affine_motion_on_any_mesh(cells):
+    mesh = box_mesh(FLAP_SIZE, cells, mirrored=True)
+    gauges = StrainGauges(mesh, 0.015)
+    x0 = mesh.vertices
+    assert gauges.max_strain(x0) < 1e-12
+    rotation = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
+    assert gauges.max_strain(x0 @ rotation.T + [1.0, -2.0, 0.5]) < 1e-12  # rigid motion: no strain
+    stretch = x0 * [1.2, 1.0, 1.0]  # 20 % along x: the x gauges read it exactly, the diagonals less
+    assert gauges.max_strain(stretch) == pytest.approx(0.2, abs=1e-12)
+    batch = gauges.max_strain(np.stack([x0, stretch]))
+    np.testing.assert_allclose(batch, [0.0, 0.2], atol=1e-12)
+
+
+def test_gauge_lattice_is_the_same_tissue_on_every_mesh():
+    coarse = StrainGauges(box_mesh(FLAP_SIZE, (8, 8, 1), mirrored=True), 0.015)
+    fine = StrainGauges(box_mesh(FLAP_SIZE, (24, 24, 3), mirrored=True), 0.015)
+    np.testing.assert_allclose(coarse.points, fine.points, atol=1e-15)
+    np.testing.assert_array_equal(coarse.pairs, fine.pairs)
+    with pytest.raises(ValueError, match="positive length"):
+        StrainGauges(box_mesh(FLAP_SIZE, (2, 2, 1)), -1.0)
+
+
+@pytest.mark.parametrize("cells", [(3, 2, 2), (4, 4, 1)])
+def test_mirrored_box_split_conforms_and_is_mirror_symmetric(cells):
+    size = (0.3, 0.2, 0.1)
+    mirrored, uniform = box_mesh(size, cells, mirrored=True), box_mesh(size, cells)
+    assert mirrored.n_tets == uniform.n_tets and np.all(mirrored.volumes > 0)
+    assert mirrored.total_volume == pytest.approx(np.prod(size), rel=1e-12)
+    # conforming: every interior face is shared by exactly two tets, so the boundary is the box's
+    assert len(mirrored.boundary_faces) == len(uniform.boundary_faces)
+    if cells[0] % 2 == 0:  # an even number of cells: the mesh maps onto itself under x -> L - x
+        flipped = mirrored.vertices * [-1, 1, 1] + [size[0], 0, 0]
+        tets = {tuple(sorted(np.round(mirrored.vertices[t], 12).ravel())) for t in mirrored.tets}
+        tets_flipped = {tuple(sorted(np.round(flipped[t], 12).ravel())) for t in mirrored.tets}
+        assert tets == tets_flipped
+
+
+def test_tissue_grasp_holds_the_free_edge_top_line_on_every_mesh():
+    for cells in [(8, 8, 1), (16, 16, 2)]:
+        env = TissueRetractionEnv(cells=cells)
+        env.reset(seed=0)
+        env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+        task = env.task
+        held = task.scene.mesh.vertices[task.held[0]]
+        assert task.grasping[0]
+        np.testing.assert_allclose(held[:, [0, 2]], np.tile([FLAP_SIZE[0], FLAP_SIZE[2]], (len(held), 1)))
+        assert len(held) == cells[1] + 1  # the whole line, every vertex on it
+
+
+def test_grasp_needs_the_patch_within_reach():
+    env = TissueRetractionEnv()
+    env.reset(seed=0)
+    task = env.task
+    task.gripper[0] = [0.06, 0.06, 0.008 + 1.5 * task.settings.grasp_reach]  # above the flap's middle
+    env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    assert not task.grasping[0]
+    task.gripper[0] = [0.12 + 0.9 * task.settings.grasp_reach, 0.061, 0.008]  # just off the edge line
+    env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    assert task.grasping[0]
+
+
+def test_held_tissue_cannot_be_pressed_into_the_organ():
+    env = TissueRetractionEnv()
+    env.reset(seed=1)
+    task = env.task
+    env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    assert task.grasping[0]
+    for _ in range(10):  # push straight down
+        obs, _, terminated, _, info = env.step(np.array([0, 0, -1, 1], dtype=np.float32))
+    rest_z = task.scene.mesh.vertices[task.held[0], 2]
+    assert np.all(task.sim.x[0, task.held[0], 2] >= rest_z - 1e-12)
+    assert np.all(task.sim.x[0, :, 2] >= task.scene.floor - 1e-12)
+    assert not info["simulation_diverged"]
+
+
+def test_grasp_force_is_the_weight_it_holds_up_at_rest():
+    """Hold the flap's free edge still at rest: the grasp carries part of the weight (gravity
+    is on), never more than all of it, and the step mean is steady from step to step."""
+    env = TissueRetractionEnv()
+    env.reset(seed=2)
+    task = env.task
+    for _ in range(3):
+        env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    forces = [env.step(np.array([0, 0, 0, 1], dtype=np.float32))[4]["grasp_force"] for _ in range(3)]
+    weight = task.sim.mass.sum() * 9.81
+    assert 0.0 <= forces[-1] < weight
+    assert abs(forces[-1] - forces[-2]) < 1e-3 * weight
+
+
+def test_organ_lobe_is_hinged_along_its_base_edge_and_grasped_along_an_imprinted_line():
+    for size in (0.016, 0.010):
+        scene = organ_scene(size)
+        v = scene.mesh.vertices
+        fixed = v[scene.fixed]
+        np.testing.assert_allclose(fixed[:, [0, 2]], np.tile([BASE_X, 0.0], (len(fixed), 1)), atol=1e-7)
+        assert len(fixed) >= 4 and np.ptp(fixed[:, 1]) > 0.05  # the whole base edge
+        a, b = (np.asarray(p) for p in GRASP_LINE)
+        patch = v[scene.grasp_patch]
+        assert len(patch) >= 3
+        # every held vertex lies on the line, and the line's two ends are among them
+        cross = np.linalg.norm(np.cross(patch - a, b - a), axis=1) / np.linalg.norm(b - a)
+        assert cross.max() < 1e-7
+        for end in (a, b):
+            assert np.linalg.norm(patch - end, axis=1).min() < 1e-7
+        assert v[:, 0].max() <= BASE_X + 1e-9
+
+
+def test_lobe_lines_must_lie_on_the_lobe_to_be_imprinted():
+    plain = liver_lobe_mesh(0.016, base_x=BASE_X)
+    lined = liver_lobe_mesh(0.016, lines=(GRASP_LINE,), base_x=BASE_X)
+    assert lined.total_volume == pytest.approx(plain.total_volume, rel=1e-9)
+    a = np.asarray(GRASP_LINE[0])
+    assert np.linalg.norm(lined.vertices - a, axis=1).min() < 1e-9
+    assert np.linalg.norm(plain.vertices - a, axis=1).min() > 1e-4
+
+
+def test_a_scene_without_a_free_patch_vertex_is_refused():
+    scene = tissue_scene()
+    with pytest.raises(ValueError, match="grasp_patch"):
+        type(scene)(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__ if k != "surface_faces"},
+                       "grasp_patch": scene.fixed[:3]})
+
+
+def test_the_scene_safety_is_the_default_and_settings_override_it():
+    env = RetractionEnv(tissue_scene())
+    assert env.task.safety == tissue_scene().safety
+    slower = RetractionEnv(tissue_scene(), settings=TaskSettings(safety=0.25))
+    assert slower.task.safety == 0.25 and slower.task.substeps > env.task.substeps
+
+
+def test_a_scene_without_a_grasp_line_holds_the_vertices_near_the_jaws():
+    import dataclasses
+
+    scene = dataclasses.replace(tissue_scene(), grasp_patch=None)
+    env = RetractionEnv(scene, settings=TaskSettings(jaw_radius=0.009))
+    env.reset(seed=0)
+    task = env.task
+    gripper = task.gripper[0].copy()
+    env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    held = np.flatnonzero(task.held[0])
+    d = np.linalg.norm(scene.mesh.vertices[held] - gripper, axis=1)
+    surface = np.setdiff1d(scene.mesh.surface_vertices, scene.fixed)
+    expected = surface[np.linalg.norm(scene.mesh.vertices[surface] - gripper, axis=1) <= 0.009]
+    assert task.grasping[0] and d.max() <= 0.009
+    np.testing.assert_array_equal(np.sort(held), np.sort(expected))
