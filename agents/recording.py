@@ -29,7 +29,8 @@ Entities
 --------
 ``world``                     static view coordinates (right-handed, z up).
 ``world/tissue``              :class:`rerun.Mesh3D`: every tissue vertex (deformed positions,
-                              m) with normals and per-vertex colours by strain (pale pink
+                              m) with normals and per-vertex colours by the strain of the
+                              most strained mesh edge at the vertex (a local view; pale pink
                               at rest to red at ``settings.damage_strain``); the triangles
                               (the scene's surface faces) are logged once, statically.
 ``world/attachment``          static :class:`rerun.Points3D`: the fixed tissue vertices.
@@ -46,7 +47,7 @@ Entities
                               ``success``) and ``total``, on step frames only (no reward at reset).
 ``plots/exposure/exposure``   exposure of the target (0..1), every frame;
 ``plots/exposure/success_threshold``  ``settings.success_exposure``, every frame.
-``plots/strain/max_strain``   largest edge strain, every frame;
+``plots/strain/max_strain``   largest gauge strain (``info["max_strain"]``), every frame;
 ``plots/strain/damage_threshold``  ``settings.damage_strain``, every frame.
 ``plots/grasp_force``         magnitude of the grasp force (N), every frame.
 ``log/episodes``              :class:`rerun.TextLog`: one line at each episode's start (seed,
@@ -163,7 +164,7 @@ class _SceneLogger:
             "plots/reward/total": ("total", [255, 255, 255]),
             "plots/exposure/exposure": ("exposure", TUMOUR),
             "plots/exposure/success_threshold": (f"success ({st.success_exposure:g})", [120, 200, 120]),
-            "plots/strain/max_strain": ("max edge strain", STRAINED),
+            "plots/strain/max_strain": ("max gauge strain", STRAINED),
             "plots/strain/damage_threshold": (f"damage ({st.damage_strain:g})", [150, 150, 150]),
             "plots/grasp_force": ("grasp force (N)", _FORCE),
         }
