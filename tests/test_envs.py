@@ -9,7 +9,7 @@ from gymnasium.utils.env_checker import check_env
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
 from heml_gym.envs.core import TaskSettings
-from heml_gym.envs.organ_retraction import OrganRetractionEnv
+from heml_gym.envs.organ_retraction import OrganRetractionEnv, OrganRetractionVectorEnv
 from heml_gym.envs.scripted import FoldBackPolicy, run_episodes, scripted_policy
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
 
@@ -85,16 +85,20 @@ def test_vector_env_matches_single_envs_and_make_vec_uses_it():
                 break
 
 
-def test_ten_thousand_random_and_extreme_steps_stay_in_space():
-    vec = TissueRetractionVectorEnv(num_envs=10)
+@pytest.mark.parametrize("vec_class, scenes, steps", [
+    (TissueRetractionVectorEnv, 10, 1000),  # 10k env steps
+    (OrganRetractionVectorEnv, 4, 250),  # the 7 mm lobe costs ~25x the flap per step: 1k env steps
+])
+def test_ten_thousand_random_and_extreme_steps_stay_in_space(vec_class, scenes, steps):
+    vec = vec_class(num_envs=scenes)
     obs, _ = vec.reset(seed=0)
     rng = np.random.default_rng(1)
     space = vec.single_observation_space
-    for k in range(1000):
+    for k in range(steps):
         if k % 3 == 0:
-            a = rng.choice([-1.0, 1.0], size=(10, 4)) * rng.uniform(1, 50, (10, 1))  # extreme, clipped
+            a = rng.choice([-1.0, 1.0], size=(scenes, 4)) * rng.uniform(1, 50, (scenes, 1))  # extreme, clipped
         else:
-            a = rng.uniform(-1, 1, (10, 4))
+            a = rng.uniform(-1, 1, (scenes, 4))
         obs, reward, terminated, truncated, info = vec.step(a)
         assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
         for o in obs:
