@@ -65,8 +65,9 @@ class RetractionScene:
 
     ``grasp_patch``: the vertices the jaws hold, a fixed piece of tissue (the same
     material on every mesh of the scene, so that the grasp force converges with the
-    mesh); closing within ``grasp_reach`` of any of them holds all of them. None: the
-    jaws hold the nearest surface vertex and every other within ``jaw_radius``.
+    mesh): closing within ``grasp_reach`` of the patch (its surface triangles, or the mesh
+    edges along it for a line, or its vertices) holds all of them. None: the jaws hold
+    the nearest surface vertex and every other within ``jaw_radius``.
 
     ``strain_gauge``: the gauge length (m) that tissue strain is measured over (see
     :mod:`heml_gym.envs.strain_gauges`): the largest strain reported, penalised and
@@ -117,7 +118,7 @@ class TaskSettings:
 
     control_dt: float = 0.1  # s simulated per env step
     max_speed: float = 0.05  # m/s of the gripper at action 1
-    grasp_reach: float = 0.012  # m: closing grasps tissue only if a surface vertex is this close
+    grasp_reach: float = 0.012  # m: closing grasps tissue only if the grasp patch (or a surface vertex) is this close
     jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
     damage_strain: float = 0.5  # gauge strain above which the strain penalty applies
     tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
