@@ -48,9 +48,8 @@ def _eval(args) -> int:
     policy, _, cfg = load_policy(args.run_or_model)
     env_id = args.env or (cfg.env.id if cfg else "heml_gym/TissueRetraction-v0")
     obs_mode = cfg.env.obs_mode if cfg else "state"
-    max_steps = cfg.env.max_episode_steps if cfg else 100
-    result = evaluate_policy(policy, env_id, args.episodes, seed=args.seed, obs_mode=obs_mode,
-                             max_episode_steps=max_steps)
+    kwargs = cfg.env.kwargs if cfg and env_id == cfg.env.id else {}
+    result = evaluate_policy(policy, env_id, args.episodes, seed=args.seed, obs_mode=obs_mode, env_kwargs=kwargs)
     result["env"] = env_id
     print(json.dumps(result, indent=1))
     if args.out:
@@ -69,13 +68,12 @@ def _rollout(args) -> int:
         from heml_gym.envs.scripted import scripted_policy
 
         env = gym.make(args.env)
-        policy = scripted_policy(env.unwrapped.task.scene.name)
+        policy = scripted_policy(env.unwrapped.scene)
     else:
-        from .train import load_policy
+        from .train import load_policy, make_env
 
         policy, _, cfg = load_policy(args.policy)
-        env_id = cfg.env.id if cfg else args.env
-        env = gym.make(env_id, obs_mode=cfg.env.obs_mode if cfg else "state")
+        env = make_env(cfg, None if cfg else args.env)
     summary = record_rollouts(env, policy, path=args.rrd, episodes=args.episodes, seed=args.seed,
                               spawn=args.spawn)
     print(json.dumps(summary, indent=1, default=str))

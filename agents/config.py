@@ -8,6 +8,9 @@ evaluation / checkpoint schedule::
       num_envs: 8
       obs_mode: state
       normalize_observations: true   # VecNormalize statistics saved beside the model
+      kwargs:                        # passed to gym.make / gym.make_vec (validated)
+        physics: {material: StVenantKirchhoff, integrator: implicit}
+        settings: {max_steps: 100}   # the episode length lives here (TaskSettings)
     algorithm:
       name: PPO
       policy: MlpPolicy
@@ -17,7 +20,10 @@ evaluation / checkpoint schedule::
     checkpoint: {every_steps: 50000}
     seed: 0
 
-Unknown keys, wrong types and missing files raise :class:`ConfigError` naming the key.
+Unknown keys, wrong types and missing files raise :class:`ConfigError` naming the key;
+``env.kwargs`` is checked against the environment's arguments and its scene, physics,
+settings and weights against their fields, and ``algorithm.hyperparameters`` against the
+algorithm's constructor, all before anything is written.
 """
 
 from __future__ import annotations
@@ -28,7 +34,9 @@ from typing import Any, get_type_hints
 
 import yaml
 
-ALGORITHMS = ("PPO", "SAC")
+from heml_gym.envs.retraction_env import OBS_MODES
+
+from .algorithms import ALGORITHMS, algorithm_class
 
 
 class ConfigError(ValueError):
@@ -40,8 +48,8 @@ class EnvConfig:
     id: str = "heml_gym/TissueRetraction-v0"
     num_envs: int = 8
     obs_mode: str = "state"
-    max_episode_steps: int = 100
     normalize_observations: bool = True  # running mean/std of observations (SB3 VecNormalize)
+    kwargs: dict = field(default_factory=dict)  # gym.make / gym.make_vec keyword arguments
 
 
 @dataclass
@@ -89,7 +97,10 @@ def _build(cls, data: Any, path: str):
     unknown = sorted(set(data) - known)
     if unknown:
         where = f"{path}." if path else ""
-        raise ConfigError(f"unknown config key '{where}{unknown[0]}' (known: {', '.join(sorted(known))})")
+        hint = ""
+        if f"{where}{unknown[0]}" == "env.max_episode_steps":
+            hint = "; the episode length is env.kwargs.settings.max_steps"
+        raise ConfigError(f"unknown config key '{where}{unknown[0]}' (known: {', '.join(sorted(known))}){hint}")
     kwargs = {}
     for name, value in data.items():
         key = f"{path}.{name}" if path else name
@@ -101,6 +112,8 @@ def _build(cls, data: Any, path: str):
             value = float(value)
         if expected is int and isinstance(value, float) and value.is_integer():
             value = int(value)  # YAML writes 1e5 as a float
+        if expected is dict and value is None:
+            value = {}
         if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
             raise ConfigError(f"config key '{key}' must be {expected.__name__}, "
                               f"got {type(value).__name__} ({value!r})")
@@ -111,10 +124,10 @@ def _build(cls, data: Any, path: str):
 def validate(cfg: RunConfig) -> RunConfig:
     """Check values beyond types; raises :class:`ConfigError` naming the key."""
     if cfg.algorithm.name not in ALGORITHMS:
-        raise ConfigError(f"config key 'algorithm.name' must be one of {ALGORITHMS}, got {cfg.algorithm.name!r}")
-    if cfg.env.obs_mode not in ("state", "pointcloud"):
-        raise ConfigError(f"config key 'env.obs_mode' must be 'state' or 'pointcloud', got {cfg.env.obs_mode!r}")
-    for key, value in [("env.num_envs", cfg.env.num_envs), ("env.max_episode_steps", cfg.env.max_episode_steps),
+        raise ConfigError(f"config key 'algorithm.name' must be one of {tuple(ALGORITHMS)}, got {cfg.algorithm.name!r}")
+    if cfg.env.obs_mode not in OBS_MODES:
+        raise ConfigError(f"config key 'env.obs_mode' must be one of {OBS_MODES}, got {cfg.env.obs_mode!r}")
+    for key, value in [("env.num_envs", cfg.env.num_envs),
                        ("algorithm.total_timesteps", cfg.algorithm.total_timesteps),
                        ("evaluation.every_steps", cfg.evaluation.every_steps),
                        ("evaluation.episodes", cfg.evaluation.episodes),
@@ -128,7 +141,26 @@ def validate(cfg: RunConfig) -> RunConfig:
     if cfg.env.id not in gym.registry:
         known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
         raise ConfigError(f"config key 'env.id': unknown environment {cfg.env.id!r} (known: {', '.join(known)})")
+    from heml_gym.envs import SpecError, check_env_kwargs
+
+    try:
+        check_env_kwargs(cfg.env.id, cfg.env.kwargs, "env.kwargs")
+    except SpecError as exc:
+        raise ConfigError(f"config key {exc}") from None
+    _check_hyperparameters(cfg)
     return cfg
+
+
+def _check_hyperparameters(cfg: RunConfig) -> None:
+    """Every hyperparameter must be an argument of the algorithm's constructor."""
+    import inspect
+
+    cls = algorithm_class(cfg.algorithm.name)
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "policy", "env"}
+    for key in cfg.algorithm.hyperparameters:
+        if key not in accepted:
+            raise ConfigError(f"config key 'algorithm.hyperparameters.{key}': not a {cfg.algorithm.name} argument "
+                              f"(known: {', '.join(sorted(accepted))})")
 
 
 def load_config(path: str | Path, overrides: dict | None = None) -> RunConfig:

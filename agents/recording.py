@@ -141,24 +141,23 @@ def _blueprint(rrb):
 
 
 class _SceneLogger:
-    """Logs scene 0 of a :class:`BatchedRetraction` to a recording stream."""
+    """Logs one scene of a retraction env (its public geometry and snapshots) to a stream."""
 
-    def __init__(self, rr, rec, task):
-        self.rr, self.rec, self.task = rr, rec, task
-        mesh = task.scene.mesh
-        self.faces = np.asarray(task.scene.surface_faces, dtype=np.uint32)
-        self.edges = np.asarray(mesh.edges)
-        self.rest_length = np.asarray(mesh.edge_lengths(), dtype=np.float64)
-        self.n_vertices = mesh.n_vertices
+    def __init__(self, rr, rec, geometry):
+        self.rr, self.rec, self.geometry = rr, rec, geometry
+        self.faces = np.asarray(geometry.surface_faces, dtype=np.uint32)
+        self.edges = np.asarray(geometry.edges)
+        self.rest_length = np.linalg.norm(geometry.rest_vertices[self.edges[:, 1]]
+                                          - geometry.rest_vertices[self.edges[:, 0]], axis=1)
+        self.n_vertices = len(geometry.rest_vertices)
 
     def log_static(self) -> None:
-        rr, rec, task = self.rr, self.rec, self.task
+        rr, rec, geo = self.rr, self.rec, self.geometry
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log("world/tissue", rr.Mesh3D.from_fields(triangle_indices=self.faces), static=True)
-        fixed = np.flatnonzero(task.sim.fixed)
-        rec.log("world/attachment", rr.Points3D(task.scene.mesh.vertices[fixed], radii=0.0015,
+        rec.log("world/attachment", rr.Points3D(geo.rest_vertices[geo.fixed], radii=0.0015,
                                                 colors=_ATTACHMENT), static=True)
-        st = task.settings
+        st = geo.settings
         styles = {
             **{f"plots/reward/{t}": (t, None) for t in REWARD_TERMS},
             "plots/reward/total": ("total", [255, 255, 255]),
@@ -180,7 +179,7 @@ class _SceneLogger:
         per_vertex = np.zeros(self.n_vertices)
         np.maximum.at(per_vertex, e[:, 0], strain)
         np.maximum.at(per_vertex, e[:, 1], strain)
-        s = np.clip(np.nan_to_num(per_vertex / self.task.settings.damage_strain, nan=1.0), 0.0, 1.0)
+        s = np.clip(np.nan_to_num(per_vertex / self.geometry.settings.damage_strain, nan=1.0), 0.0, 1.0)
         return ((1.0 - s)[:, None] * TISSUE + s[:, None] * STRAINED).astype(np.uint8)
 
     def vertex_normals(self, x: np.ndarray) -> np.ndarray:
@@ -192,26 +191,25 @@ class _SceneLogger:
         length = np.linalg.norm(n, axis=1, keepdims=True)
         return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
-    def log_frame(self, info: dict[str, Any]) -> None:
-        rr, rec, t = self.rr, self.rec, self.task
-        x = np.nan_to_num(np.asarray(t.sim.x[0], dtype=np.float64))
+    def log_frame(self, snap, info: dict[str, Any]) -> None:
+        rr, rec, geo = self.rr, self.rec, self.geometry
+        x = np.nan_to_num(np.asarray(snap.positions, dtype=np.float64))
         rec.log("world/tissue", rr.Mesh3D.from_fields(vertex_positions=x, vertex_normals=self.vertex_normals(x),
                                                       vertex_colors=self.vertex_colours(x)))
-        grasping = bool(t.grasping[0])
-        gripper = np.asarray(t.gripper[0], dtype=np.float64)
+        gripper = np.asarray(snap.gripper, dtype=np.float64)
         rec.log("world/gripper", rr.Boxes3D(centers=[gripper + _JAW_OFFSET], half_sizes=[_JAW_HALF_SIZE],
-                                            colors=[JAWS_CLOSED if grasping else JAWS_OPEN],
-                                            labels=["closed" if grasping else "open"],
+                                            colors=[JAWS_CLOSED if snap.grasping else JAWS_OPEN],
+                                            labels=["closed" if snap.grasping else "open"],
                                             fill_mode="solid"))
-        held = x[np.asarray(t.held[0], dtype=bool)]
+        held = x[snap.held]
         rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=_HELD))
-        force = np.nan_to_num(np.asarray(t.grasp_force[0], dtype=np.float64))
+        force = np.nan_to_num(np.asarray(snap.grasp_force, dtype=np.float64))
         rec.log("world/grasp_force", rr.Arrows3D(origins=[gripper], vectors=[force * FORCE_ARROW_SCALE],
                                                  colors=[_FORCE], labels=[f"{np.linalg.norm(force):.3f} N"]))
         exposure = float(info["exposure"])
-        rec.log("world/target", rr.Points3D([t.target[0]], radii=float(t.scene.target_radius), colors=[TUMOUR],
+        rec.log("world/target", rr.Points3D([snap.target], radii=float(geo.target_radius), colors=[TUMOUR],
                                             labels=[f"exposure {exposure:.0%}"]))
-        st = t.settings
+        st = geo.settings
         rec.log("plots/exposure/exposure", rr.Scalars(exposure))
         rec.log("plots/exposure/success_threshold", rr.Scalars(float(st.success_exposure)))
         rec.log("plots/strain/max_strain", rr.Scalars(float(info["max_strain"])))
@@ -242,8 +240,8 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
                     app_id: str = "heml_gym") -> dict[str, Any]:
     """Play ``episodes`` seeded episodes of ``policy`` in ``env`` and log them to rerun.
 
-    ``env``: one retraction env (a :class:`RetractionEnv`, possibly wrapped;
-    ``env.unwrapped.task`` must be a single-scene task). ``policy``: a callable
+    ``env``: one retraction env (a :class:`RetractionEnv`, possibly wrapped: its public
+    ``geometry`` and ``snapshot()`` are what is logged). ``policy``: a callable
     ``obs -> action``; its ``reset()`` is called before each episode if it has one (wrap
     SB3 models, e.g. ``lambda obs: model.predict(obs, deterministic=True)[0]``).
     Episode ``k`` is reset with ``seed + k``. ``path``: save the recording to this
@@ -263,10 +261,11 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if path is None and not spawn:
         raise ValueError("nothing to record to: give path= (an .rrd file) and/or spawn=True (a viewer)")
-    task = getattr(env.unwrapped, "task", None)
-    if task is None or not hasattr(task, "sim") or getattr(task, "n", 1) != 1:
-        raise TypeError("record_rollouts needs a single retraction env (env.unwrapped.task with one scene), "
-                        f"got {type(env.unwrapped).__name__}")
+    from heml_gym.envs.retraction_env import RetractionEnv
+
+    if not isinstance(env.unwrapped, RetractionEnv):
+        raise TypeError(f"record_rollouts needs a single retraction env, got {type(env.unwrapped).__name__}")
+    scene_env = env.unwrapped
     file_path = None
     if path is not None:
         file_path = Path(os.fspath(path)).expanduser()
@@ -286,9 +285,10 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
         raise OSError(f"cannot open the rerun recording sink ({file_path or 'viewer'}): {exc}") from exc
     rec.send_blueprint(blueprint, make_active=True, make_default=True)
 
-    logger = _SceneLogger(rr, rec, task)
+    geometry = scene_env.geometry
+    logger = _SceneLogger(rr, rec, geometry)
     logger.log_static()
-    dt = float(task.settings.control_dt)
+    dt = float(geometry.settings.control_dt)
     frame = 0
     lengths, returns, outcomes, successes, final_exposure = [], [], [], [], []
 
@@ -305,11 +305,11 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
             if hasattr(policy, "reset"):
                 policy.reset()
             set_time(k, 0)
-            young = float(task.sim.young_modulus[0])
+            young = scene_env.snapshot().young_modulus
             rec.log("log/episodes", rr.TextLog(
                 f"episode {k} start: seed {episode_seed}, E = {young:.0f} Pa, "
                 f"exposure {float(info['exposure']):.2f}", level="INFO"))
-            logger.log_frame(info)
+            logger.log_frame(scene_env.snapshot(), info)
             frame += 1
             steps, ret, done = 0, 0.0, False
             terminated = truncated = False
@@ -319,7 +319,7 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
                 ret += float(reward)
                 done = bool(terminated or truncated)
                 set_time(k, steps)
-                logger.log_frame(info)
+                logger.log_frame(scene_env.snapshot(), info)
                 logger.log_rewards(reward, info)
                 if done:
                     outcome = _outcome(info, terminated, truncated)

@@ -22,16 +22,15 @@ import gymnasium as gym
 import numpy as np
 import torch
 import yaml
-from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
 
+from .algorithms import ALGORITHMS, algorithm_class
 from .config import RunConfig, load_config
 from .vec_env import RetractionSb3VecEnv
 
-ALGORITHM_CLASSES = {"PPO": PPO, "SAC": SAC}
 NORMALIZER_FILE = "vecnormalize.pkl"
 
 
@@ -39,8 +38,16 @@ def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
     """The SB3 VecEnv of a config: one batched Numba call for all scenes, with episode stats."""
     vector_env = gym.make_vec(cfg.env.id, num_envs=num_envs or cfg.env.num_envs,
                               vectorization_mode="vector_entry_point", obs_mode=cfg.env.obs_mode,
-                              max_episode_steps=cfg.env.max_episode_steps)
+                              **cfg.env.kwargs)
     return VecMonitor(RetractionSb3VecEnv(vector_env.unwrapped))
+
+
+def make_env(cfg: RunConfig | None, env_id: str | None = None, **extra):
+    """One env of a config (its id, obs mode and ``env.kwargs``), or of ``env_id`` with
+    the defaults when there is no config."""
+    if cfg is None:
+        return gym.make(env_id or "heml_gym/TissueRetraction-v0", **extra)
+    return gym.make(env_id or cfg.env.id, obs_mode=cfg.env.obs_mode, **{**cfg.env.kwargs, **extra})
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -55,14 +62,14 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 
 def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
-                    obs_mode: str = "state", max_episode_steps: int = 100) -> dict:
+                    obs_mode: str = "state", env_kwargs: dict | None = None) -> dict:
     """Success rate (with its 95 % Wilson interval), mean final exposure and max strain.
 
-    ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``.
+    ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``;
+    the env is ``gym.make(env_id, obs_mode=obs_mode, **env_kwargs)`` (the run's scene,
+    physics and settings).
     """
-    from heml_gym.envs.core import TaskSettings
-
-    env = gym.make(env_id, obs_mode=obs_mode, settings=TaskSettings(max_steps=max_episode_steps))
+    env = gym.make(env_id, obs_mode=obs_mode, **(env_kwargs or {}))
     successes, exposures, strains, lengths = 0, [], [], []
     for k in range(episodes):
         obs, _ = env.reset(seed=seed + k)
@@ -136,8 +143,7 @@ class SuccessEvalCallback(BaseCallback):
     def evaluate(self):
         policy = model_policy(self.model, self.model.get_vec_normalize_env())
         result = evaluate_policy(policy, self.cfg.env.id, self.cfg.evaluation.episodes,
-                                 obs_mode=self.cfg.env.obs_mode,
-                                 max_episode_steps=self.cfg.env.max_episode_steps)
+                                 obs_mode=self.cfg.env.obs_mode, env_kwargs=self.cfg.env.kwargs)
         result["timesteps"] = int(self.num_timesteps)
         result["wall_s"] = self._wall_before + time.perf_counter() - self._started
         self.history.append(result)
@@ -173,7 +179,7 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     env = make_vec_env(cfg)
     env.seed(cfg.seed)
-    algo = ALGORITHM_CLASSES[cfg.algorithm.name]
+    algo = algorithm_class(cfg.algorithm.name)
     if resume is not None:
         resume = Path(resume)
         if not resume.is_file():
@@ -246,13 +252,13 @@ def _load(path: str | Path):
         if cfg_path.is_file():
             cfg = load_config(cfg_path)
     name = cfg.algorithm.name if cfg is not None else _algorithm_of(path)
-    return ALGORITHM_CLASSES[name].load(path, device="cpu"), cfg, path
+    return algorithm_class(name).load(path, device="cpu"), cfg, path
 
 
 def _algorithm_of(path: Path) -> str:
-    for name, cls in ALGORITHM_CLASSES.items():
+    for name in ALGORITHMS:
         try:
-            cls.load(path, device="cpu")
+            algorithm_class(name).load(path, device="cpu")
             return name
         except Exception:  # noqa: BLE001 - try the next algorithm
             continue

@@ -3,8 +3,10 @@
 SB3 expects same-step auto-reset: when a scene's episode ends, the returned observation
 is already the first of its next episode, and ``infos[i]["terminal_observation"]`` holds
 the last one (with ``infos[i]["TimeLimit.truncated"]`` set on truncation, so that value
-bootstrapping is right). This adapter provides exactly that on top of
-:class:`heml_gym.envs.core.BatchedRetraction`, with no copy of the task logic.
+bootstrapping is right). This adapter provides exactly that on top of the vector env's
+public batch interface (``reset_scenes``, ``step_scenes``, ``observations``), with no
+copy of the task logic. Actions are checked there: a non-finite or misshapen action
+raises ``ValueError`` instead of reaching the physics.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ class RetractionSb3VecEnv(VecEnv):
 
     def __init__(self, vector_env):
         self.venv = vector_env
-        self.task = vector_env.task
         super().__init__(vector_env.num_envs, vector_env.single_observation_space,
                          vector_env.single_action_space)
         self._actions = None
@@ -33,16 +34,16 @@ class RetractionSb3VecEnv(VecEnv):
         return self._seeds
 
     def reset(self):
-        self.task.reset(np.arange(self.num_envs), self._seeds)
+        self.venv.reset_scenes(np.arange(self.num_envs), self._seeds)
         self._seeds = [None] * self.num_envs
-        return self.venv._observations(self.task)
+        return self.venv.observations()
 
     def step_async(self, actions):
-        self._actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, -1)
+        self._actions = actions
 
     def step_wait(self):
-        reward, terminated, truncated, info = self.task.step(self._actions)
-        obs = self.venv._observations(self.task)
+        reward, terminated, truncated, info = self.venv.step_scenes(self._actions)
+        obs = self.venv.observations()
         done = terminated | truncated
         infos = [{k: (v[i].item() if isinstance(v, np.ndarray) else v) for k, v in info.items()}
                  for i in range(self.num_envs)]
@@ -51,8 +52,8 @@ class RetractionSb3VecEnv(VecEnv):
             for i in ended:
                 infos[i]["terminal_observation"] = _index(obs, i)
                 infos[i]["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
-            self.task.reset(ended)
-            obs = self.venv._observations(self.task)
+            self.venv.reset_scenes(ended)
+            obs = self.venv.observations()
         return obs, reward.astype(np.float32), done, infos
 
     def close(self):

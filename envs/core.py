@@ -1,40 +1,60 @@
 """The retraction task on N scenes at once: gripper, grasp, observations, reward.
 
-A :class:`RetractionScene` describes one scene family (tissue mesh, attachment, target
-placement, camera, gripper start); :class:`BatchedRetraction` runs N independent copies
-of it on one :class:`heml_gym.batch.BatchedSimulation`. The single-environment classes
-(N = 1) and the vectorised ones share this code. Units: m, s, N, Pa.
+A :class:`~heml_gym.envs.scene.Scene` describes one scene family (tissue mesh, physics,
+attachment, target placement, camera, gripper start); :class:`BatchedRetraction` runs N
+independent copies of it on one :class:`heml_gym.Model` (one material per scene, drawn
+per episode) stepped by the scene's solver. The single-environment classes (N = 1) and
+the vectorised ones share this code. Units: m, s, N, Pa.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from heml_gym.batch import BatchedSimulation
-from heml_gym.mesh import TetMesh
+from heml_gym import Model
+from heml_gym.solvers import ExplicitSolver, ImplicitSolver
 
 from .geometry import fibonacci_sphere, nearest_triangle_distance, visible_fraction, visible_fraction_batch
+from .scene import BuiltScene
+from .spec import SpecError, from_mapping
 from .strain_gauges import StrainGauges
 
-#: Names and order of the state-observation entries (see the env docstrings).
-STATE_FIELDS = (
-    ["gripper_x", "gripper_y", "gripper_z", "grasping"]
-    + ["grasp_force_x", "grasp_force_y", "grasp_force_z"]
-    + ["target_x", "target_y", "target_z"]
-    + [f"tracked_{i}_{a}" for i in range(4) for a in "xyz"]
-    + ["max_strain", "exposure"]
-)
-STATE_SIZE = len(STATE_FIELDS)
 POSITION_BOUND = 0.5  # m: |positions| in observations are clipped to this
 FORCE_BOUND = 20.0  # N
 STRAIN_BOUND = 5.0
 
+#: The state observation, entry by entry: (name, low, high, unit). The bounds of the
+#: observation space and the clipping of every entry come from this table.
+STATE_SPEC = (
+    [(f"gripper_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for a in "xyz"]
+    + [("grasping", 0.0, 1.0, "-")]
+    + [(f"grasp_force_{a}", -FORCE_BOUND, FORCE_BOUND, "N") for a in "xyz"]
+    + [(f"target_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for a in "xyz"]
+    + [(f"tracked_{i}_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for i in range(4) for a in "xyz"]
+    + [("max_strain", 0.0, STRAIN_BOUND, "-"), ("exposure", 0.0, 1.0, "-")]
+)
+#: Names and order of the state-observation entries (see the env docstrings).
+STATE_FIELDS = [name for name, *_ in STATE_SPEC]
+STATE_SIZE = len(STATE_FIELDS)
+STATE_LOW = np.array([lo for _, lo, _, _ in STATE_SPEC], dtype=np.float32)
+STATE_HIGH = np.array([hi for _, _, hi, _ in STATE_SPEC], dtype=np.float32)
 
-@dataclass
+
+def _positive(obj, name, value, allow_zero=False):
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
+        value >= 0 if allow_zero else value > 0)
+    if not ok:
+        raise SpecError(f"{type(obj).__name__}.{name}: must be a finite number {'>=' if allow_zero else '>'} 0, "
+                        f"got {value!r}")
+
+
+@dataclass(frozen=True)
 class RewardWeights:
-    """Weights of the reward terms (each term is reported in ``info`` under its name)."""
+    """Weights of the reward terms (each term is reported in ``info`` under its name);
+    every weight a finite number >= 0."""
 
     exposure: float = 10.0  # times the change of exposure (0..1) this step
     lift: float = 5.0  # times the change of lift progress (0..1) this step (shaping)
@@ -43,80 +63,17 @@ class RewardWeights:
     effort: float = 0.01  # times |gripper velocity command|^2
     success: float = 5.0  # once, on success
 
-
-@dataclass
-class RetractionScene:
-    """One scene family of the retraction task.
-
-    ``mesh``: tissue at rest (m); ``fixed``: its attached vertices; ``tracked``: 4 vertex
-    indices reported in the observation; ``camera``: eye position (m), looking at the
-    scene; ``target_low``/``target_high``: box the target centre is drawn from (m);
-    ``target_radius`` (m); ``gripper_low``/``gripper_high``: box of gripper start
-    positions (m); ``workspace_low``/``workspace_high``: the gripper is kept inside;
-    ``stiffness_range``: E (Pa) drawn per episode; ``poisson``, ``density`` (kg/m^3),
-    ``gravity`` (m/s^2), ``damping`` (1/s); ``floor``: height (m) of the rigid plane the
-    tissue rests on (the organ under it), or None.
-
-    Retraction folds the tissue about a hinge line parallel to y through ``(x, z) =
-    hinge`` (m): ``fold_direction`` is +1 when the free tissue extends from the hinge
-    towards +x, -1 towards -x. ``edge_vertices`` are the free-edge vertices whose fold
-    angle about the hinge (rad, from rest, positive lifting the edge up) measures the lift
-    progress ``mean(clip(angle / fold_angle, 0, 1))``, a dense shaping signal.
-
-    ``grasp_patch``: the vertices the jaws hold, a fixed piece of tissue (the same
-    material on every mesh of the scene, so that the grasp force converges with the
-    mesh): closing within ``grasp_reach`` of the patch (its surface triangles, or the mesh
-    edges along it for a line, or its vertices) holds all of them. None: the jaws hold
-    the nearest surface vertex and every other within ``jaw_radius``.
-
-    ``strain_gauge``: the gauge length (m) that tissue strain is measured over (see
-    :mod:`heml_gym.envs.strain_gauges`): the largest strain reported, penalised and
-    checked for tearing is that of segments this long between material points, not
-    that of the mesh's edges, so that it has a fine-mesh limit. ``safety``: the explicit
-    sub-step as a fraction of the critical step, unless the task settings give one.
-    """
-
-    name: str
-    mesh: TetMesh
-    fixed: np.ndarray
-    tracked: np.ndarray
-    camera: np.ndarray
-    target_low: np.ndarray
-    target_high: np.ndarray
-    target_radius: float
-    gripper_low: np.ndarray
-    gripper_high: np.ndarray
-    workspace_low: np.ndarray
-    workspace_high: np.ndarray
-    stiffness_range: tuple[float, float] = (2e3, 5e3)
-    poisson: float = 0.45
-    density: float = 950.0
-    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    damping: float = 5.0
-    floor: float | None = None
-    hinge: tuple[float, float] = (0.0, 0.0)
-    fold_direction: float = 1.0
-    fold_angle: float = np.pi / 2
-    edge_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    grasp_patch: np.ndarray | None = None
-    strain_gauge: float = 0.015
-    safety: float = 0.5
-    surface_faces: np.ndarray = field(init=False)
-
     def __post_init__(self):
-        self.surface_faces = self.mesh.boundary_faces
-        if self.grasp_patch is not None:
-            patch = np.setdiff1d(np.asarray(self.grasp_patch, dtype=np.int64), self.fixed)
-            if patch.size == 0:
-                raise ValueError(f"scene {self.name!r}: grasp_patch holds no free vertex")
-            self.grasp_patch = patch
+        for f in fields(self):
+            _positive(self, f.name, getattr(self, f.name), allow_zero=True)
 
 
-@dataclass
+@dataclass(frozen=True)
 class TaskSettings:
-    """Task constants: control step, gripper, thresholds, episode length."""
+    """Task constants: control step, gripper, thresholds, episode length. Every value is
+    checked: the error names the setting and what it allows."""
 
-    control_dt: float = 0.1  # s simulated per env step
+    control_dt: float = 0.1  # s simulated per env step, in (0, 10]
     max_speed: float = 0.05  # m/s of the gripper at action 1
     grasp_reach: float = 0.012  # m: closing grasps tissue only if the grasp patch (or a surface vertex) is this close
     jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
@@ -125,32 +82,67 @@ class TaskSettings:
     success_exposure: float = 0.8  # fraction of the target visible for success
     max_steps: int = 100  # steps before truncation
     exposure_samples: int = 256  # points on the target sphere for exposure
-    safety: float | None = None  # explicit sub-step safety factor; None: the scene's
+
+    def __post_init__(self):
+        for name in ("control_dt", "max_speed", "grasp_reach", "jaw_radius", "damage_strain", "tear_strain"):
+            _positive(self, name, getattr(self, name))
+        if self.control_dt > 10.0:
+            raise SpecError(f"TaskSettings.control_dt: must be at most 10 s, got {self.control_dt}")
+        if not self.tear_strain > self.damage_strain:
+            raise SpecError(f"TaskSettings.tear_strain: must exceed damage_strain ({self.damage_strain}), "
+                            f"got {self.tear_strain}")
+        if not (isinstance(self.success_exposure, (int, float)) and 0 < self.success_exposure <= 1):
+            raise SpecError(f"TaskSettings.success_exposure: must lie in (0, 1], got {self.success_exposure!r}")
+        for name in ("max_steps", "exposure_samples"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise SpecError(f"TaskSettings.{name}: must be an integer >= 1, got {value!r}")
+
+
+def as_settings(value, cls, name: str):
+    """``value`` (None, a ``cls`` or a mapping of its fields) as a ``cls``; errors name ``name``."""
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    if isinstance(value, dict):
+        return from_mapping(cls, value, name)
+    raise SpecError(f"{name}: must be a {cls.__name__} or a mapping of its fields, got {type(value).__name__}")
 
 
 class BatchedRetraction:
     """N independent retraction episodes on one scene family."""
 
-    def __init__(self, scene: RetractionScene, n_scenes: int, settings: TaskSettings | None = None,
+    def __init__(self, scene: BuiltScene, n_scenes: int, settings: TaskSettings | None = None,
                  weights: RewardWeights | None = None):
+        if not isinstance(scene, BuiltScene):
+            raise TypeError(f"scene must be a BuiltScene (heml_gym.envs.scene.build_scene), got {type(scene).__name__}")
         self.scene = scene
         self.n = int(n_scenes)
-        self.settings = settings or TaskSettings()
-        self.weights = weights or RewardWeights()
-        s = scene
-        self.safety = s.safety if self.settings.safety is None else float(self.settings.safety)
-        self.sim = BatchedSimulation(s.mesh, self.n, young_modulus=s.stiffness_range[1],
-                                     poisson=s.poisson, density=s.density, gravity=s.gravity,
-                                     fixed=s.fixed, damping=s.damping, safety=self.safety,
-                                     floor=s.floor)
-        # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
-        # scene and batch, so a scene's trajectory does not depend on its neighbours
-        self.substeps = max(1, int(np.ceil(self.settings.control_dt / (
-            self.safety * self.sim.critical_dt(s.stiffness_range[1])))))
+        self.settings = as_settings(settings, TaskSettings, "settings")
+        self.weights = as_settings(weights, RewardWeights, "weights")
+        s, ph = scene, scene.physics
+        E_low, E_high = ph.young_modulus
+        self.model = Model(s.mesh, ph.material_for(E_high), n_scenes=self.n, field=ph.field, density=ph.density,
+                           fixed=s.fixed, gravity=ph.gravity, damping=ph.damping, supports=s.supports)
+        dt = self.settings.control_dt
+        if ph.integrator == "explicit":
+            self.solver = ExplicitSolver(self.model, safety=ph.safety)
+            # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
+            # scene and batch, so a scene's trajectory does not depend on its neighbours
+            self.substeps = self.solver.substeps(dt, self.model.critical_dt(material=ph.material_for(E_high)))
+        else:
+            self.solver = ImplicitSolver(self.model, newton_tol=ph.newton_tol, max_newton=ph.max_newton)
+            self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))
+        if self.substeps > 1_000_000:
+            raise SpecError(f"settings.control_dt: {dt} s needs {self.substeps} explicit sub-steps per env step; "
+                            "use a shorter control_dt or the implicit integrator")
+        self.state = self.model.state()
+        self.control = self.model.control()
+        self.reaction = np.zeros((self.n, s.mesh.n_vertices, 3))
         self._edges = s.mesh.edges
         self.gauges = StrainGauges(s.mesh, s.strain_gauge)
-        surface = np.setdiff1d(s.mesh.surface_vertices, np.flatnonzero(self.sim.fixed))
-        self._graspable = surface
+        self._graspable = np.setdiff1d(s.mesh.surface_vertices, s.fixed)
         if s.grasp_patch is not None:  # the patch's surface triangles (or its edges), for its reach
             faces = s.surface_faces[np.isin(s.surface_faces, s.grasp_patch).all(axis=1)]
             if len(faces) == 0:  # a line of vertices: its edges, as degenerate triangles
@@ -159,8 +151,6 @@ class BatchedRetraction:
             self._patch_faces = faces
         self._sphere = fibonacci_sphere(self.settings.exposure_samples)
         self._edge = np.asarray(s.edge_vertices, dtype=np.int64)
-        if self._edge.size == 0:
-            raise ValueError(f"scene {s.name!r} has no edge_vertices to measure the lift by")
         self._rest_angle = self._fold_angles(s.mesh.vertices[None, self._edge])[0]
         n = self.n
         self.gripper = np.zeros((n, 3))
@@ -172,20 +162,32 @@ class BatchedRetraction:
         self.lift = np.zeros(n)
         self.max_strain = np.zeros(n)
         self.grasp_force = np.zeros((n, 3))
+        self.young_modulus = np.full(n, E_high)
         self.steps = np.zeros(n, dtype=np.int64)
         self.grasped_once = np.zeros(n, dtype=bool)
         self.rngs = [np.random.default_rng() for _ in range(n)]
+
+    @property
+    def x(self) -> np.ndarray:
+        """Tissue vertex positions of every scene, ``(N, n, 3)`` m (the state's)."""
+        return self.state.x
 
     # ------------------------------------------------------------------ reset
     def reset(self, scenes, seeds=None) -> None:
         """Start new episodes in ``scenes`` (indices), reseeding them from ``seeds`` if given."""
         s = self.scene
+        rest = s.mesh.vertices
         for k, i in enumerate(np.atleast_1d(scenes)):
             if seeds is not None and seeds[k] is not None:
                 self.rngs[i] = np.random.default_rng(seeds[k])
             rng = self.rngs[i]
-            self.sim.reset_scene(i)
-            self.sim.set_young_modulus(rng.uniform(*s.stiffness_range), scenes=[i])
+            self.state.x[i] = rest
+            self.state.v[i] = 0.0
+            self.control.clear(i)
+            self.reaction[i] = 0.0
+            E = rng.uniform(*s.physics.young_modulus)
+            self.young_modulus[i] = E
+            self.model.set_material(i, s.physics.material_for(E))
             self.target[i] = rng.uniform(s.target_low, s.target_high)
             self.gripper[i] = rng.uniform(s.gripper_low, s.gripper_high)
             self.grasping[i] = False
@@ -209,6 +211,7 @@ class BatchedRetraction:
         a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
         prev_exposure, prev_lift = self.exposure.copy(), self.lift.copy()
         grasp_bonus = np.zeros(self.n)
+        x = self.state.x
         # grasp / release
         for i in range(self.n):
             close = a[i, 3] > 0.0
@@ -217,31 +220,35 @@ class BatchedRetraction:
                 if picked.size:
                     self.grasping[i] = True
                     self.held[i, picked] = True
-                    self.offsets[i, picked] = self.sim.x[i, picked] - self.gripper[i]
-                    self.sim.attach(i, picked)
+                    self.offsets[i, picked] = x[i, picked] - self.gripper[i]
+                    self.control.attach(i, picked, x[i])
                     if not self.grasped_once[i]:
                         self.grasped_once[i] = True
                         grasp_bonus[i] = w.grasp
             elif not close and self.grasping[i]:
                 self.grasping[i] = False
                 self.held[i] = False
-                self.sim.detach(i)
+                self.control.detach(i)
         # move the gripper, drive the held tissue
         self.gripper = np.clip(self.gripper + a[:, :3] * st.max_speed * st.control_dt,
                                self.scene.workspace_low, self.scene.workspace_high)
-        if self.scene.floor is not None:  # held tissue cannot be pressed below where it rests
+        if self.scene.supports:  # held tissue cannot be pressed below where it rests
             rest_z = self.scene.mesh.vertices[:, 2]
             for i in np.flatnonzero(self.grasping):
                 held = self.held[i]
                 self.gripper[i, 2] = max(self.gripper[i, 2], (rest_z[held] - self.offsets[i, held, 2]).max())
         for i in np.flatnonzero(self.grasping):
             idx = np.flatnonzero(self.held[i])
-            self.sim.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
-        diverged = self.sim.step(st.control_dt, active=active, substeps=self.substeps)
+            self.control.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
+        stats = self.solver.step(self.state, self.state, self.control, st.control_dt, substeps=self.substeps,
+                                 active=active)
+        diverged = stats.diverged
+        failed = diverged | ~stats.converged
+        self.reaction = stats.reaction
         self.steps += 1
         # measurements
-        held_reaction = np.where(self.held[:, :, None], self.sim.reaction, 0.0).sum(axis=1)
-        self.grasp_force = -held_reaction  # force the tissue pulls the gripper with
+        held_reaction = np.where(self.held[:, :, None], stats.reaction, 0.0).sum(axis=1)
+        self.grasp_force = np.where(failed[:, None], 0.0, -held_reaction)  # force the tissue pulls the gripper with
         all_scenes = np.arange(self.n)
         self.exposure = self._exposure(all_scenes)
         self.lift = self._lift(all_scenes)
@@ -254,13 +261,13 @@ class BatchedRetraction:
             "reward_strain": -w.strain * np.maximum(0.0, self.max_strain - st.damage_strain),
             "reward_effort": -w.effort * (a[:, :3] ** 2).sum(axis=1),
         }
-        success = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~diverged
+        success = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~failed
         terms["reward_success"] = np.where(success, w.success, 0.0)
-        # a diverged scene earns nothing: every term is zeroed, so they still add up
-        terms = {k: np.where(diverged, 0.0, v) for k, v in terms.items()}
+        # a failed scene earns nothing: every term is zeroed, so they still add up
+        terms = {k: np.where(failed, 0.0, v) for k, v in terms.items()}
         reward = sum(terms.values())
-        torn = (self.max_strain >= st.tear_strain) & ~diverged
-        terminated = success | torn | diverged
+        torn = (self.max_strain >= st.tear_strain) & ~failed
+        terminated = success | torn | failed
         truncated = (self.steps >= st.max_steps) & ~terminated
         info = {
             **terms,
@@ -271,19 +278,21 @@ class BatchedRetraction:
             "grasping": self.grasping.copy(),
             "is_success": success,
             "tissue_torn": torn,
-            "simulation_diverged": diverged,
+            "simulation_diverged": diverged.copy(),
+            "solver_converged": stats.converged.copy(),
+            "newton_iterations": stats.newton_iterations.copy(),
         }
         return reward, terminated, truncated, info
 
     def _jaw_vertices(self, i: int) -> np.ndarray:
         """The tissue vertices that closing the gripper of scene ``i`` holds (maybe none)."""
         st, patch = self.settings, self.scene.grasp_patch
+        x = self.state.x[i]
         if patch is not None:  # within reach of the patch's surface (or of its vertices)
-            x = self.sim.x[i]
             nearest = min(np.linalg.norm(x[patch] - self.gripper[i], axis=1).min(),
                           nearest_triangle_distance(self.gripper[i], x, self._patch_faces))
             return patch if nearest <= st.grasp_reach else patch[:0]
-        d = np.linalg.norm(self.sim.x[i, self._graspable] - self.gripper[i], axis=1)
+        d = np.linalg.norm(x[self._graspable] - self.gripper[i], axis=1)
         held = (d <= st.jaw_radius) | (d == d.min())
         return self._graspable[held & (d <= st.grasp_reach)]
 
@@ -293,13 +302,13 @@ class BatchedRetraction:
         scenes = np.atleast_1d(scenes)
         r = self.scene.target_radius
         points = self.target[scenes, None, :] + r * self._sphere[None, :, :]
+        x = self.state.x
         # only samples facing the camera count; the rest are hidden by the target itself
         if len(scenes) == 1:  # no thread launch for one scene
-            return np.array([visible_fraction(points[0], self.scene.camera, self.sim.x[scenes[0]],
+            return np.array([visible_fraction(points[0], self.scene.camera, x[scenes[0]],
                                               self.scene.surface_faces,
                                               sphere_center=self.target[scenes[0]], sphere_radius=r)])
-        return visible_fraction_batch(points, self.scene.camera, self.sim.x[scenes],
-                                      self.scene.surface_faces,
+        return visible_fraction_batch(points, self.scene.camera, x[scenes], self.scene.surface_faces,
                                       sphere_center=self.target[scenes], sphere_radius=r)
 
     def _fold_angles(self, x_edge: np.ndarray) -> np.ndarray:
@@ -315,33 +324,29 @@ class BatchedRetraction:
     def _lift(self, scenes) -> np.ndarray:
         """Lift progress in [0, 1]: mean over the edge vertices of their fold angle from
         rest divided by the scene's ``fold_angle``, each clipped to [0, 1]."""
-        x_edge = self.sim.x[np.atleast_1d(scenes)][:, self._edge]
+        x_edge = self.state.x[np.atleast_1d(scenes)][:, self._edge]
         progress = (self._fold_angles(x_edge) - self._rest_angle) / self.scene.fold_angle
         return np.nan_to_num(np.clip(progress, 0.0, 1.0)).mean(axis=1)
 
     def _max_strain(self, scenes) -> np.ndarray:
         """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per scene."""
-        return self.gauges.max_strain(self.sim.x[np.atleast_1d(scenes)])
+        return np.nan_to_num(self.gauges.max_strain(self.state.x[np.atleast_1d(scenes)]), nan=STRAIN_BOUND)
 
     # ------------------------------------------------------------ observation
     def state_observation(self) -> np.ndarray:
         """The state vector of every scene, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
-        tracked = self.sim.x[:, self.scene.tracked].reshape(self.n, -1)
-        obs = np.concatenate([
-            np.clip(self.gripper, -POSITION_BOUND, POSITION_BOUND),
-            self.grasping[:, None].astype(np.float64),
-            np.clip(self.grasp_force, -FORCE_BOUND, FORCE_BOUND),
-            np.clip(self.target, -POSITION_BOUND, POSITION_BOUND),
-            np.clip(tracked, -POSITION_BOUND, POSITION_BOUND),
-            np.clip(self.max_strain, 0.0, STRAIN_BOUND)[:, None],
-            np.clip(self.exposure, 0.0, 1.0)[:, None],
-        ], axis=1)
-        return np.nan_to_num(obs, nan=0.0).astype(np.float32)
+        tracked = self.state.x[:, self.scene.tracked].reshape(self.n, -1)
+        obs = np.concatenate([self.gripper, self.grasping[:, None].astype(np.float64), self.grasp_force,
+                              self.target, tracked, self.max_strain[:, None], self.exposure[:, None]], axis=1)
+        obs = np.clip(np.nan_to_num(obs, nan=0.0), STATE_LOW, STATE_HIGH)
+        return obs.astype(np.float32)
 
     @staticmethod
     def state_bounds() -> tuple[np.ndarray, np.ndarray]:
-        low = np.array([-POSITION_BOUND] * 3 + [0.0] + [-FORCE_BOUND] * 3 + [-POSITION_BOUND] * 15
-                       + [0.0, 0.0], dtype=np.float32)
-        high = np.array([POSITION_BOUND] * 3 + [1.0] + [FORCE_BOUND] * 3 + [POSITION_BOUND] * 15
-                        + [STRAIN_BOUND, 1.0], dtype=np.float32)
-        return low, high
+        """``(low, high)`` of the state observation (from :data:`STATE_SPEC`)."""
+        return STATE_LOW.copy(), STATE_HIGH.copy()
+
+
+def settings_with(settings: TaskSettings, **changes) -> TaskSettings:
+    """A copy of ``settings`` with ``changes`` (the caller's object is never modified)."""
+    return replace(settings, **changes)

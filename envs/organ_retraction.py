@@ -44,12 +44,9 @@ over its thick third, without gravity).
 
 from __future__ import annotations
 
-import numpy as np
-
-from heml_gym.organs import liver_lobe_mesh
-
-from .core import RetractionScene
 from .retraction_env import RetractionEnv, RetractionVectorEnv
+from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
+                    TissueSpec)
 
 DEFAULT_MESH_SIZE = 0.007
 BASE_X = 0.065  # m: the lobe is cut off here (its base) and attached along the base's bottom edge
@@ -57,68 +54,49 @@ BASE_X = 0.065  # m: the lobe is cut off here (its base) and attached along the 
 #: imprinted on the mesh, so that it is the same line of tissue at any mesh size
 GRASP_LINE = ((-0.055, -0.02, 0.035 - 0.25 * 0.055), (-0.055, 0.02, 0.035 - 0.25 * 0.055))
 HINGE = (BASE_X, 0.0)  # m: (x, z) of the line the lobe is lifted about
+TIP_X = -0.08  # m: the lobe's thin edge (the tip of its half-ellipsoid), on every mesh
 EDGE_BAND = 0.012  # m: surface vertices this close to the thin edge (in x) measure the lift
 
 
-def _on_segment(v: np.ndarray, a, b, tol: float = 1e-7) -> np.ndarray:
-    """Indices of the points of ``v`` (n, 3) within ``tol`` m of the segment ``a``-``b``."""
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    d = b - a
-    t = np.clip((v - a) @ d / (d @ d), 0.0, 1.0)
-    return np.flatnonzero(np.linalg.norm(a + t[:, None] * d - v, axis=1) <= tol)
-
-
-def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> RetractionScene:
+def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> Scene:
     """The liver-lobe scene meshed at ``mesh_size`` metres."""
-    mesh = liver_lobe_mesh(mesh_size=mesh_size, lines=(GRASP_LINE,), base_x=BASE_X)
-    v = mesh.vertices
-    fixed = np.flatnonzero(np.isclose(v[:, 0], BASE_X, atol=1e-7) & np.isclose(v[:, 2], 0.0, atol=1e-7))
-    patch = _on_segment(v, *GRASP_LINE)
-
-    def nearest_surface(p):
-        s = mesh.surface_vertices
-        return int(s[np.argmin(np.linalg.norm(v[s] - np.asarray(p), axis=1))])
-
-    lo, hi = mesh.bounds()
-    tracked = np.array([nearest_surface((lo[0], lo[1], 0.02)), nearest_surface((lo[0], 0.0, 0.02)),
-                        nearest_surface((lo[0], hi[1], 0.02)), nearest_surface((0.0, 0.0, hi[2]))])
-    return RetractionScene(
+    return Scene(
         name="OrganRetraction",
-        mesh=mesh,
-        fixed=fixed,
-        tracked=tracked,
-        camera=np.array([-0.17, 0.0, 0.12]),
-        target_low=np.array([-0.035, -0.02, -0.023]),
-        target_high=np.array([-0.010, 0.02, -0.023]),
-        target_radius=0.008,
-        gripper_low=np.array([-0.058, -0.01, 0.024]),
-        gripper_high=np.array([-0.052, 0.01, 0.027]),
-        workspace_low=np.array([-0.15, -0.10, 0.0]),
-        workspace_high=np.array([0.10, 0.10, 0.20]),
-        stiffness_range=(4e3, 8e3),
-        density=1060.0,
-        hinge=HINGE,
-        fold_direction=-1.0,
-        fold_angle=0.6,
-        edge_vertices=mesh.surface_vertices[v[mesh.surface_vertices, 0] < lo[0] + EDGE_BAND],
-        grasp_patch=patch,
-        gravity=(0.0, 0.0, -9.81),
-        floor=0.0,
+        tissue=TissueSpec(kind="organ", organ="liver_lobe", mesh_size=mesh_size,
+                          organ_options={"lines": [list(map(list, GRASP_LINE))], "base_x": BASE_X}),
+        physics=PhysicsSpec(material="NeoHookean", young_modulus=(4e3, 8e3), poisson=0.45, density=1060.0,
+                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="explicit",
+                            safety=0.5),
+        attachment=RegionSpec(low=(BASE_X, None, 0.0), high=(BASE_X, None, 0.0)),
+        grasp=RegionSpec(segment=GRASP_LINE),
+        tracked=RegionSpec(points=[(TIP_X, -0.05, 0.02), (TIP_X, 0.0, 0.02), (TIP_X, 0.05, 0.02),
+                                   (0.0, 0.0, 0.0443)], surface=True),
+        fold=FoldSpec(hinge=HINGE, direction=-1.0, angle=0.6,
+                      edge=RegionSpec(high=(TIP_X + EDGE_BAND - 1e-7, None, None), surface=True, tolerance=0.0)),
+        target=TargetSpec(low=(-0.035, -0.02, -0.023), high=(-0.010, 0.02, -0.023), radius=0.008),
+        gripper=GripperSpec(start_low=(-0.058, -0.01, 0.024), start_high=(-0.052, 0.01, 0.027),
+                            workspace_low=(-0.15, -0.10, 0.0), workspace_high=(0.10, 0.10, 0.20)),
+        camera=CameraSpec(eye=(-0.17, 0.0, 0.12)),
+        support=SupportSpec(kind="plane", normal=(0.0, 0.0, 1.0), offset=0.0),
+        strain_gauge=0.015,
     )
 
 
 class OrganRetractionEnv(RetractionEnv):
     __doc__ = __doc__
+    default_scene = staticmethod(organ_scene)
 
-    def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None,
-                 mesh_size=DEFAULT_MESH_SIZE):
-        super().__init__(organ_scene(mesh_size), obs_mode, render_mode, settings, weights)
+    def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, mesh_size=None,
+                 scene=None, physics=None):
+        super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, mesh_size=mesh_size)
 
 
 class OrganRetractionVectorEnv(RetractionVectorEnv):
     """``num_envs`` OrganRetraction scenes in one batched Numba call (see OrganRetractionEnv)."""
 
-    def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None,
-                 max_episode_steps=None, render_mode=None, mesh_size=DEFAULT_MESH_SIZE):
-        super().__init__(organ_scene(mesh_size), num_envs, obs_mode, settings, weights,
-                         max_episode_steps, render_mode)
+    default_scene = staticmethod(organ_scene)
+
+    def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
+                 render_mode=None, mesh_size=None, scene=None, physics=None):
+        super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
+                         physics=physics, mesh_size=mesh_size)

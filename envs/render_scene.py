@@ -25,8 +25,7 @@ class SceneRenderer:
     def __init__(self, task, mode: str = "rgb_array", width: int = 160, height: int = 120):
         self.task, self.mode, self.width, self.height = task, mode, width, height
         scene = task.scene
-        center = scene.mesh.vertices.mean(axis=0)
-        self.camera = Camera.looking_at(scene.camera, center, up=(0.0, 1.0, 0.0), fov_y=45.0)
+        self.camera = Camera.looking_at(scene.camera, scene.look_at, up=scene.camera_up, fov_y=scene.camera_fov_y)
         self._faces = scene.surface_faces
         rest = scene.mesh.vertices
         self._rest_edge = np.linalg.norm(rest[self._faces[:, 1]] - rest[self._faces[:, 0]], axis=1)
@@ -34,7 +33,7 @@ class SceneRenderer:
 
     def _triangles(self, i: int):
         t = self.task
-        x = t.sim.x[i]
+        x = t.x[i]
         f = self._faces
         edge = np.linalg.norm(x[f[:, 1]] - x[f[:, 0]], axis=1)
         strain = np.clip(np.abs(edge / self._rest_edge - 1.0) / t.settings.damage_strain, 0.0, 1.0)

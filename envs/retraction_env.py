@@ -1,7 +1,23 @@
-"""Gymnasium wrappers of the batched retraction task: one env, and a native vector env."""
+"""Gymnasium wrappers of the batched retraction task: one env, and a native vector env.
+
+Both take the scene as data (``scene=``: a :class:`~heml_gym.envs.scene.Scene`, a mapping
+of changes to the env's default scene, or the path of a scene YAML file) and
+``physics=`` (a mapping of :class:`~heml_gym.envs.scene.PhysicsSpec` fields: the law,
+its stiffness range, the force field, the integrator and its step settings), so that
+``gym.make(id, physics={"material": "StVenantKirchhoff", "integrator": "implicit"})``
+gives a scene the model it needs.
+
+What training and recording use is public: :meth:`RetractionEnv.observe` /
+:meth:`RetractionVectorEnv.observations`, :meth:`~RetractionVectorEnv.reset_scenes` and
+:meth:`~RetractionVectorEnv.step_scenes` (the batch without autoreset, for other RL
+libraries' adapters), :attr:`geometry` (what does not change: rest mesh, surface,
+attachment, camera, thresholds) and :meth:`snapshot` (what a frame shows).
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -9,63 +25,196 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from .core import BatchedRetraction, RetractionScene, RewardWeights, TaskSettings
+from .core import BatchedRetraction, RewardWeights, TaskSettings, as_settings, settings_with
+from .scene import PhysicsSpec, Scene, build_scene
+from .spec import SpecError, from_mapping, merge, to_mapping
 
 POINTCLOUD_SIZE = 64  # surface points in obs_mode="pointcloud"
+OBS_MODES = ("state", "pointcloud")
+POINT_BOUND = 0.5  # m: point-cloud coordinates are clipped to this
 
 
-def _check_actions(actions: np.ndarray, shape) -> np.ndarray:
-    a = np.asarray(actions, dtype=np.float64)
-    if a.shape != shape:
-        raise ValueError(f"action must have shape {shape}, got {a.shape}")
+def check_actions(actions, shape) -> np.ndarray:
+    """``actions`` as a float64 array of ``shape``; ``ValueError`` naming what is wrong if
+    the shape differs or a value is not finite."""
+    try:
+        a = np.asarray(actions, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"action must be numbers of shape {shape}, got {actions!r}") from None
+    if a.shape != tuple(shape):
+        raise ValueError(f"action must have shape {tuple(shape)}, got {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"action must be finite, got {a}")
+        raise ValueError(f"action must be finite, got {a.tolist()}")
     return a
 
 
-class _ObservationMixin:
-    """Observation spaces and builders shared by the single and the vector env."""
+def resolve_scene(default: Scene, scene=None, physics=None) -> Scene:
+    """The scene an env runs: ``default``, or ``scene`` (a Scene, a mapping of changes to
+    ``default``, or a YAML path), then ``physics`` (a mapping of PhysicsSpec fields)
+    merged into its physics. Errors name the field."""
+    if scene is None:
+        spec = default
+    elif isinstance(scene, Scene):
+        spec = scene
+    elif isinstance(scene, (str, Path)):
+        spec = Scene.load(scene)
+    elif isinstance(scene, dict):
+        spec = default.updated(scene, path="scene")
+    else:
+        raise SpecError(f"scene: must be a Scene, a mapping of changes or a YAML path, got {type(scene).__name__}")
+    if physics is not None:
+        if isinstance(physics, PhysicsSpec):
+            new = physics
+        elif isinstance(physics, dict):
+            new = from_mapping(PhysicsSpec, merge(to_mapping(spec.physics), physics), "physics")
+        else:
+            raise SpecError(f"physics: must be a mapping of PhysicsSpec fields, got {type(physics).__name__}")
+        spec = spec.updated({"physics": to_mapping(new)})
+    return spec
 
-    def _setup_observations(self, obs_mode: str, task: BatchedRetraction):
-        if obs_mode not in ("state", "pointcloud"):
-            raise ValueError(f"obs_mode must be 'state' or 'pointcloud', got {obs_mode!r}")
+
+@dataclass(frozen=True)
+class SceneGeometry:
+    """What does not change in an env: ``name``, ``rest_vertices (n, 3)`` m, ``surface_faces
+    (f, 3)``, ``edges (e, 2)``, ``fixed`` (attached vertex indices), ``target_radius`` m,
+    ``camera`` (eye, m), ``look_at`` (m), ``settings`` (the TaskSettings) and ``physics``
+    (the PhysicsSpec)."""
+
+    name: str
+    rest_vertices: np.ndarray
+    surface_faces: np.ndarray
+    edges: np.ndarray
+    fixed: np.ndarray
+    target_radius: float
+    camera: np.ndarray
+    look_at: np.ndarray
+    settings: TaskSettings
+    physics: PhysicsSpec
+
+
+@dataclass(frozen=True)
+class SceneSnapshot:
+    """One scene now: ``positions (n, 3)`` m, ``gripper (3,)`` m, ``grasping``, ``held``
+    (held vertex indices), ``grasp_force (3,)`` N (of the tissue on the gripper),
+    ``target (3,)`` m, ``young_modulus`` Pa, ``step``."""
+
+    positions: np.ndarray
+    gripper: np.ndarray
+    grasping: bool
+    held: np.ndarray
+    grasp_force: np.ndarray
+    target: np.ndarray
+    young_modulus: float
+    step: int
+
+
+class _SceneAccess:
+    """Observation spaces and builders, geometry and snapshots, shared by both envs."""
+
+    task: BatchedRetraction
+
+    def _setup_observations(self, obs_mode: str):
+        if obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
         self.obs_mode = obs_mode
-        low, high = task.state_bounds()
+        low, high = self.task.state_bounds()
         state_space = spaces.Box(low, high, dtype=np.float32)
         if obs_mode == "state":
             return state_space
-        surface = np.setdiff1d(task.scene.mesh.surface_vertices, task.scene.fixed)
+        scene = self.task.scene
+        surface = np.setdiff1d(scene.mesh.surface_vertices, scene.fixed)
         pick = np.linspace(0, len(surface) - 1, POINTCLOUD_SIZE).round().astype(np.int64)
         self._cloud_vertices = surface[pick]
-        bound = 0.5
-        cloud_space = spaces.Box(-bound, bound, (POINTCLOUD_SIZE, 3), dtype=np.float32)
+        cloud_space = spaces.Box(-POINT_BOUND, POINT_BOUND, (POINTCLOUD_SIZE, 3), dtype=np.float32)
         return spaces.Dict({"state": state_space, "points": cloud_space})
 
-    def _observations(self, task: BatchedRetraction):
-        state = task.state_observation()
+    def observations(self):
+        """The observation of every scene of the batch (leading axis N)."""
+        state = self.task.state_observation()
         if self.obs_mode == "state":
             return state
-        cloud = np.clip(task.sim.x[:, self._cloud_vertices], -0.5, 0.5)
-        return {"state": state, "points": np.nan_to_num(cloud).astype(np.float32)}
+        cloud = np.clip(np.nan_to_num(self.task.x[:, self._cloud_vertices]), -POINT_BOUND, POINT_BOUND)
+        return {"state": state, "points": cloud.astype(np.float32)}
+
+    @property
+    def scene(self) -> Scene:
+        """The scene this env runs (data: save it with ``env.scene.save(path)``)."""
+        return self.task.scene.spec
+
+    @property
+    def scene_name(self) -> str:
+        return self.task.scene.name
+
+    @property
+    def geometry(self) -> SceneGeometry:
+        s, t = self.task.scene, self.task
+        return SceneGeometry(s.name, s.mesh.vertices, s.surface_faces, s.mesh.edges, s.fixed, s.target_radius,
+                             s.camera, s.look_at, t.settings, s.physics)
+
+    def snapshot(self, i: int = 0) -> SceneSnapshot:
+        """Scene ``i`` as it is now (copies)."""
+        t = self.task
+        return SceneSnapshot(t.x[i].copy(), t.gripper[i].copy(), bool(t.grasping[i]), np.flatnonzero(t.held[i]),
+                             t.grasp_force[i].copy(), t.target[i].copy(), float(t.young_modulus[i]),
+                             int(t.steps[i]))
 
 
-class RetractionEnv(_ObservationMixin, gym.Env):
-    """Base of the single retraction environments (see the task classes' docstrings)."""
+class _Resolving:
+    """How an env class turns its keyword arguments into a scene, and checks them."""
+
+    #: The task's default scene: a function of the size arguments (``cells=``, ``mesh_size=``).
+    default_scene = None
+
+    @classmethod
+    def resolve(cls, scene=None, physics=None, **size) -> Scene:
+        """The scene the env runs for these arguments (validated; no mesh is built)."""
+        if cls.default_scene is None:
+            if not isinstance(scene, (Scene, str, Path)):
+                raise SpecError(f"scene: {cls.__name__} needs a Scene (or a scene YAML path), got {scene!r}")
+            return resolve_scene(Scene.load(scene) if not isinstance(scene, Scene) else scene, None, physics)
+        default = cls.default_scene()
+        spec = resolve_scene(default, scene, None)
+        changes = scene_kwargs_changes(**size)
+        if changes:
+            spec = spec.updated(changes)
+        return resolve_scene(spec, None, physics)
+
+    @classmethod
+    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, **size) -> Scene:
+        """Validate the data arguments of the constructor (as ``gym.make`` would pass
+        them) without building the scene's mesh; returns the resolved scene."""
+        as_settings(settings, TaskSettings, "settings")
+        as_settings(weights, RewardWeights, "weights")
+        return cls.resolve(scene, physics, **size)
+
+
+class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
+    """Base of the single retraction environments (see the task classes' docstrings).
+
+    ``scene``: a :class:`Scene`, a mapping of changes to the task's default scene, or a
+    scene YAML path; ``physics``: a mapping of :class:`PhysicsSpec` fields.
+    """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
 
-    def __init__(self, scene: RetractionScene, obs_mode: str = "state", render_mode: str | None = None,
-                 settings: TaskSettings | None = None, weights: RewardWeights | None = None):
-        self.task = BatchedRetraction(scene, 1, settings, weights)
-        self.action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
-        self.observation_space = self._setup_observations(obs_mode, self.task)
+    def __init__(self, obs_mode: str = "state", render_mode: str | None = None,
+                 settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
+                 scene: Scene | dict | str | None = None, physics: dict | None = None, **size):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
+        spec = self.resolve(scene, physics, **size)
+        self.task = BatchedRetraction(build_scene(spec), 1, as_settings(settings, TaskSettings, "settings"),
+                                      as_settings(weights, RewardWeights, "weights"))
+        self.action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
+        self.observation_space = self._setup_observations(obs_mode)
         self.render_mode = render_mode
         self._renderer = None
 
-    def _obs(self):
-        obs = self._observations(self.task)
+    def observe(self):
+        """The current observation."""
+        obs = self.observations()
         return obs[0] if self.obs_mode == "state" else {k: v[0] for k, v in obs.items()}
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -74,20 +223,20 @@ class RetractionEnv(_ObservationMixin, gym.Env):
         # seed - i); without one, the scene continues from the env's generator
         scene_seed = seed if seed is not None else int(self.np_random.integers(2**63 - 1))
         self.task.reset([0], seeds=[scene_seed])
-        return self._obs(), self._info_at_reset()
+        return self.observe(), self._info_at_reset()
 
     def _info_at_reset(self) -> dict[str, Any]:
         t = self.task
         return {"exposure": float(t.exposure[0]), "lift": float(t.lift[0]), "max_strain": float(t.max_strain[0]),
-                "grasp_force": 0.0, "is_success": False, "young_modulus": float(t.sim.young_modulus[0])}
+                "grasp_force": 0.0, "is_success": False, "young_modulus": float(t.young_modulus[0])}
 
     def step(self, action):
-        a = _check_actions(action, (4,))
+        a = check_actions(action, (4,))
         reward, terminated, truncated, info = self.task.step(a[None, :])
         info = {k: (v[0].item() if isinstance(v, np.ndarray) else v) for k, v in info.items()}
         if self.render_mode == "human":
             self.render()
-        return self._obs(), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
+        return self.observe(), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
 
     def render(self):
         if self.render_mode is None:
@@ -104,43 +253,74 @@ class RetractionEnv(_ObservationMixin, gym.Env):
             self._renderer = None
 
 
-class RetractionVectorEnv(_ObservationMixin, VectorEnv):
-    """N retraction scenes advanced by one batched Numba call (next-step autoreset)."""
+class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
+    """N retraction scenes advanced by one batched Numba call (next-step autoreset).
+
+    Arguments as the single env's, plus ``num_envs`` and ``max_episode_steps`` (a
+    shorthand for ``settings.max_steps``; the caller's settings are not modified).
+    """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"]}
 
-    def __init__(self, scene: RetractionScene, num_envs: int = 4, obs_mode: str = "state",
-                 settings: TaskSettings | None = None, weights: RewardWeights | None = None,
-                 max_episode_steps: int | None = None, render_mode: str | None = None):
+    def __init__(self, num_envs: int = 4, obs_mode: str = "state",
+                 settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
+                 max_episode_steps: int | None = None, render_mode: str | None = None,
+                 scene: Scene | dict | str | None = None, physics: dict | None = None, **size):
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
+        settings = as_settings(settings, TaskSettings, "settings")
         if max_episode_steps is not None:
-            settings = settings or TaskSettings()
-            settings.max_steps = int(max_episode_steps)
+            if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)):
+                raise ValueError(f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}")
+            settings = settings_with(settings, max_steps=int(max_episode_steps))  # a copy: never the caller's
+        spec = self.resolve(scene, physics, **size)
         self.num_envs = int(num_envs)
-        self.task = BatchedRetraction(scene, self.num_envs, settings, weights)
+        self.task = BatchedRetraction(build_scene(spec), self.num_envs, settings,
+                                      as_settings(weights, RewardWeights, "weights"))
         self.single_action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
-        self.single_observation_space = self._setup_observations(obs_mode, self.task)
+        self.single_observation_space = self._setup_observations(obs_mode)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.render_mode = render_mode
         self._needs_reset = np.zeros(self.num_envs, dtype=bool)
         self._np_random = None
 
+    # ------------------------------------------------ the batch without autoreset
+    def reset_scenes(self, scenes, seeds=None) -> None:
+        """Start new episodes in ``scenes`` (indices), seeded by ``seeds`` (one each, or None)."""
+        idx = np.atleast_1d(np.asarray(scenes, dtype=np.int64))
+        if idx.size and (idx.min() < 0 or idx.max() >= self.num_envs):
+            raise ValueError(f"scenes must lie in [0, {self.num_envs}), got {idx.tolist()}")
+        if seeds is not None and len(seeds) != len(idx):
+            raise ValueError(f"give one seed per scene ({len(idx)}), got {len(seeds)}")
+        self.task.reset(idx, seeds)
+
+    def step_scenes(self, actions, active=None):
+        """Step every scene with ``actions (N, 4)`` (checked: shape and finite values), no
+        autoreset: ``(reward, terminated, truncated, info)`` as per-scene arrays."""
+        a = check_actions(actions, (self.num_envs, 4))
+        return self.task.step(a, active=active)
+
+    # --------------------------------------------------------------- gymnasium
     def reset(self, *, seed=None, options=None):
         if seed is None:
             seeds = [None] * self.num_envs
-        elif isinstance(seed, int):
-            seeds = [seed + i for i in range(self.num_envs)]
+        elif isinstance(seed, (int, np.integer)):
+            seeds = [int(seed) + i for i in range(self.num_envs)]
         else:
             seeds = list(seed)
-        self._np_random = np.random.default_rng(seed if isinstance(seed, int) else None)
-        self.task.reset(np.arange(self.num_envs), seeds)
+        self._np_random = np.random.default_rng(seed if isinstance(seed, (int, np.integer)) else None)
+        self.reset_scenes(np.arange(self.num_envs), seeds)
         self._needs_reset[:] = False
-        return self._observations(self.task), {}
+        return self.observations(), {}
 
     def step(self, actions):
-        a = _check_actions(actions, (self.num_envs, 4))
         finished = self._needs_reset.copy()
-        reward, terminated, truncated, info = self.task.step(a, active=~finished)
+        reward, terminated, truncated, info = self.step_scenes(actions, active=~finished)
         if finished.any():  # next-step autoreset: these scenes start a new episode now
             idx = np.flatnonzero(finished)
             self.task.reset(idx)
@@ -148,14 +328,15 @@ class RetractionVectorEnv(_ObservationMixin, VectorEnv):
             terminated[idx] = False
             truncated[idx] = False
             for key, values in info.items():  # their info describes the new episode's start
-                if key.startswith("reward_") or values.dtype == bool:
+                if key.startswith("reward_") or values.dtype == bool or key == "newton_iterations":
                     values[idx] = 0
+            info["solver_converged"][idx] = True
             info["exposure"][idx] = self.task.exposure[idx]
             info["lift"][idx] = self.task.lift[idx]
             info["max_strain"][idx] = self.task.max_strain[idx]
             info["grasp_force"][idx] = 0.0
         self._needs_reset = terminated | truncated
-        return self._observations(self.task), reward, terminated, truncated, info
+        return self.observations(), reward, terminated, truncated, info
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -164,3 +345,16 @@ class RetractionVectorEnv(_ObservationMixin, VectorEnv):
 
         renderer = SceneRenderer(self.task, mode="rgb_array")
         return [renderer.render(i) for i in range(self.num_envs)]
+
+
+def scene_kwargs_changes(**sizes) -> dict:
+    """Scene changes from the envs' shorthand size arguments (``cells``, ``mesh_size``:
+    fields of the scene's ``tissue``)."""
+    changes: dict = {}
+    for key, value in sizes.items():
+        if key not in ("cells", "mesh_size"):
+            raise SpecError(f"{key}: unknown argument (the size arguments are cells and mesh_size)")
+        if value is not None:
+            changes.setdefault("tissue", {})[key] = list(value) if key == "cells" else value
+    return changes
+

@@ -51,15 +51,24 @@ class FoldBackPolicy:
         return np.concatenate([np.clip(move, -1.0, 1.0), [1.0]]).astype(np.float32)
 
 
-def scripted_policy(scene_name: str) -> FoldBackPolicy:
-    """The scripted baseline of a scene family ("TissueRetraction" or "OrganRetraction")."""
-    from . import organ_retraction, tissue_retraction
+#: How far (rad above the free direction) each scene family is folded: the flap back
+#: past vertical over its attachment, the lobe's thin edge up about its base.
+MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 0.8}
 
-    if scene_name == "TissueRetraction":  # fold the flap back over its attached edge
-        return FoldBackPolicy(hinge=tissue_retraction.HINGE, direction=1.0, max_angle=1.9)
-    if scene_name == "OrganRetraction":  # lift the lobe's thin edge about its attachment
-        return FoldBackPolicy(hinge=organ_retraction.HINGE, direction=-1.0, max_angle=0.8)
-    raise ValueError(f"no scripted policy for scene {scene_name!r}")
+
+def scripted_policy(scene) -> FoldBackPolicy:
+    """The scripted baseline of a scene (a :class:`~heml_gym.envs.scene.Scene`: its fold
+    hinge and direction are used) or of a scene family by name ("TissueRetraction" or
+    "OrganRetraction", their default scenes)."""
+    if isinstance(scene, str):
+        from . import organ_retraction, tissue_retraction
+
+        defaults = {"TissueRetraction": tissue_retraction.tissue_scene, "OrganRetraction": organ_retraction.organ_scene}
+        if scene not in defaults:
+            raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
+        scene = defaults[scene]()
+    max_angle = MAX_FOLD_ANGLE.get(scene.name, 1.9)
+    return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle)
 
 
 def run_episodes(env, policy, episodes: int, seed: int = 0) -> dict:

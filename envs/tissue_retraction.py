@@ -83,12 +83,11 @@ clamp, gravity on a support plane, gauge strain, step-mean grasp force).
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from heml_gym import box_mesh
-
-from .core import RetractionScene
 from .retraction_env import RetractionEnv, RetractionVectorEnv
+from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
+                    TissueSpec)
 
 FLAP_SIZE = (0.12, 0.12, 0.008)
 DEFAULT_CELLS = (8, 8, 1)
@@ -96,56 +95,45 @@ STIFFNESS_RANGE = (4e3, 8e3)  # Pa: E drawn per episode
 HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fold hinge
 
 
-def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> RetractionScene:
+def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> Scene:
     """The fat-flap scene with a ``cells`` hex grid (6 tets per cell; ``mirrored``: each
     cell split as the mirror image of its neighbours, see :func:`heml_gym.mesh.box_mesh`)."""
-    mesh = box_mesh(FLAP_SIZE, cells, mirrored=mirrored)
-    v = mesh.vertices
     lx, ly, lz = FLAP_SIZE
-    fixed = np.flatnonzero(np.isclose(v[:, 0], 0.0))
-
-    def nearest(p):
-        return int(np.argmin(np.linalg.norm(v - np.asarray(p), axis=1)))
-
-    tracked = np.array([nearest((lx, 0, lz)), nearest((lx, ly / 2, lz)), nearest((lx, ly, lz)),
-                        nearest((lx / 2, ly / 2, lz))])
-    return RetractionScene(
+    return Scene(
         name="TissueRetraction",
-        mesh=mesh,
-        fixed=fixed,
-        tracked=tracked,
-        camera=np.array([0.06, 0.06, 0.30]),
-        target_low=np.array([0.05, 0.035, -0.02]),
-        target_high=np.array([0.09, 0.085, -0.02]),
-        target_radius=0.008,
-        gripper_low=np.array([0.108, 0.04, 0.009]),
-        gripper_high=np.array([0.114, 0.08, 0.011]),
-        workspace_low=np.array([-0.05, -0.05, 0.0]),
-        workspace_high=np.array([0.20, 0.17, 0.15]),
-        hinge=HINGE,
-        fold_direction=1.0,
-        fold_angle=np.pi / 2,
-        edge_vertices=np.flatnonzero(np.isclose(v[:, 0], lx)),
-        grasp_patch=np.flatnonzero(np.isclose(v[:, 0], lx) & np.isclose(v[:, 2], lz)),
-        gravity=(0.0, 0.0, -9.81),
-        floor=0.0,
-        stiffness_range=STIFFNESS_RANGE,
-        safety=0.75,
+        tissue=TissueSpec(kind="box", size=FLAP_SIZE, cells=tuple(int(c) for c in cells), mirrored=mirrored),
+        physics=PhysicsSpec(material="NeoHookean", young_modulus=STIFFNESS_RANGE, poisson=0.45, density=950.0,
+                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="explicit",
+                            safety=0.75),
+        attachment=RegionSpec(low=(0.0, None, None), high=(0.0, None, None)),
+        grasp=RegionSpec(low=(lx, None, lz), high=(lx, None, lz)),
+        tracked=RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),
+        fold=FoldSpec(hinge=HINGE, direction=1.0, angle=math.pi / 2,
+                      edge=RegionSpec(low=(lx, None, None), high=(lx, None, None))),
+        target=TargetSpec(low=(0.05, 0.035, -0.02), high=(0.09, 0.085, -0.02), radius=0.008),
+        gripper=GripperSpec(start_low=(0.108, 0.04, 0.009), start_high=(0.114, 0.08, 0.011),
+                            workspace_low=(-0.05, -0.05, 0.0), workspace_high=(0.20, 0.17, 0.15)),
+        camera=CameraSpec(eye=(0.06, 0.06, 0.30)),
+        support=SupportSpec(kind="plane", normal=(0.0, 0.0, 1.0), offset=0.0),
+        strain_gauge=0.015,
     )
 
 
 class TissueRetractionEnv(RetractionEnv):
     __doc__ = __doc__
+    default_scene = staticmethod(tissue_scene)
 
-    def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None,
-                 cells=DEFAULT_CELLS):
-        super().__init__(tissue_scene(cells), obs_mode, render_mode, settings, weights)
+    def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, cells=None,
+                 scene=None, physics=None):
+        super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, cells=cells)
 
 
 class TissueRetractionVectorEnv(RetractionVectorEnv):
     """``num_envs`` TissueRetraction scenes in one batched Numba call (see TissueRetractionEnv)."""
 
-    def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None,
-                 max_episode_steps=None, render_mode=None, cells=DEFAULT_CELLS):
-        super().__init__(tissue_scene(cells), num_envs, obs_mode, settings, weights,
-                         max_episode_steps, render_mode)
+    default_scene = staticmethod(tissue_scene)
+
+    def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
+                 render_mode=None, cells=None, scene=None, physics=None):
+        super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
+                         physics=physics, cells=cells)

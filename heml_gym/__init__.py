@@ -2,19 +2,44 @@
 
 The physics backend depends only on numpy, numba, scipy and meshio (gmsh for the
 procedural organs). Units are SI throughout: metres, seconds, pascals, kilograms.
+
+The pieces, after NVIDIA Newton's split: a :class:`Model` (mesh, rest data, masses,
+fixed vertices, per-scene materials, supports; built once for N scenes), a
+:class:`State` (positions and velocities), a :class:`Control` (held vertices, their
+targets, external forces) and a solver (:class:`ExplicitSolver`,
+:class:`ImplicitSolver`, :class:`StaticSolver`) that steps every scene:
+``solver.step(state_in, state_out, control, dt)``. :class:`Simulation` is the
+single-scene facade over them.
 """
 
 from . import kinematics, materials, organs
+from .contact import MeshSupport, PlaneSupport
+from .control import Control
 from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
-from .simulation import Damping, Simulation, SimulationDiverged
+from .model import FORCE_FIELDS, Damping, Model
+from .simulation import NotConverged, NotConvergedWarning, Simulation
+from .solvers import ExplicitSolver, ImplicitSolver, SimulationDiverged, StaticSolver, StepStats
+from .state import State
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Model",
+    "State",
+    "Control",
+    "ExplicitSolver",
+    "ImplicitSolver",
+    "StaticSolver",
+    "StepStats",
     "Simulation",
     "SimulationDiverged",
+    "NotConverged",
+    "NotConvergedWarning",
     "Damping",
+    "PlaneSupport",
+    "MeshSupport",
+    "FORCE_FIELDS",
     "TetMesh",
     "box_mesh",
     "load_mesh",

@@ -9,11 +9,9 @@ from .mesh import TetMesh
 
 def deformation_gradients(mesh: TetMesh, x: np.ndarray) -> np.ndarray:
     """``F = Ds Dm^-1`` of every tet, shape ``(m, 3, 3)`` (dimensionless)."""
-    rest = mesh.vertices[mesh.tets]
     cur = np.asarray(x)[mesh.tets]
-    dm = (rest[:, 1:] - rest[:, :1]).transpose(0, 2, 1)
     ds = (cur[:, 1:] - cur[:, :1]).transpose(0, 2, 1)
-    return ds @ np.linalg.inv(dm)
+    return ds @ mesh.rest_edge_inverses
 
 
 def principal_stretches(mesh: TetMesh, x: np.ndarray) -> np.ndarray:

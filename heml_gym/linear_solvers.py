@@ -77,6 +77,35 @@ class DiagonalAdd:
         return a
 
 
+class DiagonalBlockAdd:
+    """Add 3x3 blocks to the diagonal blocks (vertex ``i``: rows and columns ``3 i .. 3 i + 2``)
+    of CSR matrices that share one pattern, in place.
+
+    The positions of the diagonal blocks' entries are found once per pattern; the matrix
+    must hold every entry of those blocks (the Hessians of :mod:`heml_gym.forces.hessian`
+    do).
+    """
+
+    def __init__(self):
+        self._indptr = self._indices = self._positions = None
+
+    def __call__(self, a: sp.csr_matrix, vertices: np.ndarray, blocks: np.ndarray) -> sp.csr_matrix:
+        """``a`` with ``blocks (k, 3, 3)`` added to the diagonal blocks of ``vertices (k,)``."""
+        a = a.tocsr()
+        if self._indptr is None or not (np.array_equal(a.indptr, self._indptr)
+                                        and np.array_equal(a.indices, self._indices)):
+            if not a.has_sorted_indices:
+                a.sort_indices()
+            rows = np.repeat(np.arange(a.shape[0]), np.diff(a.indptr))
+            positions = np.flatnonzero(a.indices // 3 == rows // 3)
+            if len(positions) != 3 * a.shape[0]:
+                raise ValueError("the matrix does not hold every entry of its 3x3 diagonal blocks")
+            self._indptr, self._indices = a.indptr.copy(), a.indices.copy()
+            self._positions = positions.reshape(-1, 3, 3)
+        np.add.at(a.data, self._positions[np.asarray(vertices, dtype=np.int64)], blocks)
+        return a
+
+
 class NotPositiveDefinite(ValueError):
     """The matrix given to :class:`EnvelopeCholesky` is not symmetric positive definite."""
 

@@ -132,6 +132,19 @@ class TetMesh:
         return float(self.volumes.sum())
 
     @cached_property
+    def rest_edge_inverses(self) -> np.ndarray:
+        """``Dm^-1`` of every tet, ``(m, 3, 3)`` (1/m), ``Dm = [X1-X0, X2-X0, X3-X0]``.
+
+        Computed once per mesh; every force field, Hessian and strain measure reads it
+        from here.
+        """
+        x = self.vertices[self.tets]
+        dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)  # columns X_a - X_0
+        out = np.ascontiguousarray(np.linalg.inv(dm))
+        out.setflags(write=False)
+        return out
+
+    @cached_property
     def vertex_volumes(self) -> np.ndarray:
         """A quarter of the volume of each incident tet, summed per vertex (m^3)."""
         out = np.zeros(self.n_vertices)

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def tiny_config(tmp_path, **changes) -> Path:
     cfg = yaml.safe_load((ROOT / "configs" / "quick.yaml").read_text())
     cfg["env"]["num_envs"] = 4
-    cfg["env"]["max_episode_steps"] = 20
+    cfg["env"]["kwargs"] = {"settings": {"max_steps": 20}}
     cfg["algorithm"]["total_timesteps"] = 1024
     cfg["algorithm"]["hyperparameters"].update(n_steps=64, batch_size=64, n_epochs=2)
     cfg["evaluation"] = {"every_steps": 512, "episodes": 3}

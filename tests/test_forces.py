@@ -242,7 +242,7 @@ def test_parallel_kernels_match_serial(make, irregular_box):
     try:
         numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
         threads = numba.get_num_threads()
-        assert field._threads() == threads
+        assert field.kernel_threads() == threads
         par_f, par_w = field.forces(x), field.energy(x)
     finally:
         numba.set_num_threads(old)

@@ -142,7 +142,7 @@ def test_rrd_layout_and_frames(recording):
     (triangles,) = _static(store)["/world/tissue"]["Mesh3D:triangle_indices"]
     np.testing.assert_array_equal(np.array(triangles), task.scene.surface_faces)
     # the last frame's positions are the env's final state (recorded as float32)
-    np.testing.assert_allclose(np.array(mesh["Mesh3D:vertex_positions"][-1]), task.sim.x[0], atol=1e-6)
+    np.testing.assert_allclose(np.array(mesh["Mesh3D:vertex_positions"][-1]), task.x[0], atol=1e-6)
 
     for entity in ("/world/gripper", "/world/target", "/world/held"):
         assert data[entity]["step"] == list(range(n_frames))

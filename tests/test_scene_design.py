@@ -11,7 +11,8 @@ from heml_gym import box_mesh
 from heml_gym.envs.core import TaskSettings
 from heml_gym.envs.geometry import nearest_triangle_distance
 from heml_gym.envs.organ_retraction import BASE_X, GRASP_LINE, organ_scene
-from heml_gym.envs.retraction_env import RetractionEnv
+from heml_gym.envs.scene import build_scene
+from heml_gym.envs.spec import SpecError
 from heml_gym.envs.strain_gauges import StrainGauges, locate
 from heml_gym.envs.tissue_retraction import FLAP_SIZE, TissueRetractionEnv, tissue_scene
 from heml_gym.organs import liver_lobe_mesh
@@ -114,8 +115,8 @@ def test_held_tissue_cannot_be_pressed_into_the_organ():
     for _ in range(10):  # push straight down
         obs, _, terminated, _, info = env.step(np.array([0, 0, -1, 1], dtype=np.float32))
     rest_z = task.scene.mesh.vertices[task.held[0], 2]
-    assert np.all(task.sim.x[0, task.held[0], 2] >= rest_z - 1e-12)
-    assert np.all(task.sim.x[0, :, 2] >= task.scene.floor - 1e-12)
+    assert np.all(task.x[0, task.held[0], 2] >= rest_z - 1e-12)
+    assert np.all(task.x[0, :, 2] >= 0.0 - 1e-12)  # the organ's surface, z = 0
     assert not info["simulation_diverged"]
 
 
@@ -128,14 +129,14 @@ def test_grasp_force_is_the_weight_it_holds_up_at_rest():
     for _ in range(3):
         env.step(np.array([0, 0, 0, 1], dtype=np.float32))
     forces = [env.step(np.array([0, 0, 0, 1], dtype=np.float32))[4]["grasp_force"] for _ in range(3)]
-    weight = task.sim.mass.sum() * 9.81
+    weight = task.model.mass.sum() * 9.81
     assert 0.0 <= forces[-1] < weight
     assert abs(forces[-1] - forces[-2]) < 1e-3 * weight
 
 
 def test_organ_lobe_is_hinged_along_its_base_edge_and_grasped_along_an_imprinted_line():
     for size in (0.016, 0.010):
-        scene = organ_scene(size)
+        scene = build_scene(organ_scene(size))
         v = scene.mesh.vertices
         fixed = v[scene.fixed]
         np.testing.assert_allclose(fixed[:, [0, 2]], np.tile([BASE_X, 0.0], (len(fixed), 1)), atol=1e-7)
@@ -161,24 +162,25 @@ def test_lobe_lines_must_lie_on_the_lobe_to_be_imprinted():
 
 
 def test_a_scene_without_a_free_patch_vertex_is_refused():
-    scene = tissue_scene()
-    with pytest.raises(ValueError, match="grasp_patch"):
-        type(scene)(**{**{k: getattr(scene, k) for k in scene.__dataclass_fields__ if k != "surface_faces"},
-                       "grasp_patch": scene.fixed[:3]})
+    scene = tissue_scene().updated({"grasp": {"low": [0.0, None, None], "high": [0.0, None, None]}})
+    with pytest.raises(SpecError, match="scene.grasp holds no free vertex"):
+        build_scene(scene)
 
 
-def test_the_scene_safety_is_the_default_and_settings_override_it():
-    env = RetractionEnv(tissue_scene())
-    assert env.task.safety == tissue_scene().safety
-    slower = RetractionEnv(tissue_scene(), settings=TaskSettings(safety=0.25))
-    assert slower.task.safety == 0.25 and slower.task.substeps > env.task.substeps
+def test_the_scene_safety_is_the_default_and_physics_overrides_it():
+    env = TissueRetractionEnv()
+    assert env.task.solver.safety == tissue_scene().physics.safety
+    slower = TissueRetractionEnv(physics={"safety": 0.25})
+    assert slower.task.solver.safety == 0.25 and slower.task.substeps > env.task.substeps
+    # sub-steps scale as 1 / safety: 0.75 / 0.25
+    assert slower.task.substeps == pytest.approx(3 * env.task.substeps, rel=0.05)
 
 
 def test_a_scene_without_a_grasp_line_holds_the_vertices_near_the_jaws():
     import dataclasses
 
-    scene = dataclasses.replace(tissue_scene(), grasp_patch=None)
-    env = RetractionEnv(scene, settings=TaskSettings(jaw_radius=0.009))
+    scene = build_scene(dataclasses.replace(tissue_scene(), grasp=None))
+    env = TissueRetractionEnv(scene=scene.spec, settings=TaskSettings(jaw_radius=0.009))
     env.reset(seed=0)
     task = env.task
     gripper = task.gripper[0].copy()

@@ -15,6 +15,11 @@ class ForceField:
     Positions are ``(n, 3)`` float64 arrays in metres, energies in joules, forces in
     newtons. ``forces(x)`` is ``-dW/dx``: the force the tissue exerts on its vertices.
 
+    What a solver needs is public: :meth:`forces`, :meth:`energy`, :meth:`hessian` (when
+    :attr:`has_hessian`), :meth:`with_material` (the same mesh with another material,
+    sharing every material-independent precomputation: that is how a batch of scenes
+    holds one field per scene at the cost of one) and :meth:`kernel_threads`.
+
     Subclasses provide serial kernels (``_add_forces_serial``, ``_energy_serial``) and
     parallel ones (``_add_forces_parallel``, ``_energy_parallel``).
     The parallel kernels are race-free: elements are split into one contiguous chunk per
@@ -27,6 +32,8 @@ class ForceField:
     name = "force field"
     #: Below this many elements the serial kernels are used whatever the thread count.
     parallel_min_elements = 20_000
+    #: Whether :meth:`hessian` is available (the implicit and static solvers need it).
+    has_hessian = False
 
     def __init__(self, mesh: TetMesh, material: Material):
         if not isinstance(mesh, TetMesh):
@@ -37,6 +44,14 @@ class ForceField:
         self.material = material
         self._buf = np.zeros((0, 0, 3))
 
+    def with_material(self, material: Material) -> "ForceField":
+        """The same field on the same mesh with another ``material``.
+
+        The default builds a new field; subclasses share their material-independent
+        precomputation (rest-shape coefficients, Hessian pattern) with the new one.
+        """
+        return type(self)(self.mesh, material)
+
     @property
     def n_vertices(self) -> int:
         return self.mesh.n_vertices
@@ -46,21 +61,22 @@ class ForceField:
         """Number of elements the kernels loop over (tets; springs for mass-spring)."""
         return self.mesh.n_tets
 
-    def _positions(self, x) -> np.ndarray:
+    def check_positions(self, x) -> np.ndarray:
+        """``x`` as a C-contiguous float64 ``(n, 3)`` array; ``ValueError`` if the shape is wrong."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         if x.shape != (self.mesh.n_vertices, 3):
             raise ValueError(f"positions must have shape ({self.mesh.n_vertices}, 3), got {x.shape}")
         return x
 
-    def _threads(self) -> int:
-        """Chunks to use: the Numba thread count, or 1 for small meshes."""
+    def kernel_threads(self) -> int:
+        """Chunks the kernels use: the Numba thread count, or 1 for small meshes."""
         threads = numba.get_num_threads()
         return threads if self.n_elements >= self.parallel_min_elements else 1
 
     def energy(self, x) -> float:
         """Elastic energy in joules at positions ``x`` (m)."""
-        x = self._positions(x)
-        threads = self._threads()
+        x = self.check_positions(x)
+        threads = self.kernel_threads()
         if threads == 1:
             return float(self._energy_serial(x))
         return float(self._energy_parallel(x, threads))
@@ -71,14 +87,14 @@ class ForceField:
         If ``out`` (a C-contiguous float64 ``(n, 3)`` array) is given the forces are
         written there and it is returned.
         """
-        x = self._positions(x)
+        x = self.check_positions(x)
         if out is None:
             out = np.zeros_like(x)
         else:
             if out.shape != x.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
                 raise ValueError(f"out must be a C-contiguous float64 array of shape {x.shape}")
             out.fill(0.0)
-        threads = self._threads()
+        threads = self.kernel_threads()
         if threads == 1:
             self._add_forces_serial(x, out)
             return out
@@ -90,6 +106,13 @@ class ForceField:
         self._add_forces_parallel(x, self._buf)
         out[...] = self._buf[0]
         return out
+
+    def hessian(self, x, project: bool = True):
+        """Stiffness matrix ``d2W/dx2`` (N/m) at ``x``, a ``3n x 3n`` scipy CSR matrix.
+
+        Only fields with :attr:`has_hessian`; the others raise ``NotImplementedError``.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no Hessian: use an explicit solver")
 
     # kernels, per subclass ---------------------------------------------------
     def _energy_serial(self, x):  # pragma: no cover - abstract
@@ -115,6 +138,7 @@ class SameEnergyAsHeml:
     forces.
     """
 
+    has_hessian = True
     _hessian_field = None
 
     def hessian(self, x, project=True):

@@ -19,15 +19,13 @@ class FemForce(SameEnergyAsHeml, ForceField):
 
     def __init__(self, mesh, material):
         super().__init__(mesh, material)
-        x = mesh.vertices[mesh.tets]
-        dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)
-        self.dm_inv = np.ascontiguousarray(np.linalg.inv(dm))
+        self.dm_inv = mesh.rest_edge_inverses
         self.vol = np.ascontiguousarray(mesh.volumes)
-        self._law = np.int64(material.law_id)
-        self._params = np.ascontiguousarray(material.params, dtype=np.float64)
+        self.law_id = np.int64(material.law_id)
+        self.params = np.ascontiguousarray(material.params, dtype=np.float64)
 
     def _args(self):
-        return self.mesh.tets, self.dm_inv, self.vol, self._law, self._params
+        return self.mesh.tets, self.dm_inv, self.vol, self.law_id, self.params
 
     def _energy_serial(self, x):
         return kernels_fem.fem_energy_chunk(x, *self._args(), 0, self.n_elements)

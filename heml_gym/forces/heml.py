@@ -37,25 +37,21 @@ def gram_coefficients() -> np.ndarray:
     return e
 
 
-def edge_tensors(rest_edges: np.ndarray) -> np.ndarray:
-    """``A_k`` per tet, ``(m, 6, 3, 3)``, from rest edge matrices ``Dm`` ``(m, 3, 3)``."""
-    dm_inv = np.linalg.inv(rest_edges)
+def edge_tensors(dm_inv: np.ndarray) -> np.ndarray:
+    """``A_k`` per tet, ``(m, 6, 3, 3)``, from the rest edge inverses ``Dm^-1`` ``(m, 3, 3)``
+    (:attr:`heml_gym.TetMesh.rest_edge_inverses`)."""
     return np.einsum("tia,kab,tbj->tkij", dm_inv.transpose(0, 2, 1), gram_coefficients(), dm_inv)
 
 
-def heml_coefficients(vertices: np.ndarray, tets: np.ndarray, with_q: bool):
-    """Per-tet HEML constants: ``coef (m, 8) = (V0, 1/(6 V0), a_0..a_5)`` and ``q (m, 21)``.
-
-    ``q`` holds the upper triangle of ``Q``; it is ``(1, 21)`` zeros when not needed.
-    """
-    x = vertices[tets]
-    dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)  # columns X_a - X_0
-    det = np.linalg.det(dm)
-    a_mats = edge_tensors(dm)
+def heml_coefficients(mesh, with_q: bool):
+    """Per-tet HEML constants of ``mesh``: ``coef (m, 8) = (V0, 1/(6 V0), a_0..a_5)`` and
+    ``q (m, 21)``, the upper triangle of ``Q`` (``(1, 21)`` zeros unless ``with_q``)."""
+    a_mats = edge_tensors(mesh.rest_edge_inverses)
     a = np.einsum("tkii->tk", a_mats)
-    coef = np.empty((len(tets), 8))
-    coef[:, 0] = det / 6.0
-    coef[:, 1] = 1.0 / det
+    volume = mesh.volumes
+    coef = np.empty((mesh.n_tets, 8))
+    coef[:, 0] = volume
+    coef[:, 1] = 1.0 / (6.0 * volume)
     coef[:, 2:] = a
     if with_q:
         tr_aa = np.einsum("tkij,tlji->tkl", a_mats, a_mats)
@@ -79,6 +75,50 @@ def assembled_edge_weights(mesh, tet_edge_weights: np.ndarray):
     return edges, weights
 
 
+class HemlRestData:
+    """What HEML precomputes from the rest shape, for any material: shared by every
+    :class:`HemlForce` of one mesh (see :meth:`HemlForce.with_material`).
+
+    Attributes
+    ----------
+    coef, coef_t : ``(m, 8)`` ``(V0, 1/(6 V0), a_0..a_5)`` per tet, and its constant-major copy
+    tets : ``(m, 4)`` vertex indices for the kernels (32-bit when the mesh allows:
+        less memory traffic; on 1 M tets, 2 threads: 97 against 77 M tets/s)
+    inv_det : ``(m,)`` ``1 / det(Dm) = 1 / (6 V0)`` (1/m^3)
+    edge_weights : ``(6, m)`` ``2 V0 a_k`` (m^3), edge-major: the spring weights of a law
+        with constant ``Psi_1`` are ``Psi_1`` times these
+    q, q_t : ``(m, 21)`` upper triangle of ``Q`` and its constant-major copy, computed on
+        first use (only laws with an ``I2`` term read them)
+    """
+
+    def __init__(self, mesh):
+        self.mesh = mesh
+        self.coef, _ = heml_coefficients(mesh, with_q=False)
+        self.coef_t = np.ascontiguousarray(self.coef.T)
+        small = mesh.n_vertices < np.iinfo(np.int32).max
+        self.tets = np.ascontiguousarray(mesh.tets, dtype=np.int32 if small else np.int64)
+        self.inv_det = np.ascontiguousarray(self.coef[:, 1])
+        self.edge_weights = np.ascontiguousarray((2.0 * self.coef[:, 0:1] * self.coef[:, 2:]).T)
+        self._q = None
+        self.hessian_cache = None  # set by heml_gym.forces.hessian on first use
+
+    @property
+    def q(self) -> np.ndarray:
+        if self._q is None:
+            _, self._q = heml_coefficients(self.mesh, with_q=True)
+            self._q_t = np.ascontiguousarray(self._q.T)
+        return self._q
+
+    @property
+    def q_t(self) -> np.ndarray:
+        self.q  # noqa: B018 - computes it
+        return self._q_t
+
+
+_NO_Q = np.zeros((1, 21))
+_NO_Q_T = np.ascontiguousarray(_NO_Q.T)
+
+
 class HemlForce(ForceField):
     """Hyper-Elastic Mass-Links force field for any law of :mod:`heml_gym.materials`.
 
@@ -87,56 +127,74 @@ class HemlForce(ForceField):
     with constant ``dPsi/dI1`` (Neo-Hookean) the spring weights are constants (``split``):
     they are precomputed, and a blocked kernel that vectorises evaluates springs and
     volume term together.
+
+    Public kernel data (read by the solvers and the Hessian): ``law_id``, ``params``
+    (the law's constants), ``use_q``, ``split``, ``spring_weights`` (``(6, m)`` N/m, when
+    ``split``) and ``rest`` (:class:`HemlRestData`: ``coef``, ``coef_t``, ``q``, ``q_t``,
+    ``tets``, ``inv_det``, ``edge_weights``).
     """
 
     name = "HEML"
+    has_hessian = True
 
-    def __init__(self, mesh, material):
+    def __init__(self, mesh, material, rest: HemlRestData | None = None):
         super().__init__(mesh, material)
+        if rest is None:
+            rest = HemlRestData(mesh)
+        elif rest.mesh is not mesh:
+            raise ValueError("rest data belongs to another mesh")
+        self.rest = rest
         self.use_q = bool(material.needs_i2)
-        self.coef, self.q = heml_coefficients(mesh.vertices, mesh.tets, self.use_q)
-        # constant-major copies for the force and energy kernels (a block reads each contiguously)
-        self.coef_t = np.ascontiguousarray(self.coef.T)
-        self.q_t = np.ascontiguousarray(self.q.T)
-        # 32-bit vertex indices for the force and energy kernels: less memory traffic (on 1 M
-        # tets, 2 threads: 97 against 77 M tets/s with the 64-bit ones)
-        small = mesh.n_vertices < np.iinfo(np.int32).max
-        self._force_tets = np.ascontiguousarray(mesh.tets, dtype=np.int32 if small else np.int64)
-        self._law = np.int64(material.law_id)
-        self._params = np.ascontiguousarray(material.params, dtype=np.float64)
+        self.law_id = np.int64(material.law_id)
+        self.params = np.ascontiguousarray(material.params, dtype=np.float64)
         # Constant Psi_1 (Neo-Hookean): the I1 part is a fixed spring network, its weights
         # 2 V0 Psi_1 a_k precomputed; a blocked kernel that vectorises does the rest.
         self.split = material.constant_psi1 is not None and not self.use_q
         if self.split:
-            # stored edge-major, (6, m), so a block of tets reads each weight contiguously
-            self.spring_weights = np.ascontiguousarray(
-                (2.0 * material.constant_psi1 * self.coef[:, 0:1] * self.coef[:, 2:]).T)
-            self.inv_det = np.ascontiguousarray(self.coef[:, 1])
+            self.psi1 = float(material.constant_psi1)
+            self.spring_weights = np.ascontiguousarray(self.psi1 * rest.edge_weights)
 
-    def _args(self):
-        """Arguments of the energy and generic force kernels (constant-major per-tet data)."""
-        return self._force_tets, self.coef_t, self.q_t, self.use_q, self._law, self._params
+    def with_material(self, material) -> "HemlForce":
+        """The HEML field of ``material`` on this mesh, sharing the rest data and the
+        Hessian pattern (only the law's constants and, for Neo-Hookean, the ``6 m``
+        spring weights are new)."""
+        return HemlForce(self.mesh, material, rest=self.rest)
+
+    # compatibility names of the per-tet data (the rest data holds them)
+    coef = property(lambda self: self.rest.coef)
+    coef_t = property(lambda self: self.rest.coef_t)
+    inv_det = property(lambda self: self.rest.inv_det)
+    q = property(lambda self: self.rest.q if self.use_q else _NO_Q)
+    q_t = property(lambda self: self.rest.q_t if self.use_q else _NO_Q_T)
+
+    def kernel_args(self):
+        """Arguments of the general force and energy kernels of
+        :mod:`heml_gym.forces.kernels_heml` (after ``x``): ``tets, coef_t, q_t, use_q,
+        law_id, params``."""
+        return self.rest.tets, self.coef_t, self.q_t, self.use_q, self.law_id, self.params
+
+    def split_kernel_args(self):
+        """Arguments of the constant-``Psi_1`` kernels (after ``x``; only when ``split``):
+        ``tets, inv_det, spring_weights, law_id, params``."""
+        return self.rest.tets, self.rest.inv_det, self.spring_weights, self.law_id, self.params
 
     def _energy_serial(self, x):
-        return kernels_heml.heml_energy_chunk(x, *self._args(), 0, self.n_elements)
+        return kernels_heml.heml_energy_chunk(x, *self.kernel_args(), 0, self.n_elements)
 
     def _energy_parallel(self, x, n_chunks):
-        return kernels_heml.heml_energy_parallel(x, *self._args(), n_chunks)
-
-    def _split_args(self):
-        return self._force_tets, self.inv_det, self.spring_weights, self._law, self._params
+        return kernels_heml.heml_energy_parallel(x, *self.kernel_args(), n_chunks)
 
     def _add_forces_serial(self, x, f):
         if self.split:
-            kernels_heml.constant_psi1_forces_chunk(x, *self._split_args(), f, 0, self.mesh.n_tets)
+            kernels_heml.constant_psi1_forces_chunk(x, *self.split_kernel_args(), f, 0, self.mesh.n_tets)
         else:
-            kernels_heml.heml_forces_chunk(x, *self._args(), f, 0, self.n_elements)
+            kernels_heml.heml_forces_chunk(x, *self.kernel_args(), f, 0, self.n_elements)
 
     def _add_forces_parallel(self, x, buf):
         if self.split:
-            kernels_heml.constant_psi1_forces_parallel(x, *self._split_args(), buf)
+            kernels_heml.constant_psi1_forces_parallel(x, *self.split_kernel_args(), buf)
         else:
-            kernels_heml.heml_forces_parallel(x, *self._args(), buf)
+            kernels_heml.heml_forces_parallel(x, *self.kernel_args(), buf)
 
     def hessian(self, x, project=True):
         """Stiffness matrix ``d2W/dx2`` (N/m) at ``x``: a ``3n x 3n`` scipy CSR matrix.

@@ -25,6 +25,7 @@ from . import kernels_hessian as kh
 
 __all__ = [
     "HessianPattern",
+    "HessianCache",
     "hessian_pattern",
     "heml_hessian",
     "heml_hessian_data",
@@ -128,34 +129,32 @@ class HessianPattern:
         return m
 
 
-class _HemlHessianData:
-    """What a HEML force field's Hessian precomputes once: pattern, block map, Dm^-1."""
+class HessianCache:
+    """What a Hessian assembly precomputes once per mesh (shared by the fields of every
+    material on it): the sparsity pattern and each element's block positions in it."""
 
-    def __init__(self, force):
+    def __init__(self, n_vertices: int, cells: np.ndarray, edges: np.ndarray):
+        self.pattern = HessianPattern(n_vertices, edges)
+        self.blk = self.pattern.element_blocks(cells)
+
+
+def _heml_cache(force) -> HessianCache:
+    rest = force.rest
+    if rest.hessian_cache is None:
+        if len(force.params) > 4:  # the kernels read at most 4 law parameters
+            raise ValueError(f"law with {len(force.params)} parameters: at most 4 supported")
         mesh = force.mesh
-        if len(force._params) > 4:  # the kernels read at most 4 law parameters
-            raise ValueError(f"law with {len(force._params)} parameters: at most 4 supported")
-        self.pattern = HessianPattern(mesh.n_vertices, mesh.edges)
-        self.blk = self.pattern.element_blocks(mesh.tets)
-        x = mesh.vertices[mesh.tets]
-        dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)
-        self.dm_inv = np.ascontiguousarray(np.linalg.inv(dm))
-        self.n_clamped = 0  # negative F-space modes clamped by the last projected assembly
-
-
-def _heml_data(force) -> _HemlHessianData:
-    data = getattr(force, "_hessian_data", None)
-    if data is None:
-        data = _HemlHessianData(force)
-        force._hessian_data = data
-    return data
+        rest.hessian_cache = HessianCache(mesh.n_vertices, mesh.tets, mesh.edges)
+    return rest.hessian_cache
 
 
 def hessian_pattern(force) -> HessianPattern:
     """The (cached) sparsity pattern of ``force.hessian``: HEML or mass-spring."""
-    if hasattr(force, "coef"):
-        return _heml_data(force).pattern
-    return _spring_data(force).pattern
+    from .heml import HemlForce
+
+    if isinstance(force, HemlForce):
+        return _heml_cache(force).pattern
+    return _spring_cache(force).pattern
 
 
 def _mode(project: bool, method: str) -> int:
@@ -172,11 +171,11 @@ def heml_hessian_data(force, x, project: bool = True, method: str = "analytic",
     """The CSR ``data`` of the HEML stiffness matrix (pattern: :func:`hessian_pattern`),
     written into ``out`` if given (overwritten): no allocation, no scipy object.
 
-    After a projected assembly ``force._hessian_data.n_clamped`` holds the number of
-    negative F-space modes that were clamped.
+    After a projected assembly ``force.n_clamped`` holds the number of negative F-space
+    modes that were clamped.
     """
-    hd = _heml_data(force)
-    x = force._positions(x)
+    hd = _heml_cache(force)
+    x = force.check_positions(x)
     mode = _mode(project, method)
     if out is None:
         out = hd.pattern.zeros()
@@ -184,12 +183,12 @@ def heml_hessian_data(force, x, project: bool = True, method: str = "analytic",
         out.fill(0.0)
     m = force.mesh
     if mode == kh.NO_PROJECTION and force.split:  # Neo-Hookean: fixed springs + volume term
-        kh.heml_split_hessian_kernel(x, m.tets, force.inv_det, force.spring_weights, force._law,
-                                     force._params, hd.blk, hd.pattern.row_stride, out)
-        hd.n_clamped = 0
+        kh.heml_split_hessian_kernel(x, m.tets, force.inv_det, force.spring_weights, force.law_id,
+                                     force.params, hd.blk, hd.pattern.row_stride, out)
+        force.n_clamped = 0
         return out
-    hd.n_clamped = kh.heml_hessian_kernel(
-        x, m.tets, force.coef, force.q, force.use_q, force._law, force._params, hd.dm_inv,
+    force.n_clamped = kh.heml_hessian_kernel(
+        x, m.tets, force.coef, force.q, force.use_q, force.law_id, force.params, m.rest_edge_inverses,
         mode, hd.blk, hd.pattern.row_stride, out, _NO_ELEMENTS)
     return out
 
@@ -204,17 +203,17 @@ def heml_hessian(force, x, project: bool = True, method: str = "analytic") -> sp
     undefined (``J <= 0`` for ln J laws) give NaN entries.
     """
     data = heml_hessian_data(force, x, project, method)
-    return _heml_data(force).pattern.matrix(data)
+    return _heml_cache(force).pattern.matrix(data)
 
 
 def heml_element_hessians(force, x, project: bool = True, method: str = "analytic") -> np.ndarray:
     """Per-tet Hessians ``(m, 12, 12)`` (J/m^2; local dof ``3 a + d``)."""
-    hd = _heml_data(force)
-    x = force._positions(x)
+    hd = _heml_cache(force)
+    x = force.check_positions(x)
     m = force.mesh
     out = np.empty((m.n_tets, 12, 12))
-    kh.heml_hessian_kernel(x, m.tets, force.coef, force.q, force.use_q, force._law,
-                           force._params, hd.dm_inv, _mode(project, method), hd.blk,
+    kh.heml_hessian_kernel(x, m.tets, force.coef, force.q, force.use_q, force.law_id,
+                           force.params, m.rest_edge_inverses, _mode(project, method), hd.blk,
                            hd.pattern.row_stride, _NO_DATA, out)
     return out
 
@@ -224,36 +223,27 @@ def heml_f_eigensystems(force, x):
 
     Returns ``lam (m, 9)`` and ``b (m, 9, 12)`` with ``K_T = V0 sum_k lam_k b_k b_k^T``.
     """
-    hd = _heml_data(force)
-    x = force._positions(x)
+    x = force.check_positions(x)
     m = force.mesh
     lam = np.empty((m.n_tets, 9))
     b = np.empty((m.n_tets, 9, 12))
-    kh.heml_f_eigensystems(x, m.tets, force.coef, force.q, force.use_q, force._law,
-                           force._params, hd.dm_inv, lam, b)
+    kh.heml_f_eigensystems(x, m.tets, force.coef, force.q, force.use_q, force.law_id,
+                           force.params, m.rest_edge_inverses, lam, b)
     return lam, b
 
 
-class _SpringHessianData:
-    def __init__(self, force):
-        self.pattern = HessianPattern(force.mesh.n_vertices, force.edges)
-        self.blk = self.pattern.element_blocks(force.edges)
-
-
-def _spring_data(force) -> _SpringHessianData:
-    hd = getattr(force, "_hessian_data", None)
-    if hd is None:
-        hd = _SpringHessianData(force)
-        force._hessian_data = hd
-    return hd
+def _spring_cache(force) -> HessianCache:
+    if force.hessian_cache is None:
+        force.hessian_cache = HessianCache(force.mesh.n_vertices, force.edges, force.edges)
+    return force.hessian_cache
 
 
 def spring_hessian(force, x, project: bool = True) -> sp.csr_matrix:
     """Stiffness matrix (N/m) of a :class:`MassSpringForce`: per edge
     ``k [(1 - L/l)(I - n n^T) + n n^T]``, with ``1 - L/l`` clamped at 0 if ``project``
     (then PSD: a compressed spring keeps only its axial stiffness)."""
-    hd = _spring_data(force)
-    x = force._positions(x)
+    hd = _spring_cache(force)
+    x = force.check_positions(x)
     data = hd.pattern.zeros()
     kh.spring_hessian_assemble(x, force.edges, force.stiffness, force.rest_length, bool(project),
                                hd.blk, hd.pattern.row_stride, data)

@@ -26,14 +26,33 @@ class MassSpringForce(ForceField):
     """
 
     name = "mass-spring"
+    has_hessian = True
 
-    def __init__(self, mesh, material):
+    def __init__(self, mesh, material, _shared=None):
         super().__init__(mesh, material)
-        self.edges = np.ascontiguousarray(mesh.edges)
-        self.rest_length = np.ascontiguousarray(mesh.edge_lengths())
-        # total volume of the tets around each edge
-        _, edge_volume = assembled_edge_weights(mesh, np.repeat(mesh.volumes[:, None], 6, axis=1))
-        self.stiffness = SPRING_CALIBRATION * material.young_modulus * edge_volume / self.rest_length**2
+        if _shared is None:
+            edges = np.ascontiguousarray(mesh.edges)
+            rest_length = np.ascontiguousarray(mesh.edge_lengths())
+            # total volume of the tets around each edge
+            _, edge_volume = assembled_edge_weights(mesh, np.repeat(mesh.volumes[:, None], 6, axis=1))
+            _shared = (edges, rest_length, SPRING_CALIBRATION * edge_volume / rest_length**2, [None])
+        self._shared = _shared
+        self.edges, self.rest_length, unit_stiffness, _ = _shared
+        self.stiffness = material.young_modulus * unit_stiffness  # N/m
+
+    def with_material(self, material) -> "MassSpringForce":
+        """The same springs with the stiffness of ``material`` (edges, rest lengths and
+        the Hessian pattern shared)."""
+        return MassSpringForce(self.mesh, material, _shared=self._shared)
+
+    @property
+    def hessian_cache(self):
+        """The Hessian's pattern and block positions, shared by the fields of one mesh."""
+        return self._shared[3][0]
+
+    @hessian_cache.setter
+    def hessian_cache(self, value):
+        self._shared[3][0] = value
 
     @property
     def n_elements(self) -> int:

@@ -36,12 +36,10 @@ from . import kernels_mass_tensor
 from .base import ForceField, SameEnergyAsHeml
 
 
-def shape_gradients(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+def shape_gradients(mesh) -> np.ndarray:
     """P1 shape-function gradients ``D_j = grad N_j`` (1/m) per tet, shape ``(m, 4, 3)``."""
-    x = vertices[tets]
-    dm = (x[:, 1:, :] - x[:, :1, :]).transpose(0, 2, 1)  # columns X_j - X_0
-    grads = np.empty((len(tets), 4, 3))
-    grads[:, 1:, :] = np.linalg.inv(dm)  # row j - 1 of Dm^-1 is grad N_j
+    grads = np.empty((mesh.n_tets, 4, 3))
+    grads[:, 1:, :] = mesh.rest_edge_inverses  # row j - 1 of Dm^-1 is grad N_j
     grads[:, 0, :] = -grads[:, 1:, :].sum(axis=1)
     return grads
 
@@ -94,7 +92,7 @@ class MassTensorForce(SameEnergyAsHeml, ForceField):
             )
         super().__init__(mesh, material)
         m = mesh.n_tets
-        grads = shape_gradients(mesh.vertices, mesh.tets)
+        grads = shape_gradients(mesh)
         K, C, D = mass_tensors(grads, mesh.volumes, material.mu, material.lam)
         self.K = np.ascontiguousarray(K.reshape(m, 144))
         self.C = np.ascontiguousarray(C.reshape(m, 192))

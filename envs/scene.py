@@ -1,0 +1,468 @@
+"""Retraction scenes as data: a :class:`Scene` dataclass that loads from and saves to YAML.
+
+A scene says where the tissue mesh comes from (box cells, a gmsh organ and its element
+size, or any meshio file), its physics (law and the range its stiffness is drawn from,
+force field, integrator and step settings), which vertices are attached, grasped,
+tracked and measured, where the target, the gripper and the camera are, and what the
+tissue rests on. :func:`build_scene` turns it into the arrays the task runs on
+(:class:`BuiltScene`). Every field is validated, and errors name it::
+
+    scene = Scene.load("configs/scenes/tissue_retraction.yaml")
+    scene = scene.updated({"physics": {"material": "StVenantKirchhoff", "integrator": "implicit"}})
+    scene.save("my_scene.yaml")
+
+Units: m, s, kg, Pa, rad.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from heml_gym import box_mesh, load_mesh, materials, organs
+from heml_gym.contact import MeshSupport, PlaneSupport
+from heml_gym.mesh import TetMesh
+from heml_gym.model import FORCE_FIELDS
+from heml_gym.solvers import INTEGRATORS
+
+from .spec import SpecError, from_mapping, invalid, merge, to_mapping
+
+__all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "TargetSpec", "GripperSpec",
+           "CameraSpec", "SupportSpec", "BuiltScene", "build_scene", "LAWS", "ORGANS"]
+
+#: Material laws by class name (``physics.material``).
+LAWS = {cls.__name__: cls for cls in materials.ALL_MATERIALS}
+#: Procedural organs (``tissue.organ``): name -> mesher in :mod:`heml_gym.organs`.
+ORGANS = {"liver_lobe": organs.liver_lobe_mesh, "kidney": organs.kidney_mesh, "uterus": organs.uterus_mesh,
+          "fat_flap": organs.fat_flap_mesh, "irregular_cube": organs.irregular_cube_mesh}
+
+Vec3 = tuple[float, float, float]
+OptVec3 = tuple[float | None, float | None, float | None]
+
+
+def _finite(values) -> bool:
+    return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
+
+
+@dataclass
+class TissueSpec:
+    """Where the tissue mesh comes from (``kind``), in metres.
+
+    ``"box"``: a ``size`` box at ``origin`` on a ``cells`` hex grid, 6 tets per cell
+    (``mirrored``: alternating splits, see :func:`heml_gym.box_mesh`); ``"organ"``: the
+    gmsh organ ``organ`` (one of :data:`ORGANS`) meshed at ``mesh_size``, with the mesher's
+    other arguments in ``organ_options``; ``"file"``: any tet mesh meshio reads, at ``path``.
+    """
+
+    kind: str = "box"
+    size: Vec3 | None = None
+    cells: tuple[int, int, int] | None = None
+    mirrored: bool = True
+    origin: Vec3 = (0.0, 0.0, 0.0)
+    organ: str | None = None
+    mesh_size: float | None = None
+    organ_options: dict = field(default_factory=dict)
+    path: str | None = None
+
+    def __post_init__(self):
+        if self.kind == "box":
+            if self.size is None or not _finite(self.size) or min(self.size) <= 0:
+                raise invalid(self, "size", f"a box needs three positive lengths in metres, got {self.size}")
+            if self.cells is None or min(self.cells) < 1:
+                raise invalid(self, "cells", f"a box needs three cell counts >= 1, got {self.cells}")
+        elif self.kind == "organ":
+            if self.organ not in ORGANS:
+                raise invalid(self, "organ", f"must be one of {sorted(ORGANS)}, got {self.organ!r}")
+            if self.mesh_size is not None and not (math.isfinite(self.mesh_size) and self.mesh_size > 0):
+                raise invalid(self, "mesh_size", f"must be a positive length in metres, got {self.mesh_size}")
+        elif self.kind == "file":
+            if not self.path:
+                raise invalid(self, "path", "a file tissue needs the path of a mesh file")
+        else:
+            raise invalid(self, "kind", f"must be 'box', 'organ' or 'file', got {self.kind!r}")
+        if not _finite(self.origin):
+            raise invalid(self, "origin", f"must be three finite numbers, got {self.origin}")
+
+    def key(self) -> str:
+        return json.dumps(to_mapping(self), sort_keys=True)
+
+
+@dataclass
+class PhysicsSpec:
+    """The model of the tissue and how it is stepped.
+
+    ``material``: a law of :mod:`heml_gym.materials` by class name, built per episode
+    from ``E`` drawn uniformly in ``young_modulus`` (Pa), ``poisson`` and
+    ``material_options`` (e.g. ``{"b": 2.0}`` for Demiray); ``density`` (kg/m^3),
+    ``damping`` (mass-proportional, 1/s), ``gravity`` (m/s^2); ``field``: ``"heml"``,
+    ``"fem"``, ``"mass_tensor"`` (StVK only) or ``"mass_spring"``; ``integrator``:
+    ``"explicit"`` (sub-steps at ``safety`` times the critical step of the stiffest
+    tissue the scene can draw) or ``"implicit"`` (backward Euler steps of at most
+    ``max_dt`` s, Newton to ``newton_tol`` of the weight in at most ``max_newton``
+    iterations).
+    """
+
+    material: str = "NeoHookean"
+    young_modulus: tuple[float, float] = (4e3, 8e3)
+    poisson: float = 0.45
+    material_options: dict = field(default_factory=dict)
+    density: float = 1000.0
+    damping: float = 5.0
+    gravity: Vec3 = (0.0, 0.0, -9.81)
+    field: str = "heml"
+    integrator: str = "explicit"
+    safety: float = 0.5
+    max_dt: float = 1.0 / 30.0
+    newton_tol: float = 1e-3
+    max_newton: int = 20
+
+    def __post_init__(self):
+        if self.material not in LAWS:
+            raise invalid(self, "material", f"must be one of {sorted(LAWS)}, got {self.material!r}")
+        lo, hi = self.young_modulus
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+            raise invalid(self, "young_modulus", f"must be [low, high] in Pa with 0 < low <= high, got {[lo, hi]}")
+        if not (-1.0 < self.poisson < 0.5):
+            raise invalid(self, "poisson", f"must lie in (-1, 0.5), got {self.poisson}")
+        for E in (lo, hi):
+            try:
+                self.material_for(E)
+            except (TypeError, ValueError) as exc:
+                raise invalid(self, "material_options", f"{self.material}: {exc}") from None
+        if not (math.isfinite(self.density) and self.density > 0):
+            raise invalid(self, "density", f"must be a positive number of kg/m^3, got {self.density}")
+        if not (math.isfinite(self.damping) and self.damping >= 0):
+            raise invalid(self, "damping", f"must be a number >= 0 (1/s), got {self.damping}")
+        if not _finite(self.gravity):
+            raise invalid(self, "gravity", f"must be three finite numbers (m/s^2), got {self.gravity}")
+        if self.field not in FORCE_FIELDS:
+            raise invalid(self, "field", f"must be one of {sorted(FORCE_FIELDS)}, got {self.field!r}")
+        if self.field == "mass_tensor" and self.material != "StVenantKirchhoff":
+            raise invalid(self, "field", "'mass_tensor' needs material 'StVenantKirchhoff'")
+        if self.integrator not in INTEGRATORS:
+            raise invalid(self, "integrator", f"must be one of {sorted(INTEGRATORS)}, got {self.integrator!r}")
+        if not (0 < self.safety <= 1):
+            raise invalid(self, "safety", f"must lie in (0, 1], got {self.safety}")
+        if not (math.isfinite(self.max_dt) and self.max_dt > 0):
+            raise invalid(self, "max_dt", f"must be a positive number of seconds, got {self.max_dt}")
+        if not (math.isfinite(self.newton_tol) and self.newton_tol > 0):
+            raise invalid(self, "newton_tol", f"must be a positive number, got {self.newton_tol}")
+        if self.max_newton < 1:
+            raise invalid(self, "max_newton", f"must be >= 1, got {self.max_newton}")
+
+    def material_for(self, young_modulus: float) -> materials.Material:
+        """The scene's law with Young's modulus ``young_modulus`` (Pa)."""
+        return LAWS[self.material](E=young_modulus, nu=self.poisson, **self.material_options)
+
+
+@dataclass
+class RegionSpec:
+    """A set of tissue vertices, chosen by their rest positions (m).
+
+    The vertices inside the box ``low``..``high`` (a null bound: unbounded), within
+    ``tolerance`` of the ``segment`` ``[a, b]``, or both; ``points``: instead, the vertex
+    nearest to each point, in order. ``surface``: only boundary vertices.
+    """
+
+    low: OptVec3 | None = None
+    high: OptVec3 | None = None
+    segment: tuple[Vec3, Vec3] | None = None
+    points: list[Vec3] | None = None
+    surface: bool = False
+    tolerance: float = 1e-7
+
+    def __post_init__(self):
+        if self.points is not None and (self.low, self.high, self.segment) != (None, None, None):
+            raise invalid(self, "points", "give points alone, or a box and/or a segment")
+        if self.points is None and (self.low, self.high, self.segment) == (None, None, None):
+            raise invalid(self, "low", "a region needs a box (low, high), a segment or points")
+        if not (math.isfinite(self.tolerance) and self.tolerance >= 0):
+            raise invalid(self, "tolerance", f"must be a length >= 0 in metres, got {self.tolerance}")
+
+    def select(self, mesh: TetMesh) -> np.ndarray:
+        """The region's vertex indices on ``mesh`` (sorted; in the order of ``points``)."""
+        v = mesh.vertices
+        candidates = mesh.surface_vertices if self.surface else np.arange(mesh.n_vertices)
+        if self.points is not None:
+            c = v[candidates]
+            return np.array([candidates[np.argmin(np.linalg.norm(c - np.asarray(p), axis=1))] for p in self.points],
+                            dtype=np.int64)
+        keep = np.ones(len(candidates), dtype=bool)
+        c = v[candidates]
+        tol = self.tolerance
+        for axis in range(3):
+            if self.low is not None and self.low[axis] is not None:
+                keep &= c[:, axis] >= self.low[axis] - tol
+            if self.high is not None and self.high[axis] is not None:
+                keep &= c[:, axis] <= self.high[axis] + tol
+        if self.segment is not None:
+            a, b = np.asarray(self.segment[0]), np.asarray(self.segment[1])
+            d = b - a
+            t = np.clip((c - a) @ d / (d @ d), 0.0, 1.0)
+            keep &= np.linalg.norm(a + t[:, None] * d - c, axis=1) <= tol
+        return candidates[keep]
+
+
+@dataclass
+class FoldSpec:
+    """How far the tissue is folded back: about the hinge line parallel to y through
+    ``(x, z) = hinge`` (m), the free tissue extending towards +x (``direction`` 1) or -x
+    (-1). The ``edge`` vertices' fold angle (rad, from rest) over ``angle`` is the lift
+    progress, a dense shaping signal."""
+
+    hinge: tuple[float, float] = (0.0, 0.0)
+    direction: float = 1.0
+    angle: float = math.pi / 2
+    edge: RegionSpec = field(default_factory=lambda: RegionSpec(low=(0.0, None, None)))
+
+    def __post_init__(self):
+        if self.direction not in (1.0, -1.0):
+            raise invalid(self, "direction", f"must be 1 or -1, got {self.direction}")
+        if not (math.isfinite(self.angle) and self.angle > 0):
+            raise invalid(self, "angle", f"must be a positive angle in radians, got {self.angle}")
+
+
+@dataclass
+class TargetSpec:
+    """The structure to expose: a sphere of ``radius`` (m) whose centre is drawn
+    uniformly in the box ``low``..``high`` (m) per episode."""
+
+    low: Vec3 = (0.0, 0.0, 0.0)
+    high: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = 0.008
+
+    def __post_init__(self):
+        if not (_finite(self.low) and _finite(self.high)) or any(a > b for a, b in zip(self.low, self.high)):
+            raise invalid(self, "low", f"low {self.low} and high {self.high} must be finite with low <= high")
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise invalid(self, "radius", f"must be a positive length in metres, got {self.radius}")
+
+
+@dataclass
+class GripperSpec:
+    """The gripper starts uniformly in ``start_low``..``start_high`` and is kept inside
+    ``workspace_low``..``workspace_high`` (m)."""
+
+    start_low: Vec3 = (0.0, 0.0, 0.0)
+    start_high: Vec3 = (0.0, 0.0, 0.0)
+    workspace_low: Vec3 = (-1.0, -1.0, -1.0)
+    workspace_high: Vec3 = (1.0, 1.0, 1.0)
+
+    def __post_init__(self):
+        for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
+            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
+            if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
+                raise invalid(self, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
+        if any(a < wl or b > wh for a, b, wl, wh in zip(self.start_low, self.start_high, self.workspace_low,
+                                                          self.workspace_high)):
+            raise invalid(self, "start_low", "the start box must lie inside the workspace")
+
+
+@dataclass
+class CameraSpec:
+    """The task camera (the target's exposure is seen from it): ``eye`` (m) looking at
+    ``look_at`` (m; null: the tissue's centre), ``up``, vertical field of view ``fov_y``
+    (degrees)."""
+
+    eye: Vec3 = (0.0, 0.0, 0.3)
+    look_at: Vec3 | None = None
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov_y: float = 45.0
+
+    def __post_init__(self):
+        if not _finite(self.eye):
+            raise invalid(self, "eye", f"must be three finite numbers, got {self.eye}")
+        if not (0 < self.fov_y < 180):
+            raise invalid(self, "fov_y", f"must lie in (0, 180) degrees, got {self.fov_y}")
+
+
+@dataclass
+class SupportSpec:
+    """What the tissue rests on: ``"plane"`` (``normal . x >= offset``, m), ``"mesh"``
+    (the outside of the closed surface of the ``mesh`` tissue source, distance grid of
+    ``spacing`` m) or ``"none"``."""
+
+    kind: str = "plane"
+    normal: Vec3 = (0.0, 0.0, 1.0)
+    offset: float = 0.0
+    mesh: TissueSpec | None = None
+    spacing: float | None = None
+
+    def __post_init__(self):
+        if self.kind not in ("plane", "mesh", "none"):
+            raise invalid(self, "kind", f"must be 'plane', 'mesh' or 'none', got {self.kind!r}")
+        if self.kind == "mesh" and self.mesh is None:
+            raise invalid(self, "mesh", "a mesh support needs a mesh source (box, organ or file)")
+        if self.kind == "plane" and (not _finite(self.normal) or not any(self.normal) or not math.isfinite(self.offset)):
+            raise invalid(self, "normal", f"a plane needs a finite non-zero normal and offset, got {self.normal}")
+
+
+@dataclass
+class Scene:
+    """A retraction scene (see the module docstring and the env docstrings).
+
+    ``attachment``: the vertices that never move; ``grasp``: the tissue the jaws hold
+    (closing within ``grasp_reach`` of it holds all of it; null: the nearest surface
+    vertex and those within ``jaw_radius``); ``tracked``: the 4 points reported in the
+    observation; ``strain_gauge``: the length (m) tissue strain is measured over.
+    """
+
+    name: str
+    tissue: TissueSpec
+    attachment: RegionSpec
+    tracked: RegionSpec
+    fold: FoldSpec
+    target: TargetSpec
+    gripper: GripperSpec
+    camera: CameraSpec
+    physics: PhysicsSpec = field(default_factory=PhysicsSpec)
+    grasp: RegionSpec | None = None
+    support: SupportSpec = field(default_factory=lambda: SupportSpec(kind="none"))
+    strain_gauge: float = 0.015
+
+    def __post_init__(self):
+        if not self.name:
+            raise invalid(self, "name", "must be a non-empty string")
+        if self.tracked.points is None or len(self.tracked.points) != 4:
+            raise invalid(self, "tracked", "must give exactly 4 points")
+        if not (math.isfinite(self.strain_gauge) and self.strain_gauge > 0):
+            raise invalid(self, "strain_gauge", f"must be a positive length in metres, got {self.strain_gauge}")
+
+    # ----------------------------------------------------------------- data
+    def to_dict(self) -> dict:
+        return to_mapping(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, path: str = "scene") -> "Scene":
+        return from_mapping(cls, data, path)
+
+    def updated(self, changes: dict, path: str = "scene") -> "Scene":
+        """A copy with ``changes`` (a nested mapping of fields) merged in, validated."""
+        if not isinstance(changes, dict):
+            raise SpecError(f"{path}: changes must be a mapping, got {type(changes).__name__}")
+        return from_mapping(Scene, merge(self.to_dict(), changes), path)
+
+    def save(self, path: str | Path) -> Path:
+        import yaml
+
+        path = Path(path)
+        path.write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Scene":
+        import yaml
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"scene file not found: {path}")
+        try:
+            data = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as exc:
+            raise SpecError(f"scene file {path} is not valid YAML: {exc}") from None
+        return from_mapping(cls, data, "scene")
+
+
+# ------------------------------------------------------------------ built scenes
+class BuiltScene:
+    """A :class:`Scene` made concrete: the mesh and the vertex sets (arrays).
+
+    Attributes: ``spec`` (the Scene), ``name``, ``mesh``, ``fixed``, ``tracked``,
+    ``grasp_patch`` (or None), ``edge_vertices``, ``surface_faces``, ``supports``
+    (:mod:`heml_gym.contact` objects), and as arrays ``camera`` (eye), ``look_at``,
+    ``target_low``, ``target_high``, ``gripper_low``, ``gripper_high``,
+    ``workspace_low``, ``workspace_high``; ``target_radius``, ``hinge``,
+    ``fold_direction``, ``fold_angle``, ``strain_gauge``, ``physics``.
+    """
+
+    def __init__(self, spec: Scene):
+        self.spec = spec
+        self.name = spec.name
+        self.physics = spec.physics
+        self.mesh = _tissue_mesh(spec.tissue)
+        mesh = self.mesh
+        self.fixed = spec.attachment.select(mesh)
+        if self.fixed.size == 0:
+            raise SpecError(f"scene {spec.name!r}: scene.attachment selects no vertex of the mesh")
+        self.tracked = spec.tracked.select(mesh)
+        self.edge_vertices = spec.fold.edge.select(mesh)
+        if self.edge_vertices.size == 0:
+            raise SpecError(f"scene {spec.name!r}: scene.fold.edge selects no vertex to measure the lift by")
+        self.grasp_patch = None
+        if spec.grasp is not None:
+            patch = np.setdiff1d(spec.grasp.select(mesh), self.fixed)
+            if patch.size == 0:
+                raise SpecError(f"scene {spec.name!r}: scene.grasp holds no free vertex")
+            self.grasp_patch = patch
+        self.surface_faces = mesh.boundary_faces
+        self.supports = _supports(spec.support)
+        cam = spec.camera
+        self.camera = np.asarray(cam.eye, dtype=np.float64)
+        self.look_at = np.asarray(cam.look_at if cam.look_at is not None else mesh.vertices.mean(axis=0))
+        self.camera_up = np.asarray(cam.up, dtype=np.float64)
+        self.camera_fov_y = float(cam.fov_y)
+        t, g = spec.target, spec.gripper
+        self.target_low, self.target_high = np.asarray(t.low), np.asarray(t.high)
+        self.target_radius = float(t.radius)
+        self.gripper_low, self.gripper_high = np.asarray(g.start_low), np.asarray(g.start_high)
+        self.workspace_low, self.workspace_high = np.asarray(g.workspace_low), np.asarray(g.workspace_high)
+        self.hinge = tuple(spec.fold.hinge)
+        self.fold_direction = float(spec.fold.direction)
+        self.fold_angle = float(spec.fold.angle)
+        self.strain_gauge = float(spec.strain_gauge)
+
+    def __repr__(self) -> str:
+        return f"BuiltScene({self.name!r}, {self.mesh!r}, {len(self.fixed)} fixed)"
+
+
+_MESHES: dict[str, TetMesh] = {}
+_SUPPORTS: dict[str, object] = {}
+
+
+def _tissue_mesh(spec: TissueSpec) -> TetMesh:
+    """The mesh of a tissue source (cached: gmsh organs take a second or more)."""
+    key = spec.key()
+    if key not in _MESHES:
+        if spec.kind == "box":
+            mesh = box_mesh(spec.size, spec.cells, origin=spec.origin, mirrored=spec.mirrored)
+        elif spec.kind == "organ":
+            kwargs = dict(spec.organ_options)
+            if spec.mesh_size is not None:
+                kwargs["mesh_size"] = spec.mesh_size
+            if "lines" in kwargs:
+                kwargs["lines"] = tuple(tuple(tuple(p) for p in seg) for seg in kwargs["lines"])
+            try:
+                mesh = ORGANS[spec.organ](**kwargs)
+            except TypeError as exc:
+                raise SpecError(f"scene.tissue.organ_options: {exc}") from None
+            if any(spec.origin):
+                mesh = TetMesh(mesh.vertices + np.asarray(spec.origin), mesh.tets)
+        else:
+            mesh = load_mesh(spec.path)
+            if any(spec.origin):
+                mesh = TetMesh(mesh.vertices + np.asarray(spec.origin), mesh.tets)
+        _MESHES[key] = mesh
+    return _MESHES[key]
+
+
+def _supports(spec: SupportSpec) -> list:
+    if spec.kind == "none":
+        return []
+    if spec.kind == "plane":
+        return [PlaneSupport(normal=spec.normal, offset=spec.offset)]
+    key = spec.mesh.key() + f"|{spec.spacing}"
+    if key not in _SUPPORTS:
+        body = _tissue_mesh(spec.mesh)
+        _SUPPORTS[key] = MeshSupport(body.vertices, body.boundary_faces, spacing=spec.spacing)
+    return [_SUPPORTS[key]]
+
+
+def build_scene(spec: Scene) -> BuiltScene:
+    """The arrays of ``spec`` (meshes and supports are cached across calls)."""
+    if not isinstance(spec, Scene):
+        raise TypeError(f"scene must be a heml_gym.envs.Scene, got {type(spec).__name__}")
+    return BuiltScene(spec)

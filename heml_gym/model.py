@@ -1,0 +1,262 @@
+"""The model: what does not change while N scenes are simulated.
+
+A :class:`Model` holds one tet mesh and, for each of its ``N`` scenes, a material (so
+E, nu and even the law can differ per scene), plus what all scenes share: the force
+field's rest-shape precomputation (HEML coefficients, ``Dm^-1``, the Hessian pattern:
+computed once, whatever N), lumped masses, fixed vertices, gravity, damping and rigid
+supports. It is built once; a :class:`~heml_gym.state.State` holds what a step changes
+and a :class:`~heml_gym.control.Control` what the user drives; the solvers of
+:mod:`heml_gym.solvers` step all N scenes. N = 1 is the single case, not a separate
+path. Units: m, s, kg, Pa, N.
+
+    model = Model(mesh, NeoHookean(E=5e3, nu=0.45), n_scenes=4, fixed=clamped)
+    model.set_material(2, StVenantKirchhoff(E=8e3, nu=0.45))
+    state, control = model.state(), model.control()
+    solver = ImplicitSolver(model)
+    solver.step(state, state, control, dt=1 / 30)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from .contact import Support, Supports
+from .control import Control
+from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
+from .materials import Material
+from .mesh import TetMesh
+from .state import State
+
+__all__ = ["Model", "Damping", "FORCE_FIELDS"]
+
+#: Force fields by name (``Model(field=...)``, the envs' ``physics={"field": ...}``).
+FORCE_FIELDS = {"heml": HemlForce, "fem": FemForce, "mass_tensor": MassTensorForce,
+                "mass_spring": MassSpringForce}
+
+
+@dataclass(frozen=True)
+class Damping:
+    """Rayleigh damping ``C = alpha M + beta K``.
+
+    ``alpha`` (1/s) damps every motion, rigid motion included (like drag in a fluid);
+    ``beta`` (s) damps deformation rates only, more at high frequencies.
+    """
+
+    alpha: float = 0.0
+    beta: float = 0.0
+
+    def __post_init__(self):
+        for name in ("alpha", "beta"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"Damping.{name} must be a finite number >= 0, got {v!r}")
+
+
+class Model:
+    """N scenes of one tet mesh: per-scene materials, shared mesh, masses and constraints.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        The body at rest (m). Optional when ``field`` is a force field instance.
+    material : Material or sequence of N Materials
+        The law and constants of every scene (one material for all, or one each).
+    n_scenes : int
+        N (default: the number of materials given, else 1).
+    field : str, ForceField class or ForceField instance
+        ``"heml"`` (default), ``"fem"``, ``"mass_tensor"``, ``"mass_spring"`` (see
+        :data:`FORCE_FIELDS`), a class, or a ready field (whose mesh and material are then
+        used; its precomputation is shared with the other scenes).
+    density : float
+        kg/m^3; lumped mass ``rho V / 4`` per vertex per incident tet.
+    fixed : vertex indices or (n,) bool mask
+        Vertices that never move (every scene).
+    gravity : (3,) float, m/s^2
+    damping : Damping, float (``alpha``) or None
+    supports : sequence of :class:`~heml_gym.contact.PlaneSupport` /
+        :class:`~heml_gym.contact.MeshSupport`
+        Rigid bodies the tissue rests on.
+    """
+
+    def __init__(self, mesh: TetMesh | None = None, material: Material | Sequence[Material] | None = None,
+                 n_scenes: int | None = None, field="heml", density: float = 1000.0, fixed=None,
+                 gravity=(0.0, 0.0, -9.81), damping: Damping | float | None = None, supports=()):
+        if isinstance(field, ForceField):
+            if mesh is not None and mesh is not field.mesh:
+                raise ValueError("mesh and field.mesh differ: give one of them")
+            mesh = field.mesh
+            if material is None:
+                material = field.material
+            base = field
+        else:
+            if isinstance(field, str):
+                if field not in FORCE_FIELDS:
+                    raise ValueError(f"field must be one of {sorted(FORCE_FIELDS)}, got {field!r}")
+                cls = FORCE_FIELDS[field]
+            elif isinstance(field, type) and issubclass(field, ForceField):
+                cls = field
+            else:
+                raise TypeError(f"field must be a name, a ForceField class or instance, got {field!r}")
+            if not isinstance(mesh, TetMesh):
+                raise TypeError(f"mesh must be a heml_gym.TetMesh, got {type(mesh).__name__}")
+            base = None
+        materials = [material] if isinstance(material, Material) else list(material or [])
+        if not materials:
+            raise ValueError("material is required: a heml_gym.materials.Material (or one per scene)")
+        if n_scenes is None:
+            n_scenes = len(materials)
+        if not isinstance(n_scenes, (int, np.integer)) or isinstance(n_scenes, bool) or n_scenes < 1:
+            raise ValueError(f"n_scenes must be an integer >= 1, got {n_scenes!r}")
+        n_scenes = int(n_scenes)
+        if len(materials) == 1:
+            materials = materials * n_scenes
+        if len(materials) != n_scenes:
+            raise ValueError(f"give one material or n_scenes = {n_scenes} of them, got {len(materials)}")
+        density = float(density)
+        if not math.isfinite(density) or density <= 0:
+            raise ValueError(f"density must be a positive number of kg/m^3, got {density}")
+        gravity = np.asarray(gravity, dtype=np.float64)
+        if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+            raise ValueError(f"gravity must be three finite numbers (m/s^2), got {gravity}")
+        if damping is None:
+            damping = Damping()
+        elif not isinstance(damping, Damping):
+            damping = Damping(alpha=float(damping))
+
+        self.mesh = mesh
+        self.n_scenes = n_scenes
+        self.n_vertices = mesh.n_vertices
+        self.density = density
+        self.gravity = gravity
+        self.damping = damping
+        self.supports = Supports(s for s in supports) if not isinstance(supports, Supports) else supports
+        for s in self.supports.items:
+            if not isinstance(s, Support):
+                raise TypeError(f"supports must be PlaneSupport / MeshSupport objects, got {type(s).__name__}")
+        self.mass = density * mesh.vertex_volumes  # kg per vertex
+        self.fixed = vertex_mask(mesh.n_vertices, fixed, "fixed")
+        self.fixed.setflags(write=False)
+        if base is None:
+            base = cls(mesh, materials[0])
+        self._base = base
+        self.fields: list[ForceField] = [None] * n_scenes
+        self.materials: list[Material] = [None] * n_scenes
+        for s, mat in enumerate(materials):
+            self.set_material(s, mat)
+        self._critical = {}  # (field class, moduli ratios) -> (E, rest critical step)
+
+    # ---------------------------------------------------------------- materials
+    @property
+    def field(self) -> ForceField:
+        """The force field of scene 0 (every scene's has the same kind and mesh)."""
+        return self.fields[0]
+
+    def set_material(self, scenes, material: Material) -> None:
+        """Give ``scenes`` (an index or indices) the ``material``: a new force field that
+        shares every material-independent precomputation with the others."""
+        if not isinstance(material, Material):
+            raise TypeError(f"material must be a heml_gym.materials.Material, got {type(material).__name__}")
+        field = self._base if material is self._base.material else self._base.with_material(material)
+        for s in np.atleast_1d(scenes):
+            s = int(s)
+            if not 0 <= s < self.n_scenes:
+                raise IndexError(f"scene {s} outside [0, {self.n_scenes})")
+            self.fields[s] = field
+            self.materials[s] = material
+
+    @property
+    def young_modulus(self) -> np.ndarray:
+        """Small-strain Young's modulus of each scene (Pa), ``(N,)``."""
+        return np.array([m.young_modulus for m in self.materials])
+
+    # ------------------------------------------------------------------- states
+    def state(self) -> State:
+        """A state of all scenes at rest (positions the mesh's, velocities zero)."""
+        x = np.repeat(self.mesh.vertices[None], self.n_scenes, axis=0)
+        return State(x, np.zeros_like(x))
+
+    def control(self) -> Control:
+        """A control with nothing held and no external force."""
+        return Control(self.n_scenes, self.n_vertices)
+
+    # --------------------------------------------------------------- stability
+    def critical_dt(self, scene: int | None = None, material: Material | None = None) -> float:
+        """Explicit stability limit (s) at rest: ``2 / omega_max``, with ``omega_max^2`` the
+        largest eigenvalue of ``M^-1 K`` (undamped, lumped mass), of scene ``scene``, of
+        ``material`` on this mesh, or (default) the smallest over all scenes.
+
+        The rest stiffness is that of linear elasticity with the law's small-strain moduli,
+        so at a given Poisson ratio the limit scales as ``1 / sqrt(E)``: one Lanczos run
+        (on force differences) per field kind and Poisson ratio, cached, serves every E.
+        Stiffening under large strain lowers the limit, which is what the explicit
+        solver's ``safety`` is for.
+        """
+        if material is not None:
+            return self._critical_dt_of(material)
+        if scene is not None:
+            return self._critical_dt_of(self.materials[int(scene)])
+        return min(self._critical_dt_of(m) for m in set(self.materials))
+
+    def _critical_dt_of(self, material: Material) -> float:
+        E = material.young_modulus
+        key = (type(self._base).__name__, round(material.shear_modulus / E, 12),
+               round(material.bulk_modulus / E, 12))
+        if key not in self._critical:
+            field = self._base if material is self._base.material else self._base.with_material(material)
+            self._critical[key] = (E, 2.0 / math.sqrt(rest_max_eigenvalue(field, self.mass)))
+        E_ref, dt_ref = self._critical[key]
+        return dt_ref * math.sqrt(E_ref / E)
+
+    def estimated_critical_dt(self, scene: int = 0) -> float:
+        """``h_min / c`` (s): the smallest tet altitude over the small-strain P-wave speed.
+        Quick, but off by a mesh-dependent factor (measured 0.88 to 1.75 on our meshes)."""
+        return self.mesh.min_height / self.materials[scene].wave_speed(self.density)
+
+    def __repr__(self) -> str:
+        laws = sorted({type(m).__name__ for m in self.materials})
+        return (f"Model({self.mesh!r}, {self.n_scenes} scenes, {type(self._base).__name__}, "
+                f"{'/'.join(laws)}, {int(self.fixed.sum())} fixed, {len(self.supports)} supports)")
+
+
+def vertex_mask(n: int, vertices, what: str) -> np.ndarray:
+    """``(n,)`` bool mask from vertex indices or a mask; errors name ``what``."""
+    mask = np.zeros(n, dtype=bool)
+    if vertices is None:
+        return mask
+    arr = np.asarray(vertices)
+    if arr.dtype == bool:
+        if arr.shape != (n,):
+            raise ValueError(f"{what} mask must have shape ({n},), got {arr.shape}")
+        return arr.copy()
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{what} vertices must be integer indices or a bool mask, got {arr.dtype}")
+    arr = arr.astype(np.int64).ravel()
+    if arr.size and (arr.min() < 0 or arr.max() >= n):
+        raise ValueError(f"{what} vertex indices must lie in [0, {n})")
+    mask[arr] = True
+    return mask
+
+
+def rest_max_eigenvalue(field: ForceField, mass: np.ndarray) -> float:
+    """Largest eigenvalue (1/s^2) of ``M^-1/2 K M^-1/2`` at the rest shape, by Lanczos
+    iteration on central differences of the forces."""
+    mesh = field.mesh
+    x0 = np.array(mesh.vertices)
+    n = mesh.n_vertices
+    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(mass, 3))
+    h = 1e-6 * mesh.min_edge_length
+
+    def matvec(y):
+        d = (inv_sqrt_m * np.ravel(y)).reshape(n, 3)
+        kd = (field.forces(x0 - h * d) - field.forces(x0 + h * d)) / (2.0 * h)
+        return inv_sqrt_m * kd.ravel()
+
+    op = spla.LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
+    v0 = np.random.default_rng(0).standard_normal(3 * n)
+    lam = spla.eigsh(op, k=1, which="LA", tol=1e-4, v0=v0, return_eigenvectors=False)[0]
+    return float(lam)

@@ -1,0 +1,20 @@
+"""Solvers over a :class:`~heml_gym.model.Model`: each steps all N scenes at once.
+
+``solver.step(state_in, state_out, control, dt)`` returns :class:`StepStats` (per scene:
+iterations, residual against tolerance, converged, diverged, constraint reactions).
+
+* :class:`ExplicitSolver`: symplectic Euler, sub-stepped below the critical step;
+* :class:`ImplicitSolver`: backward Euler, Newton with the analytic Hessian;
+* :class:`StaticSolver`: equilibrium (``solve(state, control)``).
+"""
+
+from .base import SceneStepStats, SimulationDiverged, Solver, StepStats
+from .explicit import ExplicitSolver
+from .implicit import ImplicitSolver
+from .statics import StaticSolver
+
+#: Solvers of a time step by name (``Simulation(integrator=...)``, the envs' physics).
+INTEGRATORS = {"explicit": ExplicitSolver, "implicit": ImplicitSolver}
+
+__all__ = ["ExplicitSolver", "ImplicitSolver", "StaticSolver", "StepStats", "SceneStepStats",
+           "SimulationDiverged", "Solver", "INTEGRATORS"]

@@ -1,0 +1,149 @@
+"""What every solver shares: its report (:class:`StepStats`), the divergence error, and
+the checks of its arguments."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..control import Control
+from ..model import Model
+from ..state import State
+
+__all__ = ["StepStats", "SceneStepStats", "SimulationDiverged", "Solver"]
+
+
+class SimulationDiverged(RuntimeError):
+    """A step produced a non-finite or exploding state; the previous state was kept.
+
+    Attributes: ``step`` (index of the failed step), ``elements`` (tets with a non-finite
+    or inverted state, at most 20), ``reason`` (text).
+    """
+
+    def __init__(self, step: int, reason: str, elements=()):
+        self.step = int(step)
+        self.reason = reason
+        self.elements = np.asarray(elements, dtype=np.int64)[:20]
+        where = f"; elements {self.elements.tolist()}" if self.elements.size else ""
+        super().__init__(f"simulation diverged at step {self.step}: {reason}{where}")
+
+
+@dataclass
+class SceneStepStats:
+    """What a step did to one scene.
+
+    ``substeps``: sub-steps taken; ``newton_iterations``: Newton iterations in all (0 for
+    explicit); ``residual`` (N): the largest final force residual of its Newton solves,
+    ``tolerance`` (N) what it had to reach; ``converged``: every solve reached it;
+    ``diverged``: the scene went non-finite or exploded (its state was kept);
+    ``message``: why, when it diverged or did not converge.
+    """
+
+    substeps: int = 0
+    newton_iterations: int = 0
+    residual: float = 0.0
+    tolerance: float = math.inf
+    converged: bool = True
+    diverged: bool = False
+    message: str = ""
+
+
+@dataclass
+class StepStats:
+    """What a solver's step did, per scene (arrays of length N).
+
+    ``reaction (N, n, 3)``: the force (N) the constraints exerted on fixed and held
+    vertices, averaged over the step's sub-steps (the impulse over the step divided by
+    its length); 0 on free vertices. Summed over a gripper's vertices it is the grasp
+    force on the tissue (the tissue pulls the gripper with ``-R``).
+    """
+
+    substeps: int
+    newton_iterations: np.ndarray
+    residual: np.ndarray
+    tolerance: np.ndarray
+    converged: np.ndarray
+    diverged: np.ndarray
+    reaction: np.ndarray
+    messages: list = field(default_factory=list)
+    elements: list = field(default_factory=list)
+
+    @classmethod
+    def empty(cls, n_scenes: int, n_vertices: int, substeps: int) -> "StepStats":
+        return cls(substeps=int(substeps), newton_iterations=np.zeros(n_scenes, dtype=np.int64),
+                   residual=np.zeros(n_scenes), tolerance=np.full(n_scenes, math.inf),
+                   converged=np.ones(n_scenes, dtype=bool), diverged=np.zeros(n_scenes, dtype=bool),
+                   reaction=np.zeros((n_scenes, n_vertices, 3)), messages=[""] * n_scenes,
+                   elements=[np.zeros(0, dtype=np.int64) for _ in range(n_scenes)])
+
+    def scene(self, s: int) -> SceneStepStats:
+        """The report of scene ``s``."""
+        return SceneStepStats(self.substeps, int(self.newton_iterations[s]), float(self.residual[s]),
+                              float(self.tolerance[s]), bool(self.converged[s]), bool(self.diverged[s]),
+                              self.messages[s])
+
+
+def stiffness_damping(field, x: np.ndarray, v: np.ndarray, f_elastic: np.ndarray, beta: float) -> np.ndarray:
+    """The Rayleigh stiffness-damping force ``-beta K(x) v`` (N), as a directional
+    difference of the elastic forces ``f_elastic`` at ``x`` along ``v``."""
+    vmax = float(np.abs(v).max())
+    if not beta or vmax == 0.0:
+        return np.zeros_like(x)
+    eps = 1e-7 * field.mesh.min_edge_length / vmax
+    return beta * (field.forces(x + eps * v) - f_elastic) / eps
+
+
+class Solver:
+    """Base of the solvers: ``step(state_in, state_out, control, dt)`` advances every
+    (active) scene of the model by ``dt`` seconds and returns :class:`StepStats`."""
+
+    def __init__(self, model: Model, max_speed: float = 1e3):
+        if not isinstance(model, Model):
+            raise TypeError(f"model must be a heml_gym.Model, got {type(model).__name__}")
+        max_speed = float(max_speed)
+        if not (math.isfinite(max_speed) and max_speed > 0):
+            raise ValueError(f"max_speed must be a positive number of m/s, got {max_speed}")
+        self.model = model
+        self.max_speed = max_speed
+
+    def _check(self, state_in: State, state_out: State, control: Control, dt: float, active) -> tuple:
+        m = self.model
+        shape = (m.n_scenes, m.n_vertices, 3)
+        for name, s in (("state_in", state_in), ("state_out", state_out)):
+            if not isinstance(s, State):
+                raise TypeError(f"{name} must be a heml_gym.State, got {type(s).__name__}")
+            if s.x.shape != shape:
+                raise ValueError(f"{name} holds {s.x.shape}, the model needs {shape}")
+        if not isinstance(control, Control):
+            raise TypeError(f"control must be a heml_gym.Control, got {type(control).__name__}")
+        if control.targets.shape != shape:
+            raise ValueError(f"control holds {control.targets.shape}, the model needs {shape}")
+        dt = float(dt)
+        if not math.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+        if active is None:
+            active = np.ones(m.n_scenes, dtype=bool)
+        else:
+            active = np.asarray(active, dtype=bool)
+            if active.shape != (m.n_scenes,):
+                raise ValueError(f"active must be a ({m.n_scenes},) mask, got shape {active.shape}")
+        if state_out is not state_in:
+            state_out.assign(state_in)
+        return dt, active
+
+    def divergence(self, x: np.ndarray, v: np.ndarray) -> tuple[str, np.ndarray]:
+        """Why one scene's ``x, v`` ``(n, 3)`` counts as diverged, and the tets touching
+        its bad vertices ("" and none if it does not)."""
+        bad_vertices = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
+        with np.errstate(all="ignore"):
+            speed = np.sqrt((v * v).sum(axis=1))
+        too_fast = speed > self.max_speed
+        if not (bad_vertices.any() or too_fast.any()):
+            return "", np.zeros(0, dtype=np.int64)
+        bad = bad_vertices | too_fast
+        tets = np.flatnonzero(bad[self.model.mesh.tets].any(axis=1))
+        what = "non-finite positions or velocities" if bad_vertices.any() else (
+            f"speed {np.nanmax(speed):.3g} m/s above max_speed {self.max_speed:g} m/s")
+        return what, tets

@@ -1,0 +1,198 @@
+"""Explicit symplectic Euler over N scenes, sub-stepped below the critical step.
+
+Per sub-step of length ``h``, for every free vertex: ``v += h (f + f_ext + m g - alpha m v
+- beta K v) / m``, ``x += h v``, then out of the supports; held vertices follow their
+targets, fixed ones stay. The elastic forces come from the scene's force field; the
+work is done by the kernels of :mod:`heml_gym.solvers.kernels_explicit`, picked by what
+the scenes allow:
+
+* Neo-Hookean HEML (constant ``Psi_1``), N > 1: every scene in lockstep, vectorised
+  across scenes (:func:`~heml_gym.solvers.kernels_explicit.lane_substeps`);
+* any HEML law: all sub-steps of all scenes in one compiled call, scenes over threads;
+* anything else (F-FEM, mass-tensor, mass-spring, stiffness damping ``beta``, or one
+  mesh large enough for the force kernels' own threads): sub-step by sub-step from
+  Python, with :func:`~heml_gym.solvers.kernels_explicit.symplectic_euler_update`.
+
+Every path uses the same update. A scene that goes non-finite or faster than
+``max_speed`` is flagged (``StepStats.diverged``) and keeps the state it had before the
+step; the others go on.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..control import Control
+from ..forces.heml import HemlForce
+from ..model import Model
+from ..state import State
+from . import kernels_explicit as ke
+from .base import Solver, StepStats, stiffness_damping
+
+__all__ = ["ExplicitSolver"]
+
+
+class ExplicitSolver(Solver):
+    """Symplectic Euler for every scene of ``model``.
+
+    Parameters
+    ----------
+    model : Model
+    safety : float in (0, 1]
+        Sub-steps are at most ``safety`` times the rest-state critical step of the
+        stiffest scene (:meth:`Model.critical_dt`). Large deformations stiffen most laws
+        (a 15 % squeeze of a Neo-Hookean cube diverged at 0.9), hence the default 0.5.
+    max_speed : float, m/s
+        A vertex faster than this counts as exploded.
+    """
+
+    def __init__(self, model: Model, safety: float = 0.5, max_speed: float = 1e3):
+        super().__init__(model, max_speed)
+        safety = float(safety)
+        if not (0 < safety <= 1):
+            raise ValueError(f"safety must lie in (0, 1], got {safety}")
+        self.safety = safety
+
+    def substeps(self, dt: float, critical_dt: float | None = None) -> int:
+        """Sub-steps for a step of ``dt`` s: enough to stay below ``safety`` times
+        ``critical_dt`` (default: the model's, over all scenes)."""
+        critical = self.model.critical_dt() if critical_dt is None else float(critical_dt)
+        return max(1, math.ceil(dt / (self.safety * critical)))
+
+    def step(self, state_in: State, state_out: State, control: Control, dt: float,
+             substeps: int | None = None, active=None) -> StepStats:
+        """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
+        sub-steps (default: :meth:`substeps`); inactive scenes are not touched."""
+        dt, active = self._check(state_in, state_out, control, dt, active)
+        n_sub = self.substeps(dt) if substeps is None else int(substeps)
+        if n_sub < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        m = self.model
+        stats = StepStats.empty(m.n_scenes, m.n_vertices, n_sub)
+        state = state_out
+        x0, v0 = state.x.copy(), state.v.copy()
+        h = dt / n_sub
+        fields = m.fields
+        heml = all(isinstance(f, HemlForce) for f in fields) and not m.damping.beta
+        one_big_mesh = m.n_scenes == 1 and fields[0].kernel_threads() > 1
+        with np.errstate(all="ignore"):
+            if heml and not one_big_mesh and all(f.split for f in fields) and m.n_scenes > 1:
+                bad = self._lanes(state, control, h, n_sub, x0, stats.reaction)
+            elif heml and not one_big_mesh:
+                bad = self._fused(state, control, h, n_sub, x0, active, stats.reaction)
+            else:
+                bad = self._stepwise(state, control, h, n_sub, x0, active, stats.reaction)
+        bad[~active] = -1
+        inactive = ~active
+        state.x[inactive] = x0[inactive]
+        state.v[inactive] = v0[inactive]
+        for s in np.flatnonzero(bad >= 0):
+            message, elements = self.divergence(state.x[s], state.v[s])
+            stats.messages[s] = message or f"vertex {bad[s]} went non-finite or too fast"
+            stats.elements[s] = elements
+            state.x[s], state.v[s] = x0[s], v0[s]
+            stats.reaction[s] = 0.0
+        stats.diverged = bad >= 0
+        stats.converged = ~stats.diverged
+        return stats
+
+    # ------------------------------------------------------------------ paths
+    def _fused(self, state, control, h, n_sub, x0, active, reaction):
+        m = self.model
+        N = m.n_scenes
+        fields = m.fields
+        planes, grids, values = m.supports.kernel_args()
+        f = np.empty_like(state.x)
+        sub_reaction = np.empty_like(state.x)
+        bad = np.full(N, -1, dtype=np.int64)
+        parallel = N > 1 and numba.get_num_threads() > 1
+        rest = fields[0].rest
+        common = (state.x, state.v, f, reaction, sub_reaction, m.mass, m.gravity, control.external_forces,
+                  m.damping.alpha, h, n_sub, m.fixed, control.kinematic, x0, control.targets, self.max_speed)
+        if all(fd.split for fd in fields):
+            weights = np.stack([fd.spring_weights for fd in fields]) if N > 1 else fields[0].spring_weights[None]
+            params = _stack_params(fields)
+            kernel = ke.split_substeps_parallel if parallel else ke.split_substeps_serial
+            kernel(*common, rest.tets, rest.inv_det, weights, fields[0].law_id, params, planes, grids, values,
+                   active, bad)
+        else:
+            use_q = any(fd.use_q for fd in fields)
+            q_t = rest.q_t if use_q else fields[0].q_t
+            laws = np.array([fd.law_id for fd in fields], dtype=np.int64)
+            kernel = ke.heml_substeps_parallel if parallel else ke.heml_substeps_serial
+            kernel(*common, rest.tets, rest.coef_t, q_t, use_q, laws, _stack_params(fields), planes, grids,
+                   values, active, bad)
+        return bad
+
+    def _lanes(self, state, control, h, n_sub, x0, reaction_out):
+        """All scenes in lockstep, vectorised across scenes (Neo-Hookean HEML)."""
+        m = self.model
+        N = m.n_scenes
+        fields = m.fields
+        per_thread = math.ceil(N / numba.get_num_threads())
+        lanes = min(ke.LANES, 4 * math.ceil(per_thread / 4))
+        blocks = math.ceil(N / lanes)
+        pad = blocks * lanes - N  # extra lanes repeat scene 0
+
+        def to_lanes(a):
+            a = np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
+            a = a.reshape((blocks, lanes) + a.shape[1:])
+            return np.ascontiguousarray(np.moveaxis(a, 1, -1))
+
+        def from_lanes(a):
+            return np.moveaxis(a, -1, 1).reshape((blocks * lanes,) + a.shape[1:-1])[:N]
+
+        params = _stack_params(fields)
+        psi1 = np.array([fd.psi1 for fd in fields])
+        xl, vl = to_lanes(state.x), to_lanes(state.v)
+        reaction = np.empty_like(xl)
+        bad_lanes = np.empty((blocks, lanes), dtype=np.int64)
+        planes, grids, values = m.supports.kernel_args()
+        rest = fields[0].rest
+        ke.lane_substeps(xl, vl, np.empty_like(xl), reaction, m.mass, m.gravity, to_lanes(control.external_forces),
+                         m.damping.alpha, h, n_sub, m.fixed, to_lanes(control.kinematic), to_lanes(x0),
+                         to_lanes(control.targets), self.max_speed, rest.tets, rest.inv_det, rest.edge_weights,
+                         fields[0].law_id, to_lanes(params[:, 0]), to_lanes(params[:, 1]), to_lanes(psi1),
+                         planes, grids, values, bad_lanes)
+        state.x[:] = from_lanes(xl)
+        state.v[:] = from_lanes(vl)
+        reaction_out[:] = from_lanes(reaction)
+        return bad_lanes.reshape(-1)[:N].copy()
+
+    def _stepwise(self, state, control, h, n_sub, x0, active, reaction):
+        """Sub-step by sub-step from Python: any force field, stiffness damping."""
+        m = self.model
+        N, n = m.n_scenes, m.n_vertices
+        planes, grids, values = m.supports.kernel_args()
+        f = np.zeros((n, 3))
+        sub_reaction = np.zeros((n, 3))
+        bad = np.full(N, -1, dtype=np.int64)
+        beta = m.damping.beta
+        for s in np.flatnonzero(active):
+            field = m.fields[s]
+            x, v = state.x[s], state.v[s]
+            for k in range(1, n_sub + 1):
+                field.forces(x, out=f)
+                if beta:
+                    f += stiffness_damping(field, x, v, f, beta)
+                b = ke.symplectic_euler_update(x, v, f, m.mass, m.gravity, control.external_forces[s],
+                                               m.damping.alpha, h, m.fixed, control.kinematic[s], x0[s],
+                                               control.targets[s], k / n_sub, self.max_speed, sub_reaction,
+                                               planes, grids, values)
+                if b >= 0:
+                    bad[s] = b
+                    break
+                reaction[s] += sub_reaction / n_sub
+        return bad
+
+
+def _stack_params(fields) -> np.ndarray:
+    """``(N, k)`` law constants of the scenes' fields, zero-padded to the longest."""
+    width = max(len(f.params) for f in fields)
+    out = np.zeros((len(fields), width))
+    for s, f in enumerate(fields):
+        out[s, :len(f.params)] = f.params
+    return out

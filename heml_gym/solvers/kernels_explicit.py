@@ -1,0 +1,335 @@
+"""Numba kernels of the explicit (symplectic Euler) solver.
+
+One update serves every path: :func:`integrate_dof` advances one coordinate of one
+vertex (free, held on a path, or fixed) and :func:`~heml_gym.kernels_contact.project_out_of_supports`
+keeps free vertices out of the supports; the kernels below differ only in how they get
+the elastic forces and how they lay out the scenes:
+
+* :func:`symplectic_euler_update`: one sub-step of one scene given its forces (any field);
+* :func:`split_substeps_serial` / ``_parallel``: all sub-steps of N scenes of a law with
+  constant ``Psi_1`` (Neo-Hookean HEML), per-scene spring weights, one call;
+* :func:`heml_substeps_serial` / ``_parallel``: the same for any law (per-scene law and
+  constants);
+* :func:`lane_substeps`: Neo-Hookean HEML scenes in lockstep, vectorised across scenes
+  (state stored scene-last, blocks of up to :data:`LANES` scenes, one per thread).
+
+Units: m, s, kg, N, Pa. Every kernel reports per scene the first vertex found
+non-finite or faster than ``max_speed`` (m/s), or -1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numba import prange
+
+from ..fastlog import SMALLEST_NORMAL
+from ..forces.kernels_heml import (
+    _store_tet_forces,
+    constant_psi1_forces_chunk,
+    edge_cofactors,
+    edge_vectors,
+    heml_forces_chunk,
+)
+from ..kernels_contact import plane_contact, project_out_of_supports
+from ..laws import volumetric_gradient_fast
+
+#: scenes per block of :func:`lane_substeps` (SIMD lanes); its arrays end in it
+LANES = 32
+
+
+@nb.njit(cache=True, inline="always")
+def total_force(f, ext, m, g, alpha, v):
+    """Elastic + external + gravity + mass-proportional damping force (N) on one coordinate."""
+    return f + ext + m * g - alpha * m * v
+
+
+@nb.njit(cache=True, inline="always")
+def integrate_dof(x, v, force, m, h, held, target):
+    """One symplectic Euler sub-step of length ``h`` (s) of one coordinate of one vertex.
+
+    A free vertex: ``v += h force / m``, then ``x += h v``. A held one (kinematic, or
+    fixed with ``target = x``) moves to ``target`` with the velocity that takes it there.
+    Returns ``(x, v, reaction)``: ``reaction`` (N) is the constraint force on a held
+    vertex (``m a`` minus every other force), 0 on a free one.
+    """
+    vn = (target - x) / h if held else v + h * force / m
+    reaction = m * (vn - v) / h - force if held else 0.0
+    xn = target if held else x + h * vn
+    return xn, vn, reaction
+
+
+@nb.njit(cache=True, inline="always")
+def _flagged(vx, vy, vz, px, py, pz, limit):
+    """Whether a vertex is non-finite, exploded or faster than ``sqrt(limit)`` m/s."""
+    speed2 = vx * vx + vy * vy + vz * vz
+    return not (speed2 <= limit and abs(px) + abs(py) + abs(pz) < 1e300)
+
+
+@nb.njit(cache=True)
+def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinematic,
+                            kin_from, kin_to, frac, max_speed, reaction, planes, grids, grid_values):
+    """One symplectic Euler sub-step of one scene, in place, given its elastic forces ``f`` (N).
+
+    ``x, v, f, ext, kin_from, kin_to, reaction``: ``(n, 3)``; ``fixed``, ``kinematic``:
+    ``(n,)`` masks. Fixed vertices keep ``x`` and get ``v = 0``; kinematic ones move to
+    ``kin_from + frac (kin_to - kin_from)``; free ones integrate and are kept out of the
+    supports. ``reaction`` receives the constraint force (N) on held vertices, 0
+    elsewhere. Returns the first vertex that went non-finite or too fast, or -1.
+    """
+    bad = -1
+    limit = max_speed * max_speed
+    for i in range(x.shape[0]):
+        m = mass[i]
+        is_fixed = fixed[i]
+        held = is_fixed or kinematic[i]
+        for d in range(3):
+            xd = x[i, d]
+            vd = v[i, d]
+            target = xd if is_fixed else kin_from[i, d] + frac * (kin_to[i, d] - kin_from[i, d])
+            force = total_force(f[i, d], ext[i, d], m, gravity[d], alpha, vd)
+            xn, vn, r = integrate_dof(xd, vd, force, m, h, held, target)
+            x[i, d] = xn
+            v[i, d] = vn
+            reaction[i, d] = r
+        if not held:
+            x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2] = project_out_of_supports(
+                planes, grids, grid_values, x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2])
+        if bad < 0 and _flagged(v[i, 0], v[i, 1], v[i, 2], x[i, 0], x[i, 1], x[i, 2], limit):
+            bad = i
+    return bad
+
+
+@nb.njit(cache=True, inline="always")
+def _add_mean_reaction(reaction, sub_reaction, fixed, kinematic, n_sub):
+    for i in range(reaction.shape[0]):
+        if fixed[i] or kinematic[i]:
+            for d in range(3):
+                reaction[i, d] += sub_reaction[i, d] / n_sub
+
+
+# ------------------------------------------------------- fused kernels, scene by scene
+@nb.njit(cache=True, inline="always")
+def _split_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
+                 kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights, law, params,
+                 planes, grids, grid_values):
+    xs, vs, fs, rs, ss = x[s], v[s], f[s], reaction[s], sub_reaction[s]
+    m = tets.shape[0]
+    rs[:, :] = 0.0
+    for k in range(1, n_sub + 1):
+        fs[:, :] = 0.0
+        constant_psi1_forces_chunk(xs, tets, inv_det, weights[s], law, params[s], fs, 0, m)
+        bad = symplectic_euler_update(xs, vs, fs, mass, gravity, ext[s], alpha, h, fixed, kinematic[s],
+                                      kin_from[s], kin_to[s], k / n_sub, max_speed, ss, planes, grids,
+                                      grid_values)
+        if bad >= 0:
+            return bad
+        _add_mean_reaction(rs, ss, fixed, kinematic[s], n_sub)
+    return -1
+
+
+@nb.njit(cache=True)
+def split_substeps_serial(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
+                          kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights, law, params,
+                          planes, grids, grid_values, active, bad):
+    """``n_sub`` sub-steps of length ``h`` (s) of every active scene of a constant-``Psi_1``
+    HEML body (Neo-Hookean), scene after scene, in place.
+
+    Per scene (leading axis ``N``): ``x, v, f, reaction, sub_reaction, ext, kin_from,
+    kin_to`` ``(N, n, 3)``; ``kinematic (N, n)``; ``weights (N, 6, m)`` its spring weights
+    (N/m); ``params (N, k)`` its law constants. Shared: ``mass (n,)``, ``gravity (3,)``,
+    ``fixed (n,)``, ``tets``, ``inv_det``, ``law``, the supports. ``f`` and
+    ``sub_reaction`` are scratch; ``reaction`` receives the constraint forces (N)
+    averaged over the sub-steps. ``bad[s]``: the first bad vertex of scene ``s`` (its
+    integration stopped there) or -1.
+    """
+    for s in range(x.shape[0]):
+        bad[s] = -1
+        if active[s]:
+            bad[s] = _split_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
+                                  fixed, kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights,
+                                  law, params, planes, grids, grid_values)
+
+
+@nb.njit(cache=True, parallel=True)
+def split_substeps_parallel(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
+                            kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights, law, params,
+                            planes, grids, grid_values, active, bad):
+    """:func:`split_substeps_serial` with the scenes spread over the threads."""
+    for s in prange(x.shape[0]):
+        bad[s] = -1
+        if active[s]:
+            bad[s] = _split_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
+                                  fixed, kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights,
+                                  law, params, planes, grids, grid_values)
+
+
+@nb.njit(cache=True, inline="always")
+def _heml_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
+                kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q, laws, params,
+                planes, grids, grid_values):
+    xs, vs, fs, rs, ss = x[s], v[s], f[s], reaction[s], sub_reaction[s]
+    m = tets.shape[0]
+    rs[:, :] = 0.0
+    for k in range(1, n_sub + 1):
+        fs[:, :] = 0.0
+        heml_forces_chunk(xs, tets, coef_t, q_t, use_q, laws[s], params[s], fs, 0, m)
+        bad = symplectic_euler_update(xs, vs, fs, mass, gravity, ext[s], alpha, h, fixed, kinematic[s],
+                                      kin_from[s], kin_to[s], k / n_sub, max_speed, ss, planes, grids,
+                                      grid_values)
+        if bad >= 0:
+            return bad
+        _add_mean_reaction(rs, ss, fixed, kinematic[s], n_sub)
+    return -1
+
+
+@nb.njit(cache=True)
+def heml_substeps_serial(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
+                         kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q, laws, params,
+                         planes, grids, grid_values, active, bad):
+    """As :func:`split_substeps_serial` for any law: ``laws (N,)`` and ``params (N, k)`` per
+    scene, HEML's per-tet constants ``coef_t``, ``q_t`` (read if ``use_q``) shared."""
+    for s in range(x.shape[0]):
+        bad[s] = -1
+        if active[s]:
+            bad[s] = _heml_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
+                                 fixed, kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q,
+                                 laws, params, planes, grids, grid_values)
+
+
+@nb.njit(cache=True, parallel=True)
+def heml_substeps_parallel(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
+                           kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q, laws, params,
+                           planes, grids, grid_values, active, bad):
+    """:func:`heml_substeps_serial` with the scenes spread over the threads."""
+    for s in prange(x.shape[0]):
+        bad[s] = -1
+        if active[s]:
+            bad[s] = _heml_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
+                                 fixed, kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q,
+                                 laws, params, planes, grids, grid_values)
+
+
+# --------------------------------------------------- scenes in lockstep, across lanes
+@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
+def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed, kinematic, kin_from,
+                  kin_to, max_speed, tets, inv_det, base_w, law, p0, p1, psi1, planes, grids,
+                  grid_values, bad_vertex):
+    """``n_sub`` sub-steps of length ``h`` (s) of Neo-Hookean HEML scenes, vectorised across scenes.
+
+    Scenes come in blocks of ``L`` <= :data:`LANES`: ``x, v, f, reaction, ext, kin_from,
+    kin_to`` are ``(B, n, 3, L)`` (m, m/s, N, N, N, m, m), entry ``[b, i, d, q]`` being
+    vertex ``i``, axis ``d`` of scene ``b L + q``; ``kinematic``: ``(B, n, L)`` held
+    vertices, moved from ``kin_from`` to ``kin_to`` over the sub-steps; ``fixed``:
+    ``(n,)``, shared; ``base_w``: ``(6, m)`` edge weights ``2 V0 a_k`` (m^3); ``psi1``:
+    ``(B, L)`` the constant ``Psi_1`` (Pa) of each scene, so its spring weights are
+    ``psi1 * base_w``; ``p0, p1``: ``(B, L)`` its Neo-Hookean constants (Pa). The update
+    per vertex is :func:`integrate_dof` and the supports' projection, as in every path.
+
+    ``reaction`` receives the constraint forces (N) on fixed and held vertices averaged
+    over the sub-steps. ``bad_vertex[b, q]`` becomes the first vertex of the scene found
+    non-finite or faster than ``max_speed`` (m/s), else -1. A tet whose J is not
+    positive, normal and finite gives NaN forces (Neo-Hookean is undefined there), so
+    such a scene is flagged too. Scenes run in lockstep: a flagged scene keeps being
+    integrated (its values are meaningless; the caller restores it).
+    """
+    n_blocks, n, _, lanes = x.shape
+    if lanes > LANES:
+        raise ValueError("too many scenes per block")
+    m = tets.shape[0]
+    limit = max_speed * max_speed
+    n_planes = planes.shape[0]
+    n_grids = grids.shape[0]
+    for b in prange(n_blocks):
+        xb, vb, fb, rb, eb = x[b], v[b], f[b], reaction[b], ext[b]
+        held, start, end = kinematic[b], kin_from[b], kin_to[b]
+        p0b, p1b, psi1b, bad = p0[b], p1[b], psi1[b], bad_vertex[b]
+        edges = np.empty((9, LANES))
+        work = np.empty((12, LANES))
+        for q in range(lanes):
+            bad[q] = -1
+        rb[:] = 0.0
+        inv_n = 1.0 / n_sub
+        for k in range(1, n_sub + 1):
+            frac = k / n_sub
+            fb[:] = 0.0
+            for t in range(m):
+                i0 = tets[t, 0]
+                i1 = tets[t, 1]
+                i2 = tets[t, 2]
+                i3 = tets[t, 3]
+                for d in range(3):
+                    for q in range(lanes):
+                        x0 = xb[i0, d, q]
+                        edges[d, q] = xb[i1, d, q] - x0
+                        edges[3 + d, q] = xb[i2, d, q] - x0
+                        edges[6 + d, q] = xb[i3, d, q] - x0
+                idet = inv_det[t]
+                w01 = base_w[0, t]
+                w02 = base_w[1, t]
+                w03 = base_w[2, t]
+                w12 = base_w[3, t]
+                w13 = base_w[4, t]
+                w23 = base_w[5, t]
+                for q in range(lanes):  # vectorises across scenes
+                    ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, q)
+                    c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
+                    jac = (ax * c1x + ay * c1y + az * c1z) * idet
+                    good = jac >= SMALLEST_NORMAL and jac < math.inf
+                    g = volumetric_gradient_fast(law, p0b[q], p1b[q], jac if good else 1.0) * (1.0 / 6.0)
+                    g = g if good else math.nan
+                    c = psi1b[q]
+                    _store_tet_forces(work, q, ax, ay, az, bx, by, bz, cx, cy, cz,
+                                      c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
+                                      c3x * g, c3y * g, c3z * g,
+                                      c * w01, c * w02, c * w03, c * w12, c * w13, c * w23)
+                for d in range(3):  # one loop per vertex: no possible overlap to check
+                    for q in range(lanes):
+                        fb[i0, d, q] += work[d, q]
+                    for q in range(lanes):
+                        fb[i1, d, q] += work[3 + d, q]
+                    for q in range(lanes):
+                        fb[i2, d, q] += work[6 + d, q]
+                    for q in range(lanes):
+                        fb[i3, d, q] += work[9 + d, q]
+            for i in range(n):
+                mi = mass[i]
+                is_fixed = fixed[i]
+                for d in range(3):
+                    gd = gravity[d]
+                    for q in range(lanes):  # vectorises across scenes (selects, no branches)
+                        vq = vb[i, d, q]
+                        xq = xb[i, d, q]
+                        force = total_force(fb[i, d, q], eb[i, d, q], mi, gd, alpha, vq)
+                        target = xq if is_fixed else start[i, d, q] + frac * (end[i, d, q] - start[i, d, q])
+                        xn, vn, r = integrate_dof(xq, vq, force, mi, h, is_fixed or held[i, q], target)
+                        rb[i, d, q] += r * inv_n
+                        xb[i, d, q] = xn
+                        vb[i, d, q] = vn
+                if is_fixed:
+                    continue
+                for s in range(n_planes):
+                    nx, ny, nz, c = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3]
+                    for q in range(lanes):  # vectorises across scenes
+                        px, py, pz, vx, vy, vz = plane_contact(nx, ny, nz, c, xb[i, 0, q], xb[i, 1, q], xb[i, 2, q],
+                                                               vb[i, 0, q], vb[i, 1, q], vb[i, 2, q])
+                        free = not held[i, q]
+                        xb[i, 0, q] = px if free else xb[i, 0, q]
+                        xb[i, 1, q] = py if free else xb[i, 1, q]
+                        xb[i, 2, q] = pz if free else xb[i, 2, q]
+                        vb[i, 0, q] = vx if free else vb[i, 0, q]
+                        vb[i, 1, q] = vy if free else vb[i, 1, q]
+                        vb[i, 2, q] = vz if free else vb[i, 2, q]
+                if n_grids:
+                    for q in range(lanes):
+                        if not held[i, q]:
+                            xb[i, 0, q], xb[i, 1, q], xb[i, 2, q], vb[i, 0, q], vb[i, 1, q], vb[i, 2, q] = \
+                                project_out_of_supports(planes[:0], grids, grid_values, xb[i, 0, q], xb[i, 1, q],
+                                                        xb[i, 2, q], vb[i, 0, q], vb[i, 1, q], vb[i, 2, q])
+                for q in range(lanes):
+                    flagged = _flagged(vb[i, 0, q], vb[i, 1, q], vb[i, 2, q], xb[i, 0, q], xb[i, 1, q], xb[i, 2, q],
+                                       limit)
+                    bad[q] = i if (flagged and bad[q] < 0) else bad[q]
+

@@ -1,0 +1,112 @@
+"""Static equilibrium of N scenes: Newton on the potential energy, with load stepping."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..control import Control
+from ..linear_solvers import FreeSubmatrix
+from ..model import Model
+from ..state import State
+from .base import Solver, StepStats
+from .newton import minimize
+
+__all__ = ["StaticSolver"]
+
+
+class StaticSolver(Solver):
+    """Equilibrium ``f_elastic(x) + f_ext + M g = 0`` on the free vertices of every scene.
+
+    Parameters
+    ----------
+    model : Model
+        Its fields need a Hessian; supports are not handled (a ``ValueError`` says so).
+    load_steps : int
+        Loads are ramped in this many equal increments, each solved to convergence.
+    tol : float
+        Each increment is solved to a force residual below ``tol`` times the scene's
+        load (weight plus external forces, N). The residual cannot go below round-off:
+        HEML's edge springs carry forces of order ``E L^2`` that cancel at equilibrium,
+        so the floor is about ``1e-16 E L^2`` per vertex (``L`` the edge length); for a
+        stiff, light body that can exceed ``1e-10`` of its weight.
+    max_iter : int
+        Newton iterations per increment at most.
+    """
+
+    def __init__(self, model: Model, load_steps: int = 1, tol: float = 1e-8, max_iter: int = 100):
+        super().__init__(model)
+        for f in model.fields:
+            if not f.has_hessian:
+                raise ValueError(f"{type(f).__name__} has no Hessian: statics needs one")
+        if len(model.supports):
+            raise ValueError("the static solver does not handle supports yet: step the model to rest "
+                             "with the implicit solver instead")
+        if isinstance(load_steps, bool) or not isinstance(load_steps, (int, np.integer)) or load_steps < 1:
+            raise ValueError(f"load_steps must be an integer >= 1, got {load_steps!r}")
+        tol = float(tol)
+        if not (math.isfinite(tol) and tol > 0):
+            raise ValueError(f"tol must be a positive number, got {tol}")
+        self.load_steps, self.tol, self.max_iter = int(load_steps), tol, int(max_iter)
+        self._submatrix = [FreeSubmatrix() for _ in range(model.n_scenes)]
+
+    def solve(self, state: State, control: Control, active=None) -> StepStats:
+        """Move the free vertices of the ``active`` scenes (default: all) of ``state`` to
+        equilibrium, in place, with held vertices on their targets; velocities become 0.
+        ``StepStats.reaction`` holds the forces (N) the constraints then exert.
+        A scene whose last increment does not converge is flagged ``converged = False``
+        (``residual`` and ``tolerance`` say by how much); a non-finite one ``diverged``
+        (its state is kept)."""
+        _, active = self._check(state, state, control, 1.0, active)
+        m = self.model
+        stats = StepStats.empty(m.n_scenes, m.n_vertices, self.load_steps)
+        for s in np.flatnonzero(active):
+            field = m.fields[s]
+            kin = control.kinematic[s]
+            x = state.x[s].copy()
+            x[kin] = control.targets[s][kin]
+            free_v = ~(m.fixed | kin)
+            free = np.repeat(free_v, 3)
+            scale = _load(m, control, s)
+            tol = self.tol * scale
+            stats.tolerance[s] = tol
+            result = None
+            with np.errstate(all="ignore"):
+                for k in range(1, self.load_steps + 1):
+                    load = (k / self.load_steps) * (control.external_forces[s] + m.mass[:, None] * m.gravity).reshape(-1)
+
+                    def potential(y, load=load):
+                        return field.energy(y) - float(load @ y.reshape(-1))
+
+                    def gradient(y, load=load):
+                        return -field.forces(y).reshape(-1) - load
+
+                    def hessian(y, project):
+                        return field.hessian(y, project=project)
+
+                    result = minimize(x, potential, gradient, hessian, free, tol, self.max_iter, self._submatrix[s])
+                    x = result.x
+                    stats.newton_iterations[s] += result.iterations
+            stats.residual[s] = result.residual
+            if not (result.finite and np.all(np.isfinite(x))):
+                stats.diverged[s] = True
+                stats.converged[s] = False
+                stats.messages[s] = "static solve went non-finite"
+                continue
+            stats.converged[s] = result.converged
+            if not result.converged:
+                stats.messages[s] = (f"static solve did not converge: residual {result.residual:.3e} N after "
+                                     f"{self.max_iter} iterations (target {tol:.3e} N); try more load_steps")
+            state.x[s] = x
+            state.v[s] = 0.0
+            f = field.forces(x) + control.external_forces[s] + m.mass[:, None] * m.gravity
+            stats.reaction[s] = np.where(free_v[:, None], 0.0, -f)
+        return stats
+
+
+def _load(model, control, s) -> float:
+    load = float(np.linalg.norm(model.gravity) * model.mass.sum() + np.abs(control.external_forces[s]).sum())
+    if load > 0:
+        return load
+    return model.materials[s].young_modulus * model.mesh.min_edge_length ** 2

@@ -1,0 +1,160 @@
+"""Model / State / Control / solvers: N scenes in one step behave like N independent Simulations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import heml_gym as hg
+from heml_gym import materials as M
+
+MESH = hg.box_mesh((0.06, 0.03, 0.008), (4, 2, 1))
+FIXED = np.flatnonzero(np.isclose(MESH.vertices[:, 0], 0.0))
+HELD = np.flatnonzero(np.isclose(MESH.vertices[:, 0], 0.06))
+STIFFNESS = [2e3, 3.5e3, 5e3, 2.7e3]  # Pa, one per scene
+DAMPING, DENSITY, GRAVITY = 5.0, 950.0, (0.0, 0.0, -9.81)
+
+
+def paths(n_scenes, steps, seed=0, scale=0.002):
+    rng = np.random.default_rng(seed)
+    return np.cumsum(rng.uniform(-1, 1, (n_scenes, steps, 3)) * scale, axis=1)  # m, per step
+
+
+def single_run(material, path, dt, integrator, substeps=None, supports=(), mesh=MESH):
+    """One scene stepped by Simulation, its held vertices driven along ``path``."""
+    sim = hg.Simulation(hg.HemlForce(mesh, material), DENSITY, gravity=GRAVITY, fixed=FIXED, damping=DAMPING,
+                        integrator=integrator, supports=supports)
+    sim.attach(HELD)
+    xs, forces = [], []
+    for offset in path:
+        sim.drive(HELD, mesh.vertices[HELD] + offset)
+        sim.step(dt, substeps=substeps)
+        xs.append(sim.x.copy())
+        forces.append(sim.reaction_forces(HELD).sum(axis=0))
+    return np.array(xs), np.array(forces)
+
+
+def batch_run(materials, scene_paths, dt, integrator, substeps=None, supports=()):
+    model = hg.Model(MESH, materials, density=DENSITY, gravity=GRAVITY, fixed=FIXED, damping=DAMPING,
+                     supports=supports)
+    solver = hg.ExplicitSolver(model) if integrator == "explicit" else hg.ImplicitSolver(model)
+    state, control = model.state(), model.control()
+    for s in range(model.n_scenes):
+        control.attach(s, HELD, state.x[s])
+    xs, forces = [], []
+    for k in range(scene_paths.shape[1]):
+        for s in range(model.n_scenes):
+            control.drive(s, HELD, MESH.vertices[HELD] + scene_paths[s, k])
+        kw = {"substeps": substeps} if substeps is not None else {}
+        stats = solver.step(state, state, control, dt, **kw)
+        assert not stats.diverged.any() and stats.converged.all()
+        xs.append(state.x.copy())
+        forces.append(stats.reaction[:, HELD].sum(axis=1))
+    return np.array(xs), np.array(forces)
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+def test_four_stiffnesses_in_one_batch_equal_four_simulations(integrator):
+    """N = 4 scenes with four E (the explicit path vectorised across scenes, the implicit
+    one scene by scene) against four single Simulations, to 1e-10 m over 20 steps."""
+    dt = 0.05 if integrator == "explicit" else 1 / 30
+    substeps = 40 if integrator == "explicit" else 1
+    materials = [M.NeoHookean(E=E, nu=0.45) for E in STIFFNESS]
+    p = paths(4, 20, seed=1)
+    xs, forces = batch_run(materials, p, dt, integrator, substeps)
+    for s, mat in enumerate(materials):
+        x_ref, f_ref = single_run(mat, p[s], dt, integrator, substeps)
+        assert np.abs(xs[:, s] - x_ref).max() < 1e-10  # m
+        np.testing.assert_allclose(forces[:, s], f_ref, rtol=1e-6, atol=1e-9)
+        assert np.abs(x_ref[-1] - MESH.vertices).max() > 1e-3  # the scenes really moved
+    assert np.abs(xs[-1, 0] - xs[-1, 2]).max() > 1e-4  # and differently
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+def test_mixed_laws_in_one_batch_equal_single_simulations(integrator):
+    """Every law of ALL_MATERIALS in one batch (the explicit path is then the general
+    HEML kernel, scenes over threads) equals each law simulated alone."""
+    materials = [law(E=E, nu=0.4) for law, E in zip(M.ALL_MATERIALS, [3e3, 4e3, 5e3, 3.5e3, 4.5e3])]
+    dt, substeps = (0.05, 60) if integrator == "explicit" else (1 / 30, 1)
+    p = paths(len(materials), 8, seed=2, scale=0.0015)
+    xs, _ = batch_run(materials, p, dt, integrator, substeps)
+    for s, mat in enumerate(materials):
+        x_ref, _ = single_run(mat, p[s], dt, integrator, substeps)
+        assert np.abs(xs[:, s] - x_ref).max() < 1e-10
+
+
+def test_inactive_and_diverged_scenes_keep_their_state():
+    model = hg.Model(MESH, [M.NeoHookean(E=E, nu=0.45) for E in (2e3, 3e3, 4e3)], density=DENSITY,
+                     gravity=GRAVITY, fixed=FIXED, damping=DAMPING)
+    solver = hg.ExplicitSolver(model)
+    state, control = model.state(), model.control()
+    state.x[1] *= 1.02  # scene 1 starts stretched: it moves
+    state.x[2, 5] = np.nan  # scene 2 is broken
+    before = state.copy()
+    stats = solver.step(state, state, control, 0.01, active=[False, True, True])
+    assert stats.diverged.tolist() == [False, False, True]
+    assert "non-finite" in stats.messages[2]
+    np.testing.assert_array_equal(state.x[0], before.x[0])  # inactive: untouched
+    np.testing.assert_array_equal(state.x[2], before.x[2])  # diverged: restored
+    assert np.abs(state.x[1] - before.x[1]).max() > 0
+
+
+def test_state_out_may_differ_from_state_in():
+    model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_scenes=2, density=DENSITY, fixed=FIXED)
+    solver = hg.ImplicitSolver(model)
+    a, control = model.state(), model.control()
+    b = model.state()
+    b.x += 1.0  # garbage that the step must overwrite
+    solver.step(a, b, control, 1 / 30)
+    np.testing.assert_array_equal(a.x, np.repeat(MESH.vertices[None], 2, axis=0))  # input untouched
+    assert b.x[:, :, 2].min() < -1e-3 and np.abs(b.x - a.x).max() < 0.05  # sagged from rest
+
+
+def test_per_scene_fields_share_the_rest_data():
+    model = hg.Model(MESH, [M.NeoHookean(E=2e3, nu=0.45), M.StVenantKirchhoff(E=3e3, nu=0.45)])
+    f0, f1 = model.fields
+    assert f0.rest is f1.rest  # one precomputation for every scene
+    assert f1.use_q and not f0.use_q
+    # and each field is the law's own: equal to a field built from scratch
+    x = MESH.vertices * [1.1, 0.95, 1.0]
+    fresh = hg.HemlForce(MESH, M.StVenantKirchhoff(E=3e3, nu=0.45))
+    np.testing.assert_array_equal(f1.forces(x), fresh.forces(x))
+
+
+def test_critical_step_scales_with_stiffness_without_a_new_eigensolve():
+    model = hg.Model(MESH, [M.NeoHookean(E=E, nu=0.45) for E in (1e3, 4e3)], density=DENSITY)
+    dt1, dt4 = model.critical_dt(0), model.critical_dt(1)
+    assert dt4 == pytest.approx(dt1 / 2, rel=1e-12)  # 1/sqrt(E)
+    assert model.critical_dt() == dt4
+    # against an independent eigensolve at E = 4 kPa
+    alone = hg.Simulation(hg.HemlForce(MESH, M.NeoHookean(E=4e3, nu=0.45)), DENSITY, integrator="explicit")
+    assert dt4 == pytest.approx(alone.critical_dt(), rel=1e-3)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(material=None), "material is required"),
+    (dict(n_scenes=0), "n_scenes"),
+    (dict(n_scenes=2.5), "n_scenes"),
+    (dict(density=-1.0), "density"),
+    (dict(field="springs"), "field must be one of"),
+    (dict(fixed=[0, 10_000]), "fixed vertex indices"),
+    (dict(gravity=(0, 0)), "gravity"),
+])
+def test_model_rejects_bad_input_naming_it(bad, match):
+    kw = dict(mesh=MESH, material=M.NeoHookean(E=3e3, nu=0.45))
+    kw.update(bad)
+    with pytest.raises((ValueError, TypeError), match=match):
+        hg.Model(**kw)
+
+
+def test_solvers_reject_a_state_of_the_wrong_size():
+    model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_scenes=2)
+    other = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_scenes=3)
+    with pytest.raises(ValueError, match="state_in"):
+        hg.ExplicitSolver(model).step(other.state(), other.state(), model.control(), 0.01)
+    with pytest.raises(ValueError, match="dt"):
+        hg.ImplicitSolver(model).step(model.state(), model.state(), model.control(), 0.0)
+    with pytest.raises(ValueError, match="safety"):
+        hg.ExplicitSolver(model, safety=1.5)
+    with pytest.raises(ValueError, match="no Hessian|newton_tol"):
+        hg.ImplicitSolver(model, newton_tol=float("nan"))
