@@ -3,6 +3,7 @@
     heml-gym train configs/tissue_ppo.yaml [--seed 1] [--resume CHECKPOINT] [--steps N]
     heml-gym eval runs/tissue_ppo-seed0 [--episodes 50]
     heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
+    heml-gym scene [ENV_ID] [--out scene.yaml]
     heml-gym bench [force_throughput op_counts simulation_speed ...]
 """
 
@@ -82,6 +83,28 @@ def _rollout(args) -> int:
     return 0
 
 
+def _scene(args) -> int:
+    import gymnasium as gym
+    import yaml
+
+    import heml_gym.envs  # noqa: F401
+    from heml_gym.envs import check_env_kwargs
+
+    if args.env not in gym.registry:
+        known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
+        raise ValueError(f"unknown environment {args.env!r} (known: {', '.join(known)})")
+    scene = check_env_kwargs(args.env, {}, "scene")
+    text = f"# the default scene of {args.env} (heml_gym.envs.Scene); pass an edited copy as\n" \
+           f"# gym.make({args.env!r}, scene='this.yaml') or a run config's env.kwargs.scene\n" \
+           + yaml.safe_dump(scene.to_dict(), sort_keys=False, default_flow_style=None)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"scene written to {args.out}")
+    else:
+        print(text, end="")
+    return 0
+
+
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
               "env_throughput", "scene_convergence"]
 
@@ -134,6 +157,11 @@ def main(argv=None) -> int:
     r.add_argument("--rrd", help="write the recording to this .rrd file")
     r.add_argument("--spawn", action="store_true", help="open the rerun viewer")
     r.set_defaults(func=_rollout)
+
+    s = sub.add_parser("scene", help="print (or write) an environment's default scene as YAML")
+    s.add_argument("env", nargs="?", default="heml_gym/TissueRetraction-v0")
+    s.add_argument("--out", help="write it to this file")
+    s.set_defaults(func=_scene)
 
     b = sub.add_parser("bench", help="run benchmark scripts (results go to docs/)")
     b.add_argument("names", nargs="*", help=f"any of {', '.join(BENCHMARKS)} (default: all)")

@@ -84,7 +84,7 @@ def evaluate_all(episodes: int, only) -> dict:
             policy, model, cfg = load_policy(folder)
             history = json.loads((folder / "evaluations.json").read_text())
             final = evaluate_policy(policy, cfg.env.id, episodes, seed=EVAL_SEED, obs_mode=cfg.env.obs_mode,
-                                    max_episode_steps=cfg.env.max_episode_steps)
+                                    env_kwargs=cfg.env.kwargs)
             steps90, wall90 = first_crossing(history, BAR_SUCCESS)
             out["runs"].append({
                 "config": config, "seed": seed, "env": cfg.env.id, "algorithm": cfg.algorithm.name,
@@ -97,10 +97,9 @@ def evaluate_all(episodes: int, only) -> dict:
             if cfg.env.id not in out["scripted"]:
                 import gymnasium as gym
 
-                name = gym.make(cfg.env.id).unwrapped.task.scene.name
+                scene = gym.make(cfg.env.id, **cfg.env.kwargs).unwrapped.scene
                 out["scripted"][cfg.env.id] = evaluate_policy(
-                    scripted_policy(name), cfg.env.id, episodes, seed=EVAL_SEED,
-                    max_episode_steps=cfg.env.max_episode_steps)
+                    scripted_policy(scene), cfg.env.id, episodes, seed=EVAL_SEED, env_kwargs=cfg.env.kwargs)
     return out
 
 

@@ -7,7 +7,7 @@ registered), with the default ``control_dt`` = 0.1 s simulated per env step:
    and the scripted fold-back policy (policy call included in the loop), numba threads
    = 1 and = all. One row also goes through ``gym.make`` (its checker wrappers).
 2. Time breakdown of the single env step (random actions, one thread): physics
-   (``task.sim.step``), exposure ray casting (``task._exposure``), gauge strain
+   (``task.solver.step``), exposure ray casting (``task._exposure``), gauge strain
    (``task._max_strain``) and the rest (grasp logic, observation, reward, gymnasium
    plumbing), by timing those task internals in place.
 3. Vector env (``gym.make_vec(..., vectorization_mode="vector_entry_point")``, i.e.
@@ -63,13 +63,7 @@ def _policy_for(env):
     """The scripted baseline for the env's scene family (None if there is none)."""
     from heml_gym.envs import scripted
 
-    name = env.unwrapped.task.scene.name
-    if hasattr(scripted, "scripted_policy"):
-        try:
-            return scripted.scripted_policy(name)
-        except ValueError:
-            return None
-    return scripted.FoldBackPolicy() if name == "TissueRetraction" else None
+    return scripted.scripted_policy(env.unwrapped.scene)
 
 
 # ----------------------------------------------------------------- single env
@@ -150,9 +144,9 @@ class _Timed:
 
 
 def _instrument(task):
-    """Time ``task.sim.step`` (physics), ``task._exposure``, ``task._max_strain`` in place."""
+    """Time ``task.solver.step`` (physics), ``task._exposure``, ``task._max_strain`` in place."""
     parts = {}
-    for name, owner, attr in (("physics", task.sim, "step"), ("exposure", task, "_exposure"),
+    for name, owner, attr in (("physics", task.solver, "step"), ("exposure", task, "_exposure"),
                               ("strain", task, "_max_strain")):
         if hasattr(owner, attr):
             timed = _Timed(getattr(owner, attr))
@@ -421,9 +415,10 @@ def _notes(results: dict) -> str:
         f"{rate('single', 1, 1, actions='scripted'):.0f} (scripted) env steps/s on one core against "
         f"{BAR_SINGLE:.0f}. Vectorised: {best:.0f} env steps/s in total at best, against {BAR_VECTOR:.0f} "
         f"({per_core:.0f} on one thread). The batched kernel runs the scenes in lockstep, vectorised across "
-        "scenes (heml_gym/kernels_batch.py), which is why a batch beats the single env per core; what is left "
-        f"is the sub-step count, set by the stiffest E the flap can draw ({flap.stiffness_range[1] / 1e3:g} kPa) "
-        f"at safety {flap.safety:g} (why that safety: docs/scene_convergence.md).\n"
+        "scenes (`lane_substeps` in heml_gym/solvers/kernels_explicit.py), which is why a batch beats the single "
+        "env per core; what is left is the sub-step count, set by the stiffest E the flap can draw "
+        f"({flap.physics.young_modulus[1] / 1e3:g} kPa) at safety {flap.physics.safety:g} (why that safety: "
+        "docs/scene_convergence.md).\n"
     )
 
 

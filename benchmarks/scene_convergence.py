@@ -2,7 +2,7 @@
 
 The rule (docs/scene_convergence.md): each scene uses the cheapest mesh, law and
 integrator whose exposure and grasp force stay within 5 % of a fine model of the same
-scene. Both scenes are Neo-Hookean HEML integrated explicitly (``BatchedSimulation``);
+scene. Both scenes are Neo-Hookean HEML integrated explicitly (``heml_gym.ExplicitSolver``);
 what varies is the mesh and the explicit sub-step (``safety``).
 
 Protocol, per scene and seed: the scripted baseline runs ``steps`` steps on the default
@@ -46,10 +46,8 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs import scripted  # noqa: E402
-from heml_gym.envs.core import TaskSettings  # noqa: E402
-from heml_gym.envs.organ_retraction import organ_scene  # noqa: E402
-from heml_gym.envs.retraction_env import RetractionEnv  # noqa: E402
-from heml_gym.envs.tissue_retraction import tissue_scene  # noqa: E402
+from heml_gym.envs.organ_retraction import OrganRetractionEnv, organ_scene  # noqa: E402
+from heml_gym.envs.tissue_retraction import TissueRetractionEnv, tissue_scene  # noqa: E402
 
 TOLERANCE = 0.05
 
@@ -62,9 +60,10 @@ class Model:
     scene_args: tuple
     safety: float
 
-    def env(self, scene_name: str) -> RetractionEnv:
+    def env(self, scene_name: str):
         build = tissue_scene if scene_name == "TissueRetraction" else organ_scene
-        return RetractionEnv(build(*self.scene_args), settings=TaskSettings(safety=self.safety))
+        cls = TissueRetractionEnv if scene_name == "TissueRetraction" else OrganRetractionEnv
+        return cls(scene=build(*self.scene_args), physics={"safety": self.safety})
 
 
 def tissue(cells, safety, mirrored=True) -> Model:

@@ -48,7 +48,8 @@ def slab_sim(linear_solver: str = "pcg", max_newton: int = 20, newton_tol: float
     fixed = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.0))
     sim = hg.Simulation(field, 1000.0, fixed=fixed, integrator="implicit", linear_solver=linear_solver,
                         max_newton=max_newton, newton_tol=newton_tol)
-    sim._pcg.factorization = factorization
+    if linear_solver == "pcg":
+        sim.solver.pcg[0].factorization = factorization
     return sim
 
 
@@ -83,13 +84,13 @@ def implicit_slab(label: str, reference: np.ndarray, repeats: int = REPEATS, **o
     pcg = sim.linear_solver == "pcg"
     return {
         "label": label, "linear_solver": sim.linear_solver,
-        "preconditioner": sim._pcg.factorization if pcg else None, "newton_tol": sim.newton_tol,
+        "preconditioner": sim.solver.pcg[0].factorization if pcg else None, "newton_tol": sim.newton_tol,
         "max_newton": sim.max_newton, "n_vertices": sim.mesh.n_vertices,
         "n_tets": sim.mesh.n_tets, "median_step_ms": 1e3 * float(np.median(times)),
         "run_median_step_ms": [1e3 * float(np.median(run[1])) for run in runs],
         "p90_step_ms": 1e3 * float(np.percentile(times, 90)),
         "mean_newton_iterations": float(np.mean(iterations)),
-        "factorizations": sim._pcg.factorizations if pcg else int(np.sum(iterations)),
+        "factorizations": sim.solver.pcg[0].factorizations if pcg else int(np.sum(iterations)),
         "largest_sag_m": sag,
         "max_deviation_m": float(np.linalg.norm(positions - reference, axis=2).max()),
     }

@@ -17,7 +17,7 @@ nu = 0.45, rho = 1000 kg/m^3, gravity, no damping):
 Each run is classified (criteria in docs/stability.md): stable, Newton stalled, inverted
 elements left inverted, energy blow-up, diverged (speed limit), diverged (non-finite),
 timeout. Every implicit run that fails or stalls is re-run once without Newton's early
-"stalled" exit (a diagnostic, see :func:`newton_without_stall_exit`). Writes
+"stalled" exit (a diagnostic: ``ImplicitSolver.stall_limit = None``). Writes
 docs/benchmarks/stability_map.json, .md and docs/img/stability_map.png,
 stability_map_newton.png, stability_map_time.png. The full run takes about 7 minutes on
 2 cores.
@@ -32,7 +32,6 @@ import inspect
 import math
 import sys
 import time
-import types
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
@@ -205,15 +204,16 @@ def make_scenarios(scale: float = 1.0) -> dict:
 
 # --------------------------------------------------------------------------- a run
 def run_case(scn: Scenario, field, field_name: str, integrator: str, mult: float, dt_c: float,
-             cap_s: float, newton=None) -> dict:
+             cap_s: float, stall_exit: bool = True) -> dict:
     """One simulation at ``dt = mult * dt_c``, ``substeps=1``; returns the classified record.
 
-    ``newton``: a replacement for ``Simulation._newton`` (the diagnostic re-run), else None.
+    ``stall_exit=False``: Newton without its early "stalled" exit (the diagnostic re-run,
+    ``ImplicitSolver.stall_limit = None``).
     """
     mesh = scn.mesh
     sim = hg.Simulation(field, RHO, gravity=GRAVITY, fixed=scn.fixed, integrator=integrator)
-    if newton is not None:
-        sim._newton = types.MethodType(newton, sim)
+    if not stall_exit and integrator == "implicit":
+        sim.solver.stall_limit = None
     dt = mult * dt_c
     n_steps = max(MIN_STEPS, math.ceil(scn.t_end / dt - 1e-9))
     weight = float(sim.mass.sum() * np.linalg.norm(GRAVITY))
@@ -329,27 +329,6 @@ def run_case(scn: Scenario, field, field_name: str, integrator: str, mult: float
     return rec
 
 
-def newton_without_stall_exit():
-    """``Simulation._newton`` with its early "stalled" exit removed, or None if it has none.
-
-    Diagnostic only. The shipped Newton also stops after 5 consecutive iterations whose
-    residual is above half the best residual seen so far (meant for the round-off floor);
-    far from convergence this accepts steps with residuals of the order of the body's
-    weight. Re-running the failed implicit cases without that exit (``max_newton`` still
-    applies) separates the solver's failures from the method's.
-    """
-    import textwrap
-
-    from heml_gym import simulation as sim_module
-
-    src = textwrap.dedent(inspect.getsource(sim_module.Simulation._newton))
-    if "stalled < 5" not in src:
-        return None
-    namespace = dict(vars(sim_module))
-    exec(compile(src.replace("stalled < 5", "True"), "<newton without stall exit>", "exec"), namespace)
-    return namespace["_newton"]
-
-
 def git_state() -> dict:
     """Commit of the working tree and whether heml_gym/ had uncommitted changes."""
     import subprocess
@@ -416,7 +395,7 @@ def main(argv=None):
     img_dir.mkdir(parents=True, exist_ok=True)
 
     warm_up(scenarios)
-    newton_diag = None if args.no_newton_diagnostic else newton_without_stall_exit()
+    newton_diag = not args.no_newton_diagnostic
     records, setups = [], []
     jobs = [(s, f) for s in scenarios for f in fields]
     bar = tqdm(total=len(jobs) * len(INTEGRATORS) * len(mults), desc="stability map", unit="run")
@@ -431,9 +410,9 @@ def main(argv=None):
             for mult in mults:
                 bar.set_postfix_str(f"{scn_name} {field_name} {integrator} {mult}x")
                 rec = run_case(scn, field, field_name, integrator, mult, dt_c, args.cap)
-                if newton_diag is not None and integrator == "implicit" and (
+                if newton_diag and integrator == "implicit" and (
                         rec["outcome"] != "stable" or rec["stalled_steps"]):
-                    d = run_case(scn, field, field_name, integrator, mult, dt_c, args.cap, newton_diag)
+                    d = run_case(scn, field, field_name, integrator, mult, dt_c, args.cap, stall_exit=False)
                     rec["without_stall_exit"] = {k: d.get(k) for k in (
                         "outcome", "detail", "steps_done", "stalled_steps", "max_residual_over_weight",
                         "max_newton_iterations", "newton_iterations", "max_energy_over_input",
@@ -448,7 +427,7 @@ def main(argv=None):
         "total_wall_s": total,
         "simulation_defaults": {k: v.default for k, v in inspect.signature(hg.Simulation).parameters.items()
                                 if k in ("safety", "newton_tol", "max_newton", "max_speed", "linear_solver")},
-        "newton_diagnostic": newton_diag is not None,
+        "newton_diagnostic": newton_diag,
         "material": {"E_Pa": E, "nu": NU, "density_kg_m3": RHO, "gravity_m_s2": GRAVITY.tolist(),
                      "damping": "none"},
         "criteria": {"blowup_factor": BLOWUP_FACTOR, "stall_factor_of_weight": STALL_FACTOR,
@@ -649,7 +628,7 @@ def write_report(data, res_dir: Path, img_dir: Path):
     if rerun:
         out.append("\n## Diagnostic: implicit runs re-run without Newton's early 'stalled' exit\n\n"
                    "Every implicit run that did not end stable, or had a stalled step, was run again with "
-                   "`Simulation._newton`'s exit after 5 non-halving iterations removed (`max_newton` = 20 "
+                   "the Newton solver's exit after 5 non-improving iterations removed (`stall_limit = None`) (`max_newton` = 20 "
                    "still applies). See docs/stability.md.\n\n")
         diag = []
         for r in rerun:

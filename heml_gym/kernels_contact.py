@@ -93,8 +93,19 @@ def project_out_of_supports(planes, grids, grid_values, px, py, pz, vx, vy, vz):
     grid's surface (``d < 0``) along the normalised distance gradient.
     """
     for k in range(planes.shape[0]):
-        px, py, pz, vx, vy, vz = plane_contact(planes[k, 0], planes[k, 1], planes[k, 2], planes[k, 3],
-                                               px, py, pz, vx, vy, vz)
+        nx = planes[k, 0]
+        ny = planes[k, 1]
+        nz = planes[k, 2]
+        d = nx * px + ny * py + nz * pz - planes[k, 3]
+        if d < 0.0:  # as plane_contact, with a branch: most vertices are not in contact
+            px -= d * nx
+            py -= d * ny
+            pz -= d * nz
+            vn = nx * vx + ny * vy + nz * vz
+            if vn < 0.0:
+                vx -= vn * nx
+                vy -= vn * ny
+                vz -= vn * nz
     for g in range(grids.shape[0]):
         d, gx, gy, gz = grid_signed_distance(grids, grid_values, g, px, py, pz)
         norm = math.sqrt(gx * gx + gy * gy + gz * gz)
@@ -110,6 +121,33 @@ def project_out_of_supports(planes, grids, grid_values, px, py, pz, vx, vy, vz):
             vy -= vn * gy
             vz -= vn * gz
     return px, py, pz, vx, vy, vz
+
+
+@nb.njit(cache=True, inline="always")
+def project_free_vertices(x, v, fixed, kinematic, planes, grids, grid_values):
+    """:func:`project_out_of_supports` for every vertex of ``x, v`` ``(n, 3)`` (m, m/s),
+    in place, except the ``fixed`` and ``kinematic`` ones (``(n,)`` masks). Plane by plane over the vertices
+    (the plane's constants stay in registers; the loop vectorises), then grid by grid."""
+    n = x.shape[0]
+    for k in range(planes.shape[0]):
+        nx = planes[k, 0]
+        ny = planes[k, 1]
+        nz = planes[k, 2]
+        c = planes[k, 3]
+        for i in range(n):
+            px, py, pz, vx, vy, vz = plane_contact(nx, ny, nz, c, x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2])
+            free = not (fixed[i] or kinematic[i])
+            x[i, 0] = px if free else x[i, 0]
+            x[i, 1] = py if free else x[i, 1]
+            x[i, 2] = pz if free else x[i, 2]
+            v[i, 0] = vx if free else v[i, 0]
+            v[i, 1] = vy if free else v[i, 1]
+            v[i, 2] = vz if free else v[i, 2]
+    if grids.shape[0]:
+        for i in range(n):
+            if not (fixed[i] or kinematic[i]):
+                x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2] = project_out_of_supports(
+                    planes[:0], grids, grid_values, x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2])
 
 
 @nb.njit(cache=True)

@@ -99,3 +99,41 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path):
     (run / "vecnormalize.pkl").unlink()
     with pytest.raises(FileNotFoundError, match="statistics"):
         load_policy(run / "model.zip")
+
+
+def test_a_config_with_env_kwargs_trains_evaluates_and_records_that_physics(tmp_path):
+    import yaml as _yaml
+
+    from heml_gym.agents.train import make_env
+
+    physics = {"material": "StVenantKirchhoff", "integrator": "implicit"}
+    config = tiny_config(tmp_path, algorithm__total_timesteps=256)
+    data = _yaml.safe_load(config.read_text())
+    data["env"]["kwargs"]["physics"] = physics
+    data["evaluation"] = {"every_steps": 256, "episodes": 1}
+    data["algorithm"]["hyperparameters"].update(n_steps=32, batch_size=64)
+    config.write_text(_yaml.safe_dump(data))
+    run = tmp_path / "run"
+    assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 0
+    recorded = _yaml.safe_load((run / "config.yaml").read_text())
+    assert recorded["env"]["kwargs"] == {"settings": {"max_steps": 20}, "physics": physics}
+    _, _, cfg = load_policy(run)
+    env = make_env(cfg)
+    task = env.unwrapped.task
+    assert type(task.solver).__name__ == "ImplicitSolver"
+    assert type(task.model.materials[0]).__name__ == "StVenantKirchhoff"
+    assert task.settings.max_steps == 20
+    rrd = tmp_path / "rollout.rrd"
+    assert main(["rollout", "--policy", str(run), "--episodes", "1", "--rrd", str(rrd)]) == 0
+    assert rrd.stat().st_size > 1000
+
+
+def test_bad_env_kwargs_fail_before_a_run_folder_is_made(tmp_path, capsys):
+    config = tiny_config(tmp_path)
+    text = config.read_text().replace("max_steps: 20", "max_steps: 20\n    physics: {integrator: rk4}")
+    config.write_text(text)
+    run = tmp_path / "run"
+    assert main(["train", str(config), "--run-dir", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "env.kwargs.physics.integrator" in err and "Traceback" not in err
+    assert not run.exists()

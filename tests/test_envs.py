@@ -8,7 +8,6 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
-from heml_gym.envs.core import TaskSettings
 from heml_gym.envs.organ_retraction import OrganRetractionEnv, OrganRetractionVectorEnv
 from heml_gym.envs.scripted import FoldBackPolicy, run_episodes, scripted_policy
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv

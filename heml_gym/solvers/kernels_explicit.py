@@ -1,7 +1,8 @@
 """Numba kernels of the explicit (symplectic Euler) solver.
 
-One update serves every path: :func:`integrate_dof` advances one coordinate of one
-vertex (free, held on a path, or fixed) and :func:`~heml_gym.kernels_contact.project_out_of_supports`
+One update serves every path: :func:`free_dof` and :func:`held_dof` advance one
+coordinate of one vertex (free, or held on a path or fixed; :func:`integrate_dof` picks
+one without a branch, for loops across scenes) and :func:`~heml_gym.kernels_contact.project_out_of_supports`
 keeps free vertices out of the supports; the kernels below differ only in how they get
 the elastic forces and how they lay out the scenes:
 
@@ -33,7 +34,7 @@ from ..forces.kernels_heml import (
     edge_vectors,
     heml_forces_chunk,
 )
-from ..kernels_contact import plane_contact, project_out_of_supports
+from ..kernels_contact import plane_contact, project_free_vertices, project_out_of_supports
 from ..laws import volumetric_gradient_fast
 
 #: scenes per block of :func:`lane_substeps` (SIMD lanes); its arrays end in it
@@ -47,18 +48,29 @@ def total_force(f, ext, m, g, alpha, v):
 
 
 @nb.njit(cache=True, inline="always")
-def integrate_dof(x, v, force, m, h, held, target):
-    """One symplectic Euler sub-step of length ``h`` (s) of one coordinate of one vertex.
+def free_dof(x, v, force, m, h):
+    """One symplectic Euler sub-step of length ``h`` (s) of one coordinate of a free vertex:
+    ``v += h force / m``, then ``x += h v``. Returns ``(x, v)``."""
+    vn = v + h * force / m
+    return x + h * vn, vn
 
-    A free vertex: ``v += h force / m``, then ``x += h v``. A held one (kinematic, or
-    fixed with ``target = x``) moves to ``target`` with the velocity that takes it there.
-    Returns ``(x, v, reaction)``: ``reaction`` (N) is the constraint force on a held
-    vertex (``m a`` minus every other force), 0 on a free one.
-    """
-    vn = (target - x) / h if held else v + h * force / m
-    reaction = m * (vn - v) / h - force if held else 0.0
-    xn = target if held else x + h * vn
-    return xn, vn, reaction
+
+@nb.njit(cache=True, inline="always")
+def held_dof(x, v, force, m, h, target):
+    """One sub-step of one coordinate of a held vertex (kinematic, or fixed with
+    ``target = x``): it moves to ``target`` with the velocity that takes it there.
+    Returns ``(x, v, reaction)``, the constraint force (N): ``m a`` minus every other force."""
+    vn = (target - x) / h
+    return target, vn, m * (vn - v) / h - force
+
+
+@nb.njit(cache=True, inline="always")
+def integrate_dof(x, v, force, m, h, held, target):
+    """:func:`free_dof` or :func:`held_dof` by ``held``, branch-free (for loops that
+    vectorise across scenes). Returns ``(x, v, reaction)`` (0 reaction on a free vertex)."""
+    xf, vf = free_dof(x, v, force, m, h)
+    xh, vh, rh = held_dof(x, v, force, m, h, target)
+    return (xh, vh, rh) if held else (xf, vf, 0.0)
 
 
 @nb.njit(cache=True, inline="always")
@@ -79,26 +91,28 @@ def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinema
     supports. ``reaction`` receives the constraint force (N) on held vertices, 0
     elsewhere. Returns the first vertex that went non-finite or too fast, or -1.
     """
-    bad = -1
+    n = x.shape[0]
     limit = max_speed * max_speed
-    for i in range(x.shape[0]):
+    bad = -1
+    for i in range(n):
         m = mass[i]
-        is_fixed = fixed[i]
-        held = is_fixed or kinematic[i]
-        for d in range(3):
-            xd = x[i, d]
-            vd = v[i, d]
-            target = xd if is_fixed else kin_from[i, d] + frac * (kin_to[i, d] - kin_from[i, d])
-            force = total_force(f[i, d], ext[i, d], m, gravity[d], alpha, vd)
-            xn, vn, r = integrate_dof(xd, vd, force, m, h, held, target)
-            x[i, d] = xn
-            v[i, d] = vn
-            reaction[i, d] = r
-        if not held:
-            x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2] = project_out_of_supports(
-                planes, grids, grid_values, x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2])
+        if fixed[i] or kinematic[i]:
+            for d in range(3):
+                xd = x[i, d]
+                target = xd if fixed[i] else kin_from[i, d] + frac * (kin_to[i, d] - kin_from[i, d])
+                force = total_force(f[i, d], ext[i, d], m, gravity[d], alpha, v[i, d])
+                x[i, d], v[i, d], reaction[i, d] = held_dof(xd, v[i, d], force, m, h, target)
+        else:
+            for d in range(3):
+                force = total_force(f[i, d], ext[i, d], m, gravity[d], alpha, v[i, d])
+                x[i, d], v[i, d] = free_dof(x[i, d], v[i, d], force, m, h)
+                reaction[i, d] = 0.0
+        # checked before the supports: their projection removes speed and moves a vertex by
+        # at most its depth, so it cannot turn a good vertex bad
         if bad < 0 and _flagged(v[i, 0], v[i, 1], v[i, 2], x[i, 0], x[i, 1], x[i, 2], limit):
             bad = i
+    if planes.shape[0] + grids.shape[0]:
+        project_free_vertices(x, v, fixed, kinematic, planes, grids, grid_values)
     return bad
 
 
