@@ -106,7 +106,7 @@ def _scene(args) -> int:
 
 
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
-              "env_throughput", "scene_convergence"]
+              "env_throughput", "scene_convergence", "reliability"]
 
 
 def _bench(args) -> int:
@@ -171,9 +171,14 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         return args.func(args)
-    except (FileNotFoundError, ValueError) as exc:  # ConfigError is a ValueError
-        print(f"heml-gym {args.command}: error: {exc}", file=sys.stderr)
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, ValueError) as exc:
+        # user errors (ConfigError and SpecError are ValueErrors): one line, no traceback
+        message = " ".join(str(exc).split())
+        print(f"heml-gym {args.command}: error: {message}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"heml-gym {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

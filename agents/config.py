@@ -166,12 +166,23 @@ def _check_hyperparameters(cfg: RunConfig) -> None:
 def load_config(path: str | Path, overrides: dict | None = None) -> RunConfig:
     """Read, type-check and validate a YAML run config; ``overrides`` (nested dict) win."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"config file {path} is a directory, not a YAML file")
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+        where = getattr(exc, "problem_mark", None)
+        at = f" (line {where.line + 1})" if where is not None else ""
+        raise ConfigError(f"config file {path} is not valid YAML{at}: {getattr(exc, 'problem', exc)}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"config file {path} is not a text file") from None
+    if data is None:
+        raise ConfigError(f"config file {path} is empty: give at least env and algorithm (see configs/quick.yaml)")
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping of keys (env, algorithm, evaluation, "
+                          f"checkpoint, seed), got a {type(data).__name__}")
     if overrides:
         data = _merge(data, overrides)
     data.setdefault("name", path.stem)

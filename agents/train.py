@@ -15,6 +15,7 @@ import json
 import math
 import pickle
 import re
+import shutil
 import time
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 import heml_gym.envs  # noqa: F401  (registers the environments)
 
 from .algorithms import ALGORITHMS, algorithm_class
-from .config import RunConfig, load_config
+from .config import ConfigError, RunConfig, load_config
 from .vec_env import RetractionSb3VecEnv
 
 NORMALIZER_FILE = "vecnormalize.pkl"
@@ -110,13 +111,31 @@ def normalizer_path(model_path: Path) -> Path:
 
 
 def load_normalizer(path: Path) -> VecNormalize:
-    """Observation statistics saved by :func:`train` (frozen: evaluation does not update them)."""
-    with open(path, "rb") as f:
-        normalizer = pickle.load(f)
+    """Observation statistics saved by :func:`train` (frozen: evaluation does not update
+    them). ``ConfigError`` if the file cannot be read or holds something else."""
+    try:
+        with open(path, "rb") as f:
+            normalizer = pickle.load(f)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError, TypeError, ValueError) as exc:
+        raise ConfigError(f"observation statistics {path} cannot be read ({type(exc).__name__}: {exc}): "
+                          "the file is damaged or not from heml-gym") from None
     if not isinstance(normalizer, VecNormalize):
-        raise ValueError(f"{path} does not hold VecNormalize statistics")
+        raise ConfigError(f"{path} does not hold VecNormalize statistics")
     normalizer.training = False
     return normalizer
+
+
+def check_normalizer(normalizer: VecNormalize, space, path: Path) -> None:
+    """``ConfigError`` unless the statistics were gathered on observations of ``space``."""
+    rms = normalizer.obs_rms
+    if isinstance(rms, dict):
+        shapes = {k: v.mean.shape for k, v in rms.items()}
+        expected = {k: s.shape for k, s in space.spaces.items()} if hasattr(space, "spaces") else None
+    else:
+        shapes, expected = rms.mean.shape, getattr(space, "shape", None)
+    if shapes != expected:
+        raise ConfigError(f"observation statistics {path} are of observations shaped {shapes}, "
+                          f"this environment's are {expected}")
 
 
 class SuccessEvalCallback(BaseCallback):
@@ -167,37 +186,96 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     return best
 
 
+def _checkpoint_config(checkpoint: Path) -> RunConfig | None:
+    """The run config beside a checkpoint (its run folder's ``config.yaml``), if any."""
+    folder = checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else checkpoint.parent
+    path = folder / "config.yaml"
+    return load_config(path) if path.is_file() else None
+
+
+def check_resume(cfg: RunConfig, resume: Path) -> None:
+    """Refuse to resume ``resume`` under ``cfg`` when they disagree on what a policy and
+    its observation statistics depend on: environment, observation mode, algorithm,
+    normalisation. Raises :class:`ConfigError` naming the difference."""
+    if resume.is_dir():
+        raise ConfigError(f"--resume {resume} is a directory: give a checkpoint .zip (e.g. {resume}/model.zip)")
+    if not resume.is_file():
+        raise ConfigError(f"--resume: checkpoint not found: {resume}")
+    try:
+        previous = _checkpoint_config(resume)
+    except ConfigError as exc:
+        raise ConfigError(f"--resume: the run config beside {resume} is invalid: {exc}") from None
+    if previous is not None:
+        for key, old, new in (("env.id", previous.env.id, cfg.env.id),
+                              ("env.obs_mode", previous.env.obs_mode, cfg.env.obs_mode),
+                              ("algorithm.name", previous.algorithm.name, cfg.algorithm.name),
+                              ("env.normalize_observations", previous.env.normalize_observations,
+                               cfg.env.normalize_observations)):
+            if old != new:
+                raise ConfigError(f"--resume: {resume} was trained with {key} = {old!r}, this config has {new!r}")
+    try:
+        algorithm_class(cfg.algorithm.name).load(resume, device="cpu")
+    except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a foreign or corrupt file
+        raise ConfigError(f"--resume: {resume} is not a readable {cfg.algorithm.name} checkpoint "
+                          f"({type(exc).__name__}: {exc})") from None
+
+
 def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
           progress_bar: bool = True) -> dict:
-    """Train per ``cfg`` into ``run_dir``; ``resume`` continues from a checkpoint's step count."""
+    """Train per ``cfg`` into ``run_dir``; ``resume`` continues from a checkpoint's step count.
+
+    Everything that can be checked is checked before the run folder is written
+    (``ConfigError`` names the problem): the resume target and its compatibility, the
+    environment, the algorithm's hyperparameters (by building the model), the
+    observation statistics. A start that fails leaves no new folder behind.
+    """
     run_dir = Path(run_dir) if run_dir is not None else run_directory(cfg)
-    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"run folder {run_dir} exists and is not a directory")
+    if resume is not None:
+        resume = Path(resume)
+        check_resume(cfg, resume)
     # the policies are small MLPs: one PyTorch thread is as fast as two (measured: a SAC
     # gradient step 17-20 ms on one thread, 17-31 ms on two) and leaves the cores to the
     # batched physics, which has its own Numba threads
     torch.set_num_threads(1)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     env = make_vec_env(cfg)
     env.seed(cfg.seed)
     algo = algorithm_class(cfg.algorithm.name)
-    if resume is not None:
-        resume = Path(resume)
-        if not resume.is_file():
-            raise FileNotFoundError(f"checkpoint not found: {resume}")
     if cfg.env.normalize_observations:
         if resume is not None:  # continue with the statistics the checkpoint was trained with
             stats = normalizer_path(resume)
             if not stats.is_file():
-                raise FileNotFoundError(f"observation statistics of {resume} not found: {stats}")
-            env = VecNormalize.load(str(stats), env)
+                raise ConfigError(f"--resume: observation statistics of {resume} not found: {stats}")
+            normalizer = load_normalizer(stats)
+            check_normalizer(normalizer, env.observation_space, stats)
+            normalizer.set_venv(env)
+            env = normalizer
             env.training = True
         else:
             env = VecNormalize(env, norm_obs=True, norm_reward=False)
-    if resume is not None:
-        model = algo.load(resume, env=env, device="cpu", tensorboard_log=str(run_dir / "tb"))
-    else:
-        model = algo(cfg.algorithm.policy, env, seed=cfg.seed, device="cpu", verbose=0,
-                     tensorboard_log=str(run_dir / "tb"), **cfg.algorithm.hyperparameters)
+    created = not run_dir.exists()
+    tb = str(run_dir / "tb")
+    try:
+        if resume is not None:
+            try:
+                model = algo.load(resume, env=env, device="cpu", tensorboard_log=tb)
+            except ValueError as exc:  # SB3: spaces that do not match
+                raise ConfigError(f"--resume: {resume} does not fit this environment: {exc}") from None
+        else:
+            try:
+                model = algo(cfg.algorithm.policy, env, seed=cfg.seed, device="cpu", verbose=0, tensorboard_log=tb,
+                             **cfg.algorithm.hyperparameters)
+            except (AssertionError, ValueError, TypeError) as exc:
+                raise ConfigError(f"config key 'algorithm.hyperparameters': {cfg.algorithm.name} rejects them: "
+                                  f"{exc or type(exc).__name__}") from None
+        (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    except BaseException:
+        env.close()
+        if created and run_dir.exists():
+            shutil.rmtree(run_dir)
+        raise
     evaluator = SuccessEvalCallback(cfg, run_dir / "evaluations.json")
     callbacks = [
         CheckpointCallback(save_freq=max(1, cfg.checkpoint.every_steps // cfg.env.num_envs),

@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+import itertools
+import os
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
 import numpy as np
 
 from .render import Camera, box, compose, icosphere, rasterize
 
+_COUNTER = itertools.count()
 TISSUE = np.array([235, 170, 150])  # fat: pale pink
 STRAINED = np.array([200, 30, 30])  # at the damage threshold
 TUMOUR = np.array([240, 220, 40])
@@ -52,18 +60,64 @@ class SceneRenderer:
             return rasterize((x, faces), colours, self.camera, self.width, self.height,
                              background=(25, 25, 35))
         if self._rr is None:
-            import rerun as rr
-
-            rr.init("heml_gym", spawn=True)
-            self._rr = rr
-        rr = self._rr
-        rr.set_time("step", sequence=int(self.task.steps[i]))
-        rr.log("scene", rr.Mesh3D(vertex_positions=x, triangle_indices=faces,
-                                  vertex_colors=_vertex_colours(len(x), faces, colours)))
+            self._rr, self._stream = open_viewer_stream()
+        rr, rec = self._rr, self._stream
+        rec.set_time("step", sequence=int(self.task.steps[i]))
+        rec.log("scene", rr.Mesh3D(vertex_positions=x, triangle_indices=faces,
+                                   vertex_colors=_vertex_colours(len(x), faces, colours)))
         return None
 
     def close(self):
+        if self._rr is not None:
+            self._stream.flush()
+            self._stream.disconnect()
         self._rr = None
+
+
+def viewer_executable() -> str | None:
+    """The rerun viewer installed with rerun-sdk (found without PATH: a venv that is not
+    activated works too), or None."""
+    import importlib.util
+    import shutil
+
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is not None and spec.submodule_search_locations:
+        for folder in spec.submodule_search_locations:
+            for name in ("rerun", "rerun.exe"):
+                candidate = Path(folder) / name
+                if candidate.is_file():
+                    return str(candidate)
+    return shutil.which("rerun")
+
+
+def has_display() -> bool:
+    """Whether a window can be opened: on Linux, an X11 or Wayland display is set."""
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def open_viewer_stream():
+    """``(rerun module, recording stream)`` for ``render_mode="human"``: a rerun viewer
+    spawned from the installed executable; without a display or a viewer, a recording
+    file in the temp folder instead, with a warning that says where and what to do."""
+    try:
+        import rerun as rr
+    except ImportError:
+        raise ImportError("render_mode='human' needs the rerun SDK: pip install 'heml-gym[viz]' "
+                          "(or use render_mode='rgb_array')") from None
+    rec = rr.RecordingStream("heml_gym")
+    exe = viewer_executable()
+    if has_display() and exe is not None:
+        rr.spawn(executable_path=exe, recording=rec, connect=True)
+        return rr, rec
+    path = Path(tempfile.gettempdir()) / f"heml_gym_human_{os.getpid()}_{next(_COUNTER)}.rrd"
+    rec.save(str(path))
+    why = "no display (DISPLAY and WAYLAND_DISPLAY are unset)" if exe is not None else "no rerun viewer installed"
+    warnings.warn(f"render_mode='human' found {why}: the scene is recorded to {path} instead; open it with "
+                  f"`rerun {path}` where a display is, or use render_mode='rgb_array' for images", RuntimeWarning,
+                  stacklevel=3)
+    return rr, rec
 
 
 def _vertex_colours(n: int, faces: np.ndarray, colours: np.ndarray) -> np.ndarray:

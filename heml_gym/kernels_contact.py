@@ -85,6 +85,26 @@ def plane_contact(nx, ny, nz, c, px, py, pz, vx, vy, vz):
 
 
 @nb.njit(cache=True, inline="always")
+def plane_axis(nx, ny, nz):
+    """The axis (0, 1, 2) a unit plane normal lies along, or -1 if it is oblique."""
+    if ny == 0.0 and nz == 0.0:
+        return 0
+    if nx == 0.0 and nz == 0.0:
+        return 1
+    if nx == 0.0 and ny == 0.0:
+        return 2
+    return -1
+
+
+@nb.njit(cache=True, inline="always")
+def axis_plane_contact(sign, c, p, v):
+    """:func:`plane_contact` for a plane whose normal is ``sign`` (+1 or -1) times a
+    coordinate axis, on that coordinate alone: ``(p, v)`` after the contact."""
+    d = min(sign * p - c, 0.0)
+    return p - d * sign, (sign * min(sign * v, 0.0) * -1.0 + v) if d < 0.0 else v
+
+
+@nb.njit(cache=True, inline="always")
 def project_out_of_supports(planes, grids, grid_values, px, py, pz, vx, vy, vz):
     """Position and velocity of a free vertex after its contacts with the supports.
 
@@ -134,6 +154,15 @@ def project_free_vertices(x, v, fixed, kinematic, planes, grids, grid_values):
         ny = planes[k, 1]
         nz = planes[k, 2]
         c = planes[k, 3]
+        axis = plane_axis(nx, ny, nz)
+        if axis >= 0:  # one coordinate to look at
+            sign = planes[k, axis]
+            for i in range(n):
+                p, w = axis_plane_contact(sign, c, x[i, axis], v[i, axis])
+                free = not (fixed[i] or kinematic[i])
+                x[i, axis] = p if free else x[i, axis]
+                v[i, axis] = w if free else v[i, axis]
+            continue
         for i in range(n):
             px, py, pz, vx, vy, vz = plane_contact(nx, ny, nz, c, x[i, 0], x[i, 1], x[i, 2], v[i, 0], v[i, 1], v[i, 2])
             free = not (fixed[i] or kinematic[i])

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["TetMesh", "box_mesh", "load_mesh", "save_mesh", "EDGE_PAIRS"]
+__all__ = ["TetMesh", "box_mesh", "load_mesh", "save_mesh", "EDGE_PAIRS", "MeshQualityWarning", "tet_quality"]
 
 #: The six local edges of a tet, in the order used by every kernel: (a, b) local indices.
 EDGE_PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)], dtype=np.int64)
@@ -27,6 +27,16 @@ FACE_LOCAL = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)], dtype=np.int
 
 # A tet whose |signed volume| is below this fraction of (mean edge length)^3 is degenerate.
 _DEGENERATE_RELATIVE_VOLUME = 1e-12
+#: Shape quality ``6 sqrt(2) V / L_rms^3`` (1 for a regular tet, 0 for a flat one) below
+#: which a tet is refused as a sliver: its stiffness and critical time step are off by
+#: orders of magnitude (gmsh's organs here have at least 0.2, boxes 0.5).
+MIN_QUALITY = 1e-4
+#: Below this quality a mesh is accepted with a :class:`MeshQualityWarning`.
+WARN_QUALITY = 1e-2
+
+
+class MeshQualityWarning(UserWarning):
+    """A mesh that works but will simulate badly (near-slivers, coincident vertices)."""
 
 
 def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -34,6 +44,15 @@ def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     x = vertices[tets]
     d = x[:, 1:, :] - x[:, :1, :]
     return np.einsum("ij,ij->i", d[:, 0], np.cross(d[:, 1], d[:, 2])) / 6.0
+
+
+def tet_quality(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Shape quality of each tet, ``6 sqrt(2) |V| / L_rms^3``: 1 for a regular tet, near 0
+    for a sliver (``L_rms`` the root-mean-square edge length)."""
+    x = vertices[tets]
+    lengths2 = ((x[:, EDGE_PAIRS[:, 1]] - x[:, EDGE_PAIRS[:, 0]]) ** 2).sum(axis=2)
+    l_rms = np.sqrt(lengths2.mean(axis=1))
+    return 6.0 * np.sqrt(2.0) * np.abs(signed_volumes(vertices, tets)) / l_rms ** 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,8 +72,16 @@ class TetMesh:
     Raises
     ------
     ValueError
-        On non-finite coordinates, out-of-range or repeated indices, zero-volume tets, or
-        (unless ``reorient``) inverted tets. The message names the offending tet or vertex.
+        On non-finite coordinates, out-of-range or repeated indices, zero-volume tets,
+        slivers (shape quality below :data:`MIN_QUALITY`, see :func:`tet_quality`), two
+        tets on the same four vertices, vertices no tet uses, or (unless ``reorient``)
+        inverted tets. The message names the offending tet or vertex.
+
+    Warns
+    -----
+    MeshQualityWarning
+        For tets of quality below :data:`WARN_QUALITY`, and for distinct vertices at the
+        same position (a crack, unless the mesh meant one).
     """
 
     vertices: np.ndarray
@@ -97,6 +124,36 @@ class TetMesh:
             raise ValueError(
                 f"tet {k} {t[k].tolist()} has zero volume ({vol[k]:.3e} m^3): degenerate element"
             )
+        quality = tet_quality(v, t)
+        worst = int(np.argmin(quality))
+        if quality[worst] < MIN_QUALITY:
+            raise ValueError(
+                f"tet {worst} {t[worst].tolist()} is a sliver (shape quality {quality[worst]:.2e}, "
+                f"at least {MIN_QUALITY:g} needed; a regular tet has 1): re-mesh it"
+            )
+        if quality[worst] < WARN_QUALITY:
+            import warnings
+
+            warnings.warn(f"{int((quality < WARN_QUALITY).sum())} tets of shape quality below {WARN_QUALITY:g} "
+                          f"(worst: tet {worst}, {quality[worst]:.2e}): expect a tiny explicit time step and "
+                          "poor accuracy there", MeshQualityWarning, stacklevel=3)
+        used = np.zeros(n, dtype=bool)
+        used[t.ravel()] = True
+        if not used.all():
+            k = int(np.flatnonzero(~used)[0])
+            raise ValueError(f"vertex {k} belongs to no tet ({int((~used).sum())} such vertices): remove them "
+                             "(heml_gym.load_mesh drops them when it reads a file)")
+        keys, counts = np.unique(st, axis=0, return_counts=True)
+        if np.any(counts > 1):
+            dup = keys[np.argmax(counts > 1)]
+            raise ValueError(f"two tets share the vertices {dup.tolist()}: a duplicated element")
+        _, first, counts = np.unique(v, axis=0, return_index=True, return_counts=True)
+        if np.any(counts > 1):
+            import warnings
+
+            warnings.warn(f"{int((counts > 1).sum())} vertex positions are shared by several vertices (e.g. "
+                          f"vertex {int(first[np.argmax(counts > 1)])}): the mesh is cut there (a crack)",
+                          MeshQualityWarning, stacklevel=3)
         inverted = np.flatnonzero(vol < 0)
         if inverted.size:
             if not self.reorient:

@@ -244,7 +244,24 @@ def vertex_mask(n: int, vertices, what: str) -> np.ndarray:
 
 def rest_max_eigenvalue(field: ForceField, mass: np.ndarray) -> float:
     """Largest eigenvalue (1/s^2) of ``M^-1/2 K M^-1/2`` at the rest shape, by Lanczos
-    iteration on central differences of the forces."""
+    iteration on central differences of the forces. Should ARPACK fail, the Gershgorin
+    bound of the rest Hessian (an upper bound: a smaller, safe step) is used instead."""
+    try:
+        return _lanczos_max_eigenvalue(field, mass)
+    except (spla.ArpackError, spla.ArpackNoConvergence):
+        return gershgorin_max_eigenvalue(field, mass)
+
+
+def gershgorin_max_eigenvalue(field: ForceField, mass: np.ndarray) -> float:
+    """An upper bound (1/s^2) of the largest eigenvalue of ``M^-1/2 K M^-1/2`` at rest:
+    the largest Gershgorin row sum of the scaled rest Hessian."""
+    k = field.hessian(field.mesh.vertices, project=False).tocsr()
+    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(mass, 3))
+    scaled = abs(k).multiply(inv_sqrt_m[:, None]).multiply(inv_sqrt_m[None, :]).tocsr()
+    return float(np.asarray(scaled.sum(axis=1)).max())
+
+
+def _lanczos_max_eigenvalue(field: ForceField, mass: np.ndarray) -> float:
     mesh = field.mesh
     x0 = np.array(mesh.vertices)
     n = mesh.n_vertices
@@ -258,5 +275,5 @@ def rest_max_eigenvalue(field: ForceField, mass: np.ndarray) -> float:
 
     op = spla.LinearOperator((3 * n, 3 * n), matvec=matvec, dtype=np.float64)
     v0 = np.random.default_rng(0).standard_normal(3 * n)
-    lam = spla.eigsh(op, k=1, which="LA", tol=1e-4, v0=v0, return_eigenvectors=False)[0]
+    lam = spla.eigsh(op, k=1, which="LA", tol=1e-4, v0=v0, maxiter=10 * 3 * n, return_eigenvectors=False)[0]
     return float(lam)

@@ -67,6 +67,9 @@ class Simulation:
     safety : float
         Explicit sub-steps are at most ``safety * critical_dt()`` seconds (see
         :class:`~heml_gym.solvers.ExplicitSolver`).
+    refinements : sequence of int
+        Explicit: a step that goes bad is taken again with this many times more sub-steps,
+        in turn, before :class:`SimulationDiverged` is raised (``()``: never).
     newton_tol, max_newton, linear_solver
         Implicit steps (see :class:`~heml_gym.solvers.ImplicitSolver`).
     max_speed : float
@@ -85,7 +88,7 @@ class Simulation:
     def __init__(self, field: ForceField, density: float, gravity=(0.0, 0.0, -9.81), fixed=None,
                  damping: Damping | float | None = None, integrator: str = "implicit", safety: float = 0.5,
                  newton_tol: float = 1e-3, max_newton: int = 20, max_speed: float = 1e3,
-                 linear_solver: str = "pcg", supports=(), strict: bool = False):
+                 linear_solver: str = "pcg", supports=(), strict: bool = False, refinements=(4, 16)):
         if not isinstance(field, ForceField):
             raise TypeError(f"field must be a heml_gym ForceField, got {type(field).__name__}")
         if integrator not in INTEGRATORS:
@@ -95,7 +98,7 @@ class Simulation:
         self.model = Model(field=field, density=density, fixed=fixed, gravity=gravity, damping=damping,
                            supports=supports)
         if integrator == "explicit":
-            self.solver = ExplicitSolver(self.model, safety=safety, max_speed=max_speed)
+            self.solver = ExplicitSolver(self.model, safety=safety, max_speed=max_speed, refinements=refinements)
         else:
             if not field.has_hessian:
                 raise ValueError(f"{type(field).__name__} has no Hessian: use integrator='explicit'")

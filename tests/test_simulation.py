@@ -58,7 +58,7 @@ def test_explicit_energy_drift_bounded_below_critical_step():
 
 
 def test_explicit_above_critical_step_diverges_and_keeps_state():
-    sim = cube_sim(gravity=(0, 0, 0))
+    sim = cube_sim(gravity=(0, 0, 0), refinements=())
     squeezed_start(sim, 0.01)
     dt = 1.5 * sim.critical_dt()
     with pytest.raises(hg.SimulationDiverged) as info:

@@ -57,7 +57,8 @@ class StepStats:
     ``reaction (N, n, 3)``: the force (N) the constraints exerted on fixed and held
     vertices, averaged over the step's sub-steps (the impulse over the step divided by
     its length); 0 on free vertices. Summed over a gripper's vertices it is the grasp
-    force on the tissue (the tissue pulls the gripper with ``-R``).
+    force on the tissue (the tissue pulls the gripper with ``-R``). ``refinement (N,)``:
+    the factor by which the explicit solver had to multiply a scene's sub-steps (1: none).
     """
 
     substeps: int
@@ -69,6 +70,7 @@ class StepStats:
     reaction: np.ndarray
     messages: list = field(default_factory=list)
     elements: list = field(default_factory=list)
+    refinement: np.ndarray | None = None
 
     @classmethod
     def empty(cls, n_scenes: int, n_vertices: int, substeps: int) -> "StepStats":
@@ -76,7 +78,8 @@ class StepStats:
                    residual=np.zeros(n_scenes), tolerance=np.full(n_scenes, math.inf),
                    converged=np.ones(n_scenes, dtype=bool), diverged=np.zeros(n_scenes, dtype=bool),
                    reaction=np.zeros((n_scenes, n_vertices, 3)), messages=[""] * n_scenes,
-                   elements=[np.zeros(0, dtype=np.int64) for _ in range(n_scenes)])
+                   elements=[np.zeros(0, dtype=np.int64) for _ in range(n_scenes)],
+                   refinement=np.ones(n_scenes, dtype=np.int64))
 
     def scene(self, s: int) -> SceneStepStats:
         """The report of scene ``s``."""

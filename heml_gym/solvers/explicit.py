@@ -47,14 +47,24 @@ class ExplicitSolver(Solver):
         (a 15 % squeeze of a Neo-Hookean cube diverged at 0.9), hence the default 0.5.
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
+    refinements : sequence of int
+        A scene that goes bad is stepped again from where it was with this many times
+        more sub-steps, each in turn, before it is reported diverged: the rest-state
+        critical step can be too long for strongly compressed or stretched tissue, whose
+        stiffness grows (``StepStats.refinement`` says which factor a scene needed). Only
+        those scenes pay for it. ``()``: no second try.
     """
 
-    def __init__(self, model: Model, safety: float = 0.5, max_speed: float = 1e3):
+    def __init__(self, model: Model, safety: float = 0.5, max_speed: float = 1e3, refinements=(4, 16)):
         super().__init__(model, max_speed)
         safety = float(safety)
         if not (0 < safety <= 1):
             raise ValueError(f"safety must lie in (0, 1], got {safety}")
+        refinements = tuple(int(r) for r in refinements)
+        if any(r < 2 for r in refinements):
+            raise ValueError(f"refinements must be integers >= 2, got {refinements}")
         self.safety = safety
+        self.refinements = refinements
 
     def substeps(self, dt: float, critical_dt: float | None = None) -> int:
         """Sub-steps for a step of ``dt`` s: enough to stay below ``safety`` times
@@ -85,7 +95,19 @@ class ExplicitSolver(Solver):
                 bad = self._fused(state, control, h, n_sub, x0, active, stats.reaction)
             else:
                 bad = self._stepwise(state, control, h, n_sub, x0, active, stats.reaction)
-        bad[~active] = -1
+            bad[~active] = -1
+            for factor in self.refinements:  # bad scenes again, from where they were, finer
+                retry = bad >= 0
+                if not retry.any():
+                    break
+                state.x[retry], state.v[retry] = x0[retry], v0[retry]
+                stats.reaction[retry] = 0.0
+                stats.refinement[retry] = factor
+                if heml and not one_big_mesh:
+                    again = self._fused(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction)
+                else:
+                    again = self._stepwise(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction)
+                bad[retry] = again[retry]
         inactive = ~active
         state.x[inactive] = x0[inactive]
         state.v[inactive] = v0[inactive]

@@ -1,8 +1,8 @@
 """Numba kernels of the explicit (symplectic Euler) solver.
 
-One update serves every path: :func:`free_dof` and :func:`held_dof` advance one
-coordinate of one vertex (free, or held on a path or fixed; :func:`integrate_dof` picks
-one without a branch, for loops across scenes) and :func:`~heml_gym.kernels_contact.project_out_of_supports`
+One update serves every path: :func:`integrate_dof` advances one coordinate of one
+vertex (free, or held on a path or fixed; :func:`free_dof` and :func:`held_dof` are it
+for a vertex whose kind is known) and :func:`~heml_gym.kernels_contact.project_out_of_supports`
 keeps free vertices out of the supports; the kernels below differ only in how they get
 the elastic forces and how they lay out the scenes:
 
@@ -34,7 +34,8 @@ from ..forces.kernels_heml import (
     edge_vectors,
     heml_forces_chunk,
 )
-from ..kernels_contact import plane_contact, project_free_vertices, project_out_of_supports
+from ..kernels_contact import (axis_plane_contact, plane_axis, plane_contact, project_free_vertices,
+                               project_out_of_supports)
 from ..laws import volumetric_gradient_fast
 
 #: scenes per block of :func:`lane_substeps` (SIMD lanes); its arrays end in it
@@ -48,29 +49,32 @@ def total_force(f, ext, m, g, alpha, v):
 
 
 @nb.njit(cache=True, inline="always")
+def integrate_dof(x, v, force, m, h, held, target):
+    """One symplectic Euler sub-step of length ``h`` (s) of one coordinate of one vertex.
+
+    A free vertex: ``v += h force / m``, then ``x += h v``. A held one (kinematic, or
+    fixed with ``target = x``) moves to ``target`` with the velocity that takes it there.
+    Returns ``(x, v, reaction)``: ``reaction`` (N) is the constraint force on a held
+    vertex (``m a`` minus every other force), 0 on a free one. Written with selects only,
+    so that a loop over scenes around it vectorises.
+    """
+    vn = (target - x) / h if held else v + h * force / m
+    reaction = m * (vn - v) / h - force if held else 0.0
+    xn = target if held else x + h * vn
+    return xn, vn, reaction
+
+
+@nb.njit(cache=True, inline="always")
 def free_dof(x, v, force, m, h):
-    """One symplectic Euler sub-step of length ``h`` (s) of one coordinate of a free vertex:
-    ``v += h force / m``, then ``x += h v``. Returns ``(x, v)``."""
-    vn = v + h * force / m
-    return x + h * vn, vn
+    """:func:`integrate_dof` of a free vertex: ``(x, v)``."""
+    xn, vn, _ = integrate_dof(x, v, force, m, h, False, 0.0)
+    return xn, vn
 
 
 @nb.njit(cache=True, inline="always")
 def held_dof(x, v, force, m, h, target):
-    """One sub-step of one coordinate of a held vertex (kinematic, or fixed with
-    ``target = x``): it moves to ``target`` with the velocity that takes it there.
-    Returns ``(x, v, reaction)``, the constraint force (N): ``m a`` minus every other force."""
-    vn = (target - x) / h
-    return target, vn, m * (vn - v) / h - force
-
-
-@nb.njit(cache=True, inline="always")
-def integrate_dof(x, v, force, m, h, held, target):
-    """:func:`free_dof` or :func:`held_dof` by ``held``, branch-free (for loops that
-    vectorise across scenes). Returns ``(x, v, reaction)`` (0 reaction on a free vertex)."""
-    xf, vf = free_dof(x, v, force, m, h)
-    xh, vh, rh = held_dof(x, v, force, m, h, target)
-    return (xh, vh, rh) if held else (xf, vf, 0.0)
+    """:func:`integrate_dof` of a held vertex: ``(x, v, reaction)``."""
+    return integrate_dof(x, v, force, m, h, True, target)
 
 
 @nb.njit(cache=True, inline="always")
@@ -262,6 +266,8 @@ def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
         p0b, p1b, psi1b, bad = p0[b], p1[b], psi1[b], bad_vertex[b]
         edges = np.empty((9, LANES))
         work = np.empty((12, LANES))
+        speed2 = np.empty(LANES)
+        size = np.empty(LANES)
         for q in range(lanes):
             bad[q] = -1
         rb[:] = 0.0
@@ -310,22 +316,47 @@ def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
                         fb[i3, d, q] += work[9 + d, q]
             for i in range(n):
                 mi = mass[i]
-                is_fixed = fixed[i]
+                if fixed[i]:
+                    for d in range(3):
+                        gd = gravity[d]
+                        for q in range(lanes):  # vectorises across scenes
+                            vq = vb[i, d, q]
+                            xq = xb[i, d, q]
+                            force = total_force(fb[i, d, q], eb[i, d, q], mi, gd, alpha, vq)
+                            xn, vn, r = held_dof(xq, vq, force, mi, h, xq)
+                            rb[i, d, q] += r * inv_n
+                            vb[i, d, q] = vn
+                    continue
+                speed2[:] = 0.0
+                size[:] = 0.0
                 for d in range(3):
                     gd = gravity[d]
                     for q in range(lanes):  # vectorises across scenes (selects, no branches)
                         vq = vb[i, d, q]
                         xq = xb[i, d, q]
                         force = total_force(fb[i, d, q], eb[i, d, q], mi, gd, alpha, vq)
-                        target = xq if is_fixed else start[i, d, q] + frac * (end[i, d, q] - start[i, d, q])
-                        xn, vn, r = integrate_dof(xq, vq, force, mi, h, is_fixed or held[i, q], target)
+                        target = start[i, d, q] + frac * (end[i, d, q] - start[i, d, q])
+                        xn, vn, r = integrate_dof(xq, vq, force, mi, h, held[i, q], target)
                         rb[i, d, q] += r * inv_n
                         xb[i, d, q] = xn
                         vb[i, d, q] = vn
-                if is_fixed:
-                    continue
+                        speed2[q] += vn * vn
+                        size[q] += abs(xn)
+                # flagged before the supports: their projection cannot turn a good vertex bad
+                for q in range(lanes):
+                    flagged = not (speed2[q] <= limit and size[q] < 1e300)
+                    bad[q] = i if (flagged and bad[q] < 0) else bad[q]
                 for s in range(n_planes):
                     nx, ny, nz, c = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3]
+                    axis = plane_axis(nx, ny, nz)
+                    if axis >= 0:  # an axis-aligned plane: one coordinate
+                        sign = planes[s, axis]
+                        for q in range(lanes):  # vectorises across scenes
+                            p, w = axis_plane_contact(sign, c, xb[i, axis, q], vb[i, axis, q])
+                            free = not held[i, q]
+                            xb[i, axis, q] = p if free else xb[i, axis, q]
+                            vb[i, axis, q] = w if free else vb[i, axis, q]
+                        continue
                     for q in range(lanes):  # vectorises across scenes
                         px, py, pz, vx, vy, vz = plane_contact(nx, ny, nz, c, xb[i, 0, q], xb[i, 1, q], xb[i, 2, q],
                                                                vb[i, 0, q], vb[i, 1, q], vb[i, 2, q])
@@ -342,8 +373,4 @@ def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
                             xb[i, 0, q], xb[i, 1, q], xb[i, 2, q], vb[i, 0, q], vb[i, 1, q], vb[i, 2, q] = \
                                 project_out_of_supports(planes[:0], grids, grid_values, xb[i, 0, q], xb[i, 1, q],
                                                         xb[i, 2, q], vb[i, 0, q], vb[i, 1, q], vb[i, 2, q])
-                for q in range(lanes):
-                    flagged = _flagged(vb[i, 0, q], vb[i, 1, q], vb[i, 2, q], xb[i, 0, q], xb[i, 1, q], xb[i, 2, q],
-                                       limit)
-                    bad[q] = i if (flagged and bad[q] < 0) else bad[q]
 

@@ -1,0 +1,355 @@
+"""Reliability soak: hostile-but-fair actions in both envs, and every bad input we know of.
+
+Part 1, the soak. For each environment (TissueRetraction, OrganRetraction), single and
+vector (N = 8), state and point-cloud observations, with these action streams:
+
+* ``random``: uniform in [-1, 1]^4;
+* ``extreme``: bang-bang, every component -1 or +1, times up to 50 (clipped by the env);
+* ``toggling``: random motion with the grasp command flipping every step;
+* ``out_of_range``: uniform in [-100, 100]^4 (clipped by the env);
+* ``push_release``: grasp, push the held edge towards the attachment for 7 steps, release
+  (the pattern that made the explicit physics diverge before the fix of issue 12);
+* ``scripted``: the fold-back baseline.
+
+It counts env steps, episodes, physics divergences (``info["simulation_diverged"]``),
+unconverged solves, non-finite values anywhere in an observation, reward or ``info``,
+observations outside their space, exceptions, and the slowest step.
+
+Part 2, bad inputs: every bad argument of the public entry points this project knows of,
+each run, and the error it gets (the first line of its message).
+
+Writes docs/benchmarks/reliability.{json,md} and docs/img/reliability.png.
+
+    python benchmarks/reliability.py [--steps 2000]      # env steps per env (split over the streams)
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import heml_gym.envs  # noqa: E402,F401  (registers the envs)
+from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
+from heml_gym.envs.scripted import scripted_policy  # noqa: E402
+
+ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
+STREAMS = ("random", "extreme", "toggling", "out_of_range", "push_release", "scripted")
+VECTOR_N = 8
+
+
+class Actions:
+    """An action stream for ``n`` scenes (``n = 0``: a single env's ``(4,)`` actions)."""
+
+    def __init__(self, kind: str, n: int, rng: np.random.Generator, scene):
+        self.kind, self.n, self.rng = kind, n, rng
+        self.k = np.zeros(max(n, 1), dtype=np.int64)
+        self.fold = [scripted_policy(scene) for _ in range(max(n, 1))]
+        self.toward_hinge = -scene.fold.direction
+
+    def reset(self, i: int) -> None:
+        self.k[i] = 0
+        self.fold[i].reset()
+
+    def one(self, i: int, state: np.ndarray) -> np.ndarray:
+        rng, kind, k = self.rng, self.kind, self.k[i]
+        self.k[i] += 1
+        if kind == "random":
+            return rng.uniform(-1, 1, 4)
+        if kind == "extreme":
+            return rng.choice([-1.0, 1.0], 4) * rng.uniform(1, 50)
+        if kind == "toggling":
+            return np.append(rng.uniform(-1, 1, 3), 1.0 if k % 2 == 0 else -1.0)
+        if kind == "out_of_range":
+            return rng.uniform(-100, 100, 4)
+        if kind == "push_release":
+            phase = k % 10
+            if phase < 8:
+                return np.array([self.toward_hinge if phase else 0.0, 0.0, 0.0, 1.0])
+            return np.array([0.0, 0.0, 0.0, -1.0])
+        return self.fold[i](state)
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        if self.n == 0:
+            return self.one(0, states).astype(np.float32)
+        return np.stack([self.one(i, states[i]) for i in range(self.n)]).astype(np.float32)
+
+
+def _all_finite(value) -> bool:
+    if isinstance(value, dict):
+        return all(_all_finite(v) for v in value.values())
+    arr = np.asarray(value)
+    if arr.dtype.kind in "biu":
+        return True
+    return bool(np.all(np.isfinite(arr.astype(np.float64))))
+
+
+def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: int) -> dict:
+    """``steps`` env steps of one configuration; counts of everything that went wrong."""
+    rng = np.random.default_rng(seed)
+    if vector:
+        env = gym.make_vec(env_id, num_envs=VECTOR_N, vectorization_mode="vector_entry_point", obs_mode=obs_mode)
+        space = env.unwrapped.single_observation_space
+    else:
+        env = gym.make(env_id, obs_mode=obs_mode)
+        space = env.observation_space
+    scene = env.unwrapped.scene
+    n = VECTOR_N if vector else 0
+    actions = Actions(kind, n, rng, scene)
+    rec = {"env": env_id, "mode": "vector" if vector else "single", "obs_mode": obs_mode, "actions": kind,
+           "env_steps": 0, "episodes": 0, "diverged": 0, "unconverged": 0, "non_finite": 0, "outside_space": 0,
+           "exceptions": 0, "exception_messages": [], "slowest_step_s": 0.0, "wall_s": 0.0}
+    t_start = time.perf_counter()
+    try:
+        obs, _ = env.reset(seed=seed)
+        calls = math.ceil(steps / max(n, 1))
+        for _ in range(calls):
+            states = obs["state"] if isinstance(obs, dict) else obs
+            a = actions(states)
+            t0 = time.perf_counter()
+            try:
+                obs, reward, terminated, truncated, info = env.step(a)
+            except Exception as exc:  # noqa: BLE001 - counted and reported, never hidden
+                rec["exceptions"] += 1
+                rec["exception_messages"].append(f"{type(exc).__name__}: {exc}"[:300])
+                obs, _ = env.reset()
+                continue
+            rec["slowest_step_s"] = max(rec["slowest_step_s"], time.perf_counter() - t0)
+            rec["env_steps"] += max(n, 1)
+            diverged = np.atleast_1d(info["simulation_diverged"])
+            converged = np.atleast_1d(info["solver_converged"])
+            rec["diverged"] += int(diverged.sum())
+            rec["unconverged"] += int((~converged).sum())
+            if not (_all_finite(obs) and _all_finite(reward) and _all_finite(info)):
+                rec["non_finite"] += 1
+            if vector:
+                batch = obs if not isinstance(obs, dict) else [{k: v[i] for k, v in obs.items()} for i in range(n)]
+                rec["outside_space"] += sum(not space.contains(o) for o in batch)
+                done = np.asarray(terminated) | np.asarray(truncated)
+                rec["episodes"] += int(done.sum())
+                for i in np.flatnonzero(done):
+                    actions.reset(i)
+            else:
+                rec["outside_space"] += not space.contains(obs)
+                if terminated or truncated:
+                    rec["episodes"] += 1
+                    actions.reset(0)
+                    obs, _ = env.reset()
+    except Exception as exc:  # noqa: BLE001
+        rec["exceptions"] += 1
+        rec["exception_messages"].append("".join(traceback.format_exception_only(type(exc), exc)).strip()[:300])
+    env.close()
+    rec["wall_s"] = time.perf_counter() - t_start
+    return rec
+
+
+# ------------------------------------------------------------------- bad inputs
+def bad_inputs() -> list[dict]:
+    """Each bad input, what was tried, and the error it got (first line)."""
+    import heml_gym as hg
+    from heml_gym import materials as M
+    from heml_gym.agents.vec_env import RetractionSb3VecEnv
+    from heml_gym.envs.core import RewardWeights, TaskSettings
+    from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
+
+    tissue = "heml_gym/TissueRetraction-v0"
+    box = hg.box_mesh((0.02, 0.02, 0.02), 2)
+
+    def env_step(action):
+        env = TissueRetractionEnv()
+        env.reset(seed=0)
+        env.step(action)
+
+    def sb3_step(action):
+        venv = RetractionSb3VecEnv(TissueRetractionVectorEnv(num_envs=2))
+        venv.reset()
+        venv.step(action)
+
+    def sim(**kw):
+        return hg.Simulation(hg.HemlForce(box, M.NeoHookean(E=5e3, nu=0.45)), 1000.0, **kw)
+
+    cases = [
+        ("env action NaN", lambda: env_step(np.array([np.nan, 0, 0, 0]))),
+        ("env action of shape (3,)", lambda: env_step(np.zeros(3))),
+        ("SB3 adapter action inf", lambda: sb3_step(np.array([[0, 0, 0, np.inf], [0, 0, 0, 0]]))),
+        ("SB3 adapter flat (4N,) action", lambda: sb3_step(np.zeros(8))),
+        ("settings control_dt = NaN", lambda: TaskSettings(control_dt=float("nan"))),
+        ("settings control_dt = 1e4 s", lambda: TaskSettings(control_dt=1e4)),
+        ("settings max_speed = 0", lambda: TaskSettings(max_speed=0.0)),
+        ("settings max_steps = 0", lambda: TaskSettings(max_steps=0)),
+        ("settings tear_strain = NaN", lambda: TaskSettings(tear_strain=float("nan"))),
+        ("weights exposure = NaN", lambda: RewardWeights(exposure=float("nan"))),
+        ("settings as a mapping with a typo", lambda: gym.make(tissue, settings={"max_stepz": 3})),
+        ("physics integrator 'rk4'", lambda: gym.make(tissue, physics={"integrator": "rk4"})),
+        ("physics safety 1.5", lambda: gym.make(tissue, physics={"safety": 1.5})),
+        ("physics material 'Rubber'", lambda: gym.make(tissue, physics={"material": "Rubber"})),
+        ("scene cells [0, 4, 1]", lambda: gym.make(tissue, scene={"tissue": {"cells": [0, 4, 1]}})),
+        ("scene file missing", lambda: gym.make(tissue, scene="no/such/scene.yaml")),
+        ("make_vec render_mode 'foo'", lambda: gym.make_vec(tissue, num_envs=2, vectorization_mode="vector_entry_point",
+                                                             render_mode="foo")),
+        ("make_vec num_envs 2.7", lambda: gym.make_vec(tissue, num_envs=2.7, vectorization_mode="vector_entry_point")),
+        ("mesh with a sliver", lambda: hg.TetMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.3, 0.3, 1e-7]], [[0, 1, 2, 3]])),
+        ("mesh with an unused vertex", lambda: hg.TetMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [5, 5, 5]],
+                                                          [[0, 1, 2, 3]])),
+        ("mesh with a duplicated tet", lambda: hg.TetMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                                                          [[0, 1, 2, 3], [0, 1, 2, 3]])),
+        ("Simulation density -1", lambda: hg.Simulation(hg.HemlForce(box, M.NeoHookean(E=5e3, nu=0.45)), -1.0)),
+        ("Simulation safety 2", lambda: sim(integrator="explicit", safety=2.0)),
+        ("Simulation step dt = 0", lambda: sim().step(0.0)),
+        ("Model n_scenes 0", lambda: hg.Model(box, M.NeoHookean(E=5e3, nu=0.45), n_scenes=0)),
+        ("material nu = 0.5", lambda: M.NeoHookean(E=5e3, nu=0.5)),
+    ]
+    out = []
+    for label, fn in cases:
+        try:
+            fn()
+            out.append({"input": label, "error": None, "message": "ACCEPTED (no error)"})
+        except Exception as exc:  # noqa: BLE001
+            out.append({"input": label, "error": type(exc).__name__, "message": str(exc).splitlines()[0][:200]})
+    out += cli_inputs()
+    return out
+
+
+def cli_inputs() -> list[dict]:
+    """Bad input to ``heml-gym train``: the exit code, whether a traceback showed, the
+    error line, and whether a run folder was left behind."""
+    import subprocess
+    import tempfile
+
+    root = Path(__file__).resolve().parents[1]
+    cases = [("config: a YAML list", "- 1\n- 2\n"), ("config: empty file", ""),
+             ("config: misspelt hyperparameter n_stepz",
+              (root / "configs" / "quick.yaml").read_text().replace("n_steps: 128", "n_stepz: 128")),
+             ("config: batch_size -3", (root / "configs" / "quick.yaml").read_text().replace("batch_size: 256",
+                                                                                             "batch_size: -3")),
+             ("config: env.kwargs.physics.integrator rk4",
+              (root / "configs" / "quick.yaml").read_text().replace("obs_mode: state",
+                                                                    "obs_mode: state\n  kwargs: {physics: {integrator: rk4}}"))]
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, text in cases + [("config: a directory", None)]:
+            path = Path(tmp) / "cfg.yaml"
+            if text is None:
+                path = Path(tmp)
+            else:
+                path.write_text(text)
+            run = Path(tmp) / "run"
+            p = subprocess.run([sys.executable, "-m", "heml_gym.agents.cli", "train", str(path), "--run-dir", str(run)],
+                               capture_output=True, text=True, timeout=300)
+            err = p.stderr.strip().splitlines()
+            out.append({"input": f"heml-gym train, {label}", "error": f"exit {p.returncode}",
+                        "message": (err[-1] if err else "")[:200] + ("; TRACEBACK" if "Traceback" in p.stderr else "")
+                        + ("; RUN FOLDER LEFT" if run.exists() else "")})
+    return out
+
+
+# ------------------------------------------------------------------------ report
+def chart(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(ENV_IDS), figsize=(11, 3.6), sharey=False)
+    for ax, env_id in zip(np.atleast_1d(axes), ENV_IDS):
+        rows = [r for r in results["soak"] if r["env"] == env_id]
+        labels = STREAMS
+        steps = [sum(r["env_steps"] for r in rows if r["actions"] == k) for k in labels]
+        bad = [sum(r["diverged"] + r["unconverged"] + r["non_finite"] + r["exceptions"] for r in rows
+                   if r["actions"] == k) for k in labels]
+        x = np.arange(len(labels))
+        ax.bar(x, steps, color="#4c78a8", label="env steps")
+        for xi, s, b in zip(x, steps, bad):
+            ax.text(xi, s, f"{b} failures", ha="center", va="bottom", fontsize=8, color="#c00" if b else "#333")
+        ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
+        ax.set_title(env_id.split("/")[-1], fontsize=10)
+        ax.set_ylabel("env steps")
+    fig.suptitle("Reliability soak: env steps per action stream, failures (divergence, unconverged, "
+                 "non-finite, exception) on top", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def report(results: dict) -> str:
+    m = results["machine"]
+    soak_rows = results["soak"]
+    total = sum(r["env_steps"] for r in soak_rows)
+    lines = [
+        "# Reliability soak",
+        "",
+        f"Generated by `benchmarks/reliability.py --steps {results['steps_per_env']}` in {results['wall_s']:.0f} s "
+        f"on {m['cpu']} ({m['cores']} cores), {m['date']}: {total:,} env steps in all.",
+        "",
+        "## Soak",
+        "",
+    ]
+    header = ["env", "mode", "obs", "actions", "env steps", "episodes", "diverged", "unconverged", "non-finite",
+              "outside space", "exceptions", "slowest step (ms)"]
+    rows = [[r["env"].split("/")[-1].replace("-v0", ""), r["mode"], r["obs_mode"], r["actions"], f"{r['env_steps']:,}",
+             r["episodes"], r["diverged"], r["unconverged"], r["non_finite"], r["outside_space"], r["exceptions"],
+             f"{1e3 * r['slowest_step_s']:.0f}"] for r in soak_rows]
+    lines.append(markdown_table(header, rows))
+    sums = {k: sum(r[k] for r in soak_rows) for k in ("diverged", "unconverged", "non_finite", "outside_space",
+                                                       "exceptions")}
+    lines.append("Totals: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sums.items()) + ".\n")
+    for r in soak_rows:
+        for msg in r["exception_messages"][:3]:
+            lines.append(f"- exception in {r['env']} {r['mode']} {r['actions']}: `{msg}`")
+    lines += ["", "## Bad inputs", "", "Each input below was tried; the error it got is its first line.", ""]
+    lines.append(markdown_table(["input", "error", "message"],
+                                [[b["input"], b["error"] or "**none**", b["message"].replace("|", "/")]
+                                 for b in results["bad_inputs"]]))
+    lines.append("Chart: [reliability.png](../img/reliability.png).")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=2000, help="env steps per environment, split over the "
+                    "configurations (default 2000, a smoke run; the published run used 1,000,000 in all)")
+    ap.add_argument("--envs", default=",".join(ENV_IDS), help="comma-separated environment ids")
+    ap.add_argument("--out", default=str(RESULTS), help="folder for reliability.json / .md")
+    args = ap.parse_args(argv)
+    if args.steps < 1:
+        ap.error("--steps must be >= 1")
+    env_ids = [e for e in args.envs.split(",") if e]
+    configs = [(e, v, o, k) for e in env_ids for v in (False, True) for o in ("state", "pointcloud") for k in STREAMS]
+    per_config = max(1, args.steps // (len(configs) // len(env_ids)))
+    t0 = time.perf_counter()
+    soak_rows = []
+    for i, (env_id, vector, obs_mode, kind) in enumerate(tqdm(configs, desc="reliability soak", unit="config")):
+        soak_rows.append(soak(env_id, vector, obs_mode, kind, per_config, seed=1000 + i))
+    results = {"machine": machine_info(), "steps_per_env": args.steps, "soak": soak_rows}
+    results["bad_inputs"] = bad_inputs()
+    results["wall_s"] = time.perf_counter() - t0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if out == RESULTS:
+        write_json("reliability.json", results)
+        IMAGES.mkdir(parents=True, exist_ok=True)
+        chart(results, IMAGES / "reliability.png")
+    else:
+        import json
+
+        (out / "reliability.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / "reliability.md").write_text(report(results))
+    failures = sum(r["diverged"] + r["unconverged"] + r["non_finite"] + r["outside_space"] + r["exceptions"]
+                   for r in soak_rows)
+    accepted = [b["input"] for b in results["bad_inputs"] if b["error"] is None or "TRACEBACK" in b["message"]
+                or "LEFT" in b["message"]]
+    print(f"{sum(r['env_steps'] for r in soak_rows):,} env steps: {failures} failures; "
+          f"{len(accepted)} bad inputs not handled cleanly {accepted}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
