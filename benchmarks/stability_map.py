@@ -40,6 +40,10 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import heml_gym as hg  # noqa: E402
+import warnings  # noqa: E402
+
+# the map counts unconverged steps itself; the facade's warnings would flood the log
+warnings.simplefilter("ignore", hg.NotConvergedWarning)
 from common import IMAGES, RESULTS, machine_info, markdown_table  # noqa: E402
 from heml_gym import materials as M  # noqa: E402
 from heml_gym.kinematics import volume_ratios  # noqa: E402
@@ -475,6 +479,35 @@ def _label(field_name: str) -> str:
     return SHORT_NAMES.get(field_name, field_name)
 
 
+def summary(data) -> str:
+    """The map in numbers, for docs/stability.md (generated: no hand-typed counts)."""
+    from collections import Counter
+
+    res = data["results"]
+    parts = []
+    for integ in data["integrators"]:
+        runs = [r for r in res if r["integrator"] == integ]
+        counts = Counter(r["outcome"] for r in runs)
+        names = {"stable": "stable", "newton_stalled": "Newton stalled", "inverted": "inverted",
+                 "energy_blowup": "energy blow-ups", "diverged_speed": "speed-limit divergences",
+                 "diverged_nonfinite": "non-finite", "timeout": "timeouts"}
+        text = ", ".join(f"{counts[k]} {v}" for k, v in names.items() if counts[k])
+        line = f"{integ.capitalize()} ({len(runs)} runs): {text}."
+        if integ == "implicit":
+            unconverged = [r for r in runs if r.get("stalled_steps")]
+            steps = sum(r["stalled_steps"] for r in unconverged)
+            total = sum(r.get("steps_done", 0) for r in runs)
+            worst = max((r.get("max_residual_over_weight", 0.0) for r in runs), default=0.0)
+            line += (f" **{len(unconverged)} implicit runs had steps whose Newton solve did not converge** "
+                     f"({steps} of {total} steps ended with a force residual above {STALL_FACTOR:g} x weight; the "
+                     f"worst {worst:.2g} x weight); they are counted under their final outcome above, and since "
+                     "issue 12 every such step is reported (`StepStats.converged`, a warning from `Simulation`).")
+        parts.append(line)
+    stable = sum(r["outcome"] == "stable" for r in res)
+    return (f"Of {len(res)} runs, **{stable} are stable**. " + " ".join(parts)
+            + " No run timed out." * (not any(r["outcome"] == "timeout" for r in res)))
+
+
 def write_report(data, res_dir: Path, img_dir: Path):
     import matplotlib
 
@@ -601,6 +634,7 @@ def write_report(data, res_dir: Path, img_dir: Path):
            "(count), BLOW = energy blow-up, DIV-v = SimulationDiverged (speed limit), NaN = "
            "SimulationDiverged (non-finite), slow = timeout. After a failure: the simulated time "
            "reached; * = some implicit steps also ended with a stalled Newton solve.\n"]
+    (res_dir / "stability_summary.md").write_text(summary(data) + "\n")
     for s in scen:
         sd = data["scenarios"][s]
         out.append(f"\n## {s}\n\n{sd['description']}; {sd['n_tets']} tets, {sd['n_vertices']} vertices.\n\n")

@@ -281,6 +281,7 @@ class BatchedRetraction:
             "simulation_diverged": diverged.copy(),
             "solver_converged": stats.converged.copy(),
             "newton_iterations": stats.newton_iterations.copy(),
+            "substep_refinement": stats.refinement.copy(),
         }
         return reward, terminated, truncated, info
 

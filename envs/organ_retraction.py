@@ -32,7 +32,8 @@ z 24-27 mm (above the grasp line); E uniform in 4-8 kPa.
 
 ## Arguments
 
-``obs_mode``, ``render_mode``, ``settings``, ``weights`` as for TissueRetraction;
+``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics`` as for
+TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
 ``mesh_size`` (m, gmsh element size; default 7 mm).
 
 ## Version History

@@ -331,6 +331,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
                 if key.startswith("reward_") or values.dtype == bool or key == "newton_iterations":
                     values[idx] = 0
             info["solver_converged"][idx] = True
+            info["substep_refinement"][idx] = 1
             info["exposure"][idx] = self.task.exposure[idx]
             info["lift"][idx] = self.task.lift[idx]
             info["max_strain"][idx] = self.task.max_strain[idx]

@@ -8,8 +8,9 @@ above, sits a tumour (a sphere of radius 8 mm, in the organ). The agent moves a 
 closes it on the flap's free edge, and retracts the flap to expose the tumour without
 over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 4-8 kPa per
 episode, nu = 0.45, 950 kg/m^3) under gravity, resting on the organ: a rigid,
-frictionless plane at z = 0 (``RetractionScene.floor``). It is integrated explicitly
-(symplectic Euler, sub-steps at 0.75 of the critical step). The mesh is 8 x 8 x 1 hex
+frictionless plane at z = 0 (``Scene.support``). It is integrated explicitly
+(symplectic Euler, sub-steps at 0.75 of the critical step; any law, field and
+integrator with ``physics=``). The mesh is 8 x 8 x 1 hex
 cells of 6 tets (384 tets), the cheapest model whose grasp force and exposure stay within
 5 % of a fine one (docs/scene_convergence.md).
 
@@ -17,7 +18,7 @@ cells of 6 tets (384 tets), the cheapest model whose grasp force and exposure st
 
 ``Box(-1, 1, (4,), float32)``: gripper velocity along x, y, z in units of
 ``max_speed`` (0.05 m/s), and a grasp command (> 0 close, <= 0 open). The jaws clamp the
-free edge along its top line (``RetractionScene.grasp_patch``: the vertices at x = 120 mm,
+free edge along its top line (``Scene.grasp``: the vertices at x = 120 mm,
 z = 8 mm, the same line of tissue on every mesh, free to rotate about it): closing with
 that line within ``grasp_reach`` (12 mm) holds all of it, opening releases it. Held tissue
 cannot be pressed below where it rests. Out-of-range actions are clipped; non-finite ones
@@ -66,19 +67,28 @@ fixes all of them.
 ## Episode End
 
 Terminated on success (exposure >= 0.8 with gauge strain below 0.5), when the tissue
-tears (gauge strain >= 1.0) or when the simulation diverges (``info["simulation_diverged"]``;
-the observation stays finite). Truncated after 100 steps (10 s).
+tears (gauge strain >= 1.0), or on a physics failure: a simulation that diverged
+(``info["simulation_diverged"]``) or a Newton solve that did not converge
+(``info["solver_converged"]`` False, implicit integrator); the reward is then 0 and the
+observation stays finite. Truncated after 100 steps (10 s). ``info["substep_refinement"]``
+says when the explicit solver had to re-take a step with finer sub-steps (strongly
+compressed tissue), ``info["newton_iterations"]`` what an implicit step cost.
 
 ## Arguments
 
 ``obs_mode`` ("state" | "pointcloud"), ``render_mode`` ("rgb_array" | "human"),
-``settings`` (:class:`~heml_gym.envs.core.TaskSettings`), ``weights``
-(:class:`~heml_gym.envs.core.RewardWeights`), ``cells`` (mesh cells along x, y, z).
+``settings`` (:class:`~heml_gym.envs.core.TaskSettings` or a mapping of its fields),
+``weights`` (:class:`~heml_gym.envs.core.RewardWeights` or a mapping), ``cells`` (mesh
+cells along x, y, z), ``scene`` (a :class:`~heml_gym.envs.scene.Scene`, a mapping of
+changes to this scene, or a scene YAML path: ``configs/scenes/tissue_retraction.yaml``),
+``physics`` (a mapping of :class:`~heml_gym.envs.scene.PhysicsSpec` fields: ``material``,
+``young_modulus``, ``poisson``, ``field``, ``integrator``, ``safety``, ``max_dt``, ...).
 
 ## Version History
 
 v0: initial version; the scene as described here since the convergence redesign (a line
-clamp, gravity on a support plane, gauge strain, step-mean grasp force).
+clamp, gravity on a support plane, gauge strain, step-mean grasp force); scenes as data
+and ``physics=`` since the one-simulator redesign (same dynamics for the default scene).
 """
 
 from __future__ import annotations

@@ -202,6 +202,11 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
     """
     edges = np.empty((9, BLOCK), dtype=x.dtype)
     work = np.empty((12, BLOCK), dtype=x.dtype)
+    # the law's constants in scalars: loaded from ``p`` inside the loop, LLVM cannot prove
+    # they do not alias the stores to ``work`` and leaves the loop scalar (on AVX2 CPUs:
+    # 18 against 40+ M tets/s)
+    p0 = p[0]
+    p1 = p[1]
     for start in range(lo, hi, BLOCK):
         size = min(BLOCK, hi - start)
         first = np.uint64(start)
@@ -214,7 +219,7 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
             good = jac >= SMALLEST_NORMAL and jac < math.inf
             n_bad += 0 if good else 1
-            g = volumetric_gradient_fast(law, p[0], p[1], jac if good else 1.0) * (1.0 / 6.0)
+            g = volumetric_gradient_fast(law, p0, p1, jac if good else 1.0) * (1.0 / 6.0)
             _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
                               c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
                               c3x * g, c3y * g, c3z * g,
