@@ -19,7 +19,7 @@ from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensor
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
 from .model import FORCE_FIELDS, Damping, Model
 from .simulation import NotConverged, NotConvergedWarning, Simulation
-from .solvers import ExplicitSolver, ImplicitSolver, SimulationDiverged, StaticSolver, StepStats
+from .solvers import ExplicitSolver, ImplicitSolver, QuasiNewtonSolver, SimulationDiverged, StaticSolver, StepStats
 from .state import State
 
 __version__ = "0.1.0"
@@ -30,6 +30,7 @@ __all__ = [
     "Control",
     "ExplicitSolver",
     "ImplicitSolver",
+    "QuasiNewtonSolver",
     "StaticSolver",
     "StepStats",
     "Simulation",

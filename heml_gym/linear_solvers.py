@@ -170,6 +170,11 @@ class EnvelopeCholesky:
         if bad >= 0:
             raise NotPositiveDefinite(f"pivot {bad} of {a.shape[0]} is not positive")
 
+    def kernel_args(self):
+        """``(first, ptr, values, inverse)``: the factor for
+        :func:`heml_gym.kernels_cholesky.envelope_precondition` inside other kernels."""
+        return self._first, self._ptr, self._values, self._inverse
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``A^-1 b`` (a new array)."""
         x = np.empty(len(b))

@@ -32,7 +32,8 @@ import numpy as np
 from .contact import Support
 from .forces.base import ForceField
 from .model import Damping, Model
-from .solvers import INTEGRATORS, ExplicitSolver, ImplicitSolver, SceneStepStats, SimulationDiverged, StaticSolver
+from .solvers import (INTEGRATORS, ExplicitSolver, ImplicitSolver, QuasiNewtonSolver, SceneStepStats,
+                      SimulationDiverged, StaticSolver)
 
 __all__ = ["Simulation", "SimulationDiverged", "Damping", "StepStats", "NotConverged", "NotConvergedWarning"]
 
@@ -63,7 +64,7 @@ class Simulation:
         Vertices that never move.
     damping : Damping, float or None
         Rayleigh damping; a float is taken as ``Damping(alpha=value)``.
-    integrator : {"implicit", "explicit"}
+    integrator : {"implicit", "explicit", "quasi_newton"}
     safety : float
         Explicit sub-steps are at most ``safety * critical_dt()`` seconds (see
         :class:`~heml_gym.solvers.ExplicitSolver`).
@@ -99,6 +100,9 @@ class Simulation:
                            supports=supports)
         if integrator == "explicit":
             self.solver = ExplicitSolver(self.model, safety=safety, max_speed=max_speed, refinements=refinements)
+        elif integrator == "quasi_newton":
+            self.solver = QuasiNewtonSolver(self.model, newton_tol=newton_tol, max_iter=max(max_newton, 50),
+                                            max_speed=max_speed)
         else:
             if not field.has_hessian:
                 raise ValueError(f"{type(field).__name__} has no Hessian: use integrator='explicit'")

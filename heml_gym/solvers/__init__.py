@@ -5,16 +5,18 @@ iterations, residual against tolerance, converged, diverged, constraint reaction
 
 * :class:`ExplicitSolver`: symplectic Euler, sub-stepped below the critical step;
 * :class:`ImplicitSolver`: backward Euler, Newton with the analytic Hessian;
+* :class:`QuasiNewtonSolver`: backward Euler, L-BFGS from a constant factorised Hessian;
 * :class:`StaticSolver`: equilibrium (``solve(state, control)``).
 """
 
 from .base import SceneStepStats, SimulationDiverged, Solver, StepStats
 from .explicit import ExplicitSolver
 from .implicit import ImplicitSolver
+from .quasi_newton import QuasiNewtonSolver
 from .statics import StaticSolver
 
 #: Solvers of a time step by name (``Simulation(integrator=...)``, the envs' physics).
-INTEGRATORS = {"explicit": ExplicitSolver, "implicit": ImplicitSolver}
+INTEGRATORS = {"explicit": ExplicitSolver, "implicit": ImplicitSolver, "quasi_newton": QuasiNewtonSolver}
 
-__all__ = ["ExplicitSolver", "ImplicitSolver", "StaticSolver", "StepStats", "SceneStepStats",
+__all__ = ["ExplicitSolver", "ImplicitSolver", "QuasiNewtonSolver", "StaticSolver", "StepStats", "SceneStepStats",
            "SimulationDiverged", "Solver", "INTEGRATORS"]
