@@ -5,7 +5,10 @@ from __future__ import annotations
 import importlib
 
 #: Algorithm name (``algorithm.name`` in a run config) -> "module:Class".
-ALGORITHMS = {"PPO": "stable_baselines3:PPO", "SAC": "stable_baselines3:SAC"}
+ALGORITHMS = {"PPO": "stable_baselines3:PPO", "SAC": "stable_baselines3:SAC",
+              "RLlibPPO": "ray.rllib.algorithms.ppo:PPO"}
+#: Which training path runs each algorithm: Stable-Baselines3, or RLlib (distributed sampling).
+BACKENDS = {"PPO": "sb3", "SAC": "sb3", "RLlibPPO": "rllib"}
 
 
 def algorithm_class(name: str):
@@ -13,4 +16,8 @@ def algorithm_class(name: str):
     if name not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {name!r} (known: {', '.join(ALGORITHMS)})")
     module, cls = ALGORITHMS[name].split(":")
-    return getattr(importlib.import_module(module), cls)
+    try:
+        return getattr(importlib.import_module(module), cls)
+    except ImportError:
+        hint = "pip install -e '.[ray]'" if BACKENDS[name] == "rllib" else "pip install -e '.[train]'"
+        raise ImportError(f"algorithm {name} needs {module.split('.')[0]}: {hint}") from None

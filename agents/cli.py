@@ -4,6 +4,7 @@
     heml-gym eval runs/tissue_ppo-seed0 [--episodes 50]
     heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
     heml-gym scene [ENV_ID] [--out scene.yaml]
+    heml-gym sweep CONFIG --seeds 0,1,2 [--set KEY=VALUE] [--grid KEY=V1,V2] [--address ADDR] [--out DIR]
     heml-gym bench [force_throughput op_counts simulation_speed ...]
 """
 
@@ -32,10 +33,12 @@ def _train(args) -> int:
     if args.steps is not None:
         overrides.setdefault("algorithm", {})["total_timesteps"] = args.steps
     cfg = load_config(args.config, overrides)
-    result = train(cfg, run_dir=args.run_dir, resume=args.resume, progress_bar=not args.no_progress)
+    result = train(cfg, run_dir=args.run_dir, resume=args.resume, progress_bar=not args.no_progress,
+                   address=args.address)
     ev = result["final_evaluation"]
     print(f"run folder: {result['run_dir']}  ({result['timesteps']} env steps)")
-    print(f"  model:       {Path(result['run_dir']) / 'model.zip'}")
+    model_file = "rllib_checkpoint/" if (Path(result["run_dir"]) / "rllib_checkpoint").is_dir() else "model.zip"
+    print(f"  model:       {Path(result['run_dir']) / model_file}")
     print(f"  checkpoints: {Path(result['run_dir']) / 'checkpoints'}")
     print(f"  tensorboard: tensorboard --logdir {Path(result['run_dir']) / 'tb'}")
     print(f"  evaluation:  success {ev['success_rate']:.0%} (95% CI {ev['success_ci95'][0]:.0%}-"
@@ -105,6 +108,34 @@ def _scene(args) -> int:
     return 0
 
 
+def _sweep(args) -> int:
+    from .sweep import parse_assignments, parse_grid, plan_sweep, run_sweep
+
+    try:
+        seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    except ValueError:
+        raise ValueError(f"--seeds must be comma-separated integers, got {args.seeds!r}") from None
+    out = Path(args.out) if args.out else Path("runs") / f"sweep-{Path(args.config).stem}"
+    if not (args.cpus_per_trial > 0):
+        raise ValueError(f"--cpus-per-trial must be > 0, got {args.cpus_per_trial}")
+    trials = plan_sweep(args.config, seeds, parse_assignments(args.set), parse_grid(args.grid), out)
+    summary = run_sweep(trials, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
+                        verbose=not args.quiet)
+    for row in summary["trials"]:
+        if row["status"] == "finished":
+            lo, hi = row["success_ci95"]
+            print(f"  {row['name']}: success {row['success_rate']:.0%} ({lo:.0%}-{hi:.0%}), "
+                  f"{row['env_steps']} env steps, {row['wall_s']:.0f} s on {row['hostname']} ({row['node_id'][:8]})")
+        else:
+            print(f"  {row['name']}: {row['status'].upper()}: {row.get('error', '')}")
+    for point in summary["grid_points"]:
+        if "iqm" in point:
+            print(f"  {point['grid_point'] or 'all'}: IQM success {point['iqm']:.0%} "
+                  f"(95% CI {point['iqm_ci95'][0]:.0%}-{point['iqm_ci95'][1]:.0%}) over seeds {point['seeds']}")
+    print(f"summary: {out / 'summary.json'}, chart: {out / 'summary.png'}")
+    return 0 if summary["failed"] == 0 else 1
+
+
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
               "env_throughput", "scene_convergence", "reliability"]
 
@@ -139,6 +170,7 @@ def main(argv=None) -> int:
     t.add_argument("--resume", help="checkpoint .zip to continue from (keeps its step count)")
     t.add_argument("--run-dir", help="run folder (default runs/<config name>-seed<seed>)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.add_argument("--address", help="Ray cluster for an RLlibPPO run ('auto', HOST:PORT; default: local Ray)")
     t.set_defaults(func=_train)
 
     e = sub.add_parser("eval", help="success rate of a trained model or run folder")
@@ -158,6 +190,19 @@ def main(argv=None) -> int:
     r.add_argument("--spawn", action="store_true", help="open the rerun viewer")
     r.set_defaults(func=_rollout)
 
+    w = sub.add_parser("sweep", help="seed / hyperparameter sweep on Ray Tune (local or a cluster)")
+    w.add_argument("config")
+    w.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
+    w.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key for every trial (dotted, e.g. algorithm.total_timesteps=2048)")
+    w.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",
+                   help="a config key to sweep over (dotted; one trial per value and seed)")
+    w.add_argument("--address", help="Ray cluster address ('auto', HOST:PORT); default: a local Ray instance")
+    w.add_argument("--out", help="sweep folder (default runs/sweep-<config name>)")
+    w.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves per trial (default 1)")
+    w.add_argument("--quiet", action="store_true", help="no Ray / Tune progress output")
+    w.set_defaults(func=_sweep)
+
     s = sub.add_parser("scene", help="print (or write) an environment's default scene as YAML")
     s.add_argument("env", nargs="?", default="heml_gym/TissueRetraction-v0")
     s.add_argument("--out", help="write it to this file")
@@ -171,7 +216,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         return args.func(args)
-    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, ValueError) as exc:
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, ValueError, ImportError) as exc:
         # user errors (ConfigError and SpecError are ValueErrors): one line, no traceback
         message = " ".join(str(exc).split())
         print(f"heml-gym {args.command}: error: {message}", file=sys.stderr)

@@ -36,7 +36,7 @@ import yaml
 
 from heml_gym.envs.retraction_env import OBS_MODES
 
-from .algorithms import ALGORITHMS, algorithm_class
+from .algorithms import ALGORITHMS, BACKENDS, algorithm_class
 
 
 class ConfigError(ValueError):
@@ -155,6 +155,11 @@ def _check_hyperparameters(cfg: RunConfig) -> None:
     """Every hyperparameter must be an argument of the algorithm's constructor."""
     import inspect
 
+    if BACKENDS[cfg.algorithm.name] == "rllib":
+        from .rllib_backend import check_rllib_hyperparameters
+
+        check_rllib_hyperparameters(cfg)
+        return
     cls = algorithm_class(cfg.algorithm.name)
     accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "policy", "env"}
     for key in cfg.algorithm.hyperparameters:

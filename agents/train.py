@@ -28,7 +28,7 @@ from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
 
-from .algorithms import ALGORITHMS, algorithm_class
+from .algorithms import ALGORITHMS, BACKENDS, algorithm_class
 from .config import ConfigError, RunConfig, load_config
 from .vec_env import RetractionSb3VecEnv
 
@@ -221,17 +221,24 @@ def check_resume(cfg: RunConfig, resume: Path) -> None:
 
 
 def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
-          progress_bar: bool = True) -> dict:
+          progress_bar: bool = True, address: str | None = None) -> dict:
     """Train per ``cfg`` into ``run_dir``; ``resume`` continues from a checkpoint's step count.
 
     Everything that can be checked is checked before the run folder is written
     (``ConfigError`` names the problem): the resume target and its compatibility, the
     environment, the algorithm's hyperparameters (by building the model), the
     observation statistics. A start that fails leaves no new folder behind.
+    ``address``: the Ray cluster of an ``RLlibPPO`` run (:mod:`heml_gym.agents.rllib_backend`).
     """
     run_dir = Path(run_dir) if run_dir is not None else run_directory(cfg)
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"run folder {run_dir} exists and is not a directory")
+    if BACKENDS[cfg.algorithm.name] == "rllib":
+        from .rllib_backend import train_rllib
+
+        return train_rllib(cfg, run_dir, resume=resume, address=address, progress_bar=progress_bar)
+    if address is not None:
+        raise ConfigError("--address is for RLlibPPO runs; spread SB3 runs over a cluster with heml-gym sweep")
     if resume is not None:
         resume = Path(resume)
         check_resume(cfg, resume)
@@ -299,6 +306,16 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
 def load_policy(path: str | Path):
     """``(policy, model, cfg)`` from a ``.zip`` or a run folder: ``policy`` maps a raw
     observation to an action, through the run's observation statistics when it has them."""
+    from .rllib_backend import is_rllib_run, load_rllib_policy
+
+    path = Path(path)
+    if is_rllib_run(path):
+        checkpoint = path / "rllib_checkpoint" if (path / "rllib_checkpoint").is_dir() else path
+        run_folder = path if (path / "rllib_checkpoint").is_dir() else (
+            path.parent.parent if path.parent.name == "checkpoints" else path.parent)
+        cfg_path = run_folder / "config.yaml"
+        cfg = load_config(cfg_path) if cfg_path.is_file() else None
+        return load_rllib_policy(checkpoint), None, cfg
     model, cfg, model_path = _load(path)
     stats = normalizer_path(model_path)
     if stats.is_file():
@@ -334,7 +351,7 @@ def _load(path: str | Path):
 
 
 def _algorithm_of(path: Path) -> str:
-    for name in ALGORITHMS:
+    for name in (n for n in ALGORITHMS if BACKENDS[n] == "sb3"):
         try:
             algorithm_class(name).load(path, device="cpu")
             return name

@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from heml_gym import Model
-from heml_gym.solvers import ExplicitSolver, ImplicitSolver
+from heml_gym.solvers import ExplicitSolver, ImplicitSolver, QuasiNewtonSolver
 
 from .geometry import fibonacci_sphere, nearest_triangle_distance, visible_fraction, visible_fraction_batch
 from .scene import BuiltScene
@@ -131,6 +131,10 @@ class BatchedRetraction:
             # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
             # scene and batch, so a scene's trajectory does not depend on its neighbours
             self.substeps = self.solver.substeps(dt, self.model.critical_dt(material=ph.material_for(E_high)))
+        elif ph.integrator == "quasi_newton":
+            self.solver = QuasiNewtonSolver(self.model, newton_tol=ph.newton_tol, max_iter=ph.max_newton,
+                                            reference=ph.material_for(math.sqrt(E_low * E_high)))
+            self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))
         else:
             self.solver = ImplicitSolver(self.model, newton_tol=ph.newton_tol, max_newton=ph.max_newton)
             self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))

@@ -101,9 +101,10 @@ class PhysicsSpec:
     ``damping`` (mass-proportional, 1/s), ``gravity`` (m/s^2); ``field``: ``"heml"``,
     ``"fem"``, ``"mass_tensor"`` (StVK only) or ``"mass_spring"``; ``integrator``:
     ``"explicit"`` (sub-steps at ``safety`` times the critical step of the stiffest
-    tissue the scene can draw) or ``"implicit"`` (backward Euler steps of at most
+    tissue the scene can draw), ``"implicit"`` (backward Euler steps of at most
     ``max_dt`` s, Newton to ``newton_tol`` of the weight in at most ``max_newton``
-    iterations).
+    iterations) or ``"quasi_newton"`` (the same steps by L-BFGS from a constant
+    factorised Hessian, at most ``max_newton`` iterations; HEML fields only).
     """
 
     material: str = "NeoHookean"
@@ -145,6 +146,8 @@ class PhysicsSpec:
             raise invalid(self, "field", "'mass_tensor' needs material 'StVenantKirchhoff'")
         if self.integrator not in INTEGRATORS:
             raise invalid(self, "integrator", f"must be one of {sorted(INTEGRATORS)}, got {self.integrator!r}")
+        if self.integrator == "quasi_newton" and self.field != "heml":
+            raise invalid(self, "integrator", "'quasi_newton' needs field 'heml'")
         if not (0 < self.safety <= 1):
             raise invalid(self, "safety", f"must lie in (0, 1], got {self.safety}")
         if not (math.isfinite(self.max_dt) and self.max_dt > 0):
