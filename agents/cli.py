@@ -40,7 +40,8 @@ def _train(args) -> int:
     model_file = "rllib_checkpoint/" if (Path(result["run_dir"]) / "rllib_checkpoint").is_dir() else "model.zip"
     print(f"  model:       {Path(result['run_dir']) / model_file}")
     print(f"  checkpoints: {Path(result['run_dir']) / 'checkpoints'}")
-    print(f"  tensorboard: tensorboard --logdir {Path(result['run_dir']) / 'tb'}")
+    if (Path(result["run_dir"]) / "tb").is_dir():
+        print(f"  tensorboard: tensorboard --logdir {Path(result['run_dir']) / 'tb'}")
     print(f"  evaluation:  success {ev['success_rate']:.0%} (95% CI {ev['success_ci95'][0]:.0%}-"
           f"{ev['success_ci95'][1]:.0%}) over {ev['episodes']} episodes")
     return 0
@@ -137,7 +138,7 @@ def _sweep(args) -> int:
 
 
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
-              "env_throughput", "scene_convergence", "reliability"]
+              "env_throughput", "scene_convergence", "reliability", "scale_out"]
 
 
 def _bench(args) -> int:

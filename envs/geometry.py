@@ -46,6 +46,8 @@ import math
 import numba as nb
 import numpy as np
 
+from heml_gym.kernels_contact import point_triangle_distance2
+
 __all__ = [
     "fibonacci_sphere",
     "visible_counts",
@@ -523,59 +525,11 @@ def visible_fraction_batch(points, eye, x, faces, eps: float = 1e-9, sphere_cent
 
 
 @nb.njit(cache=True)
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Squared distance (m^2) from p to the triangle abc (Ericson, *Real-Time Collision
-    Detection*, 5.1.5: Voronoi regions of the vertices, edges and face; a degenerate
-    triangle ends in one of its edges or vertices)."""
-    abx, aby, abz = bx - ax, by - ay, bz - az
-    acx, acy, acz = cx - ax, cy - ay, cz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1 = abx * apx + aby * apy + abz * apz
-    d2 = acx * apx + acy * apy + acz * apz
-    if d1 <= 0.0 and d2 <= 0.0:
-        qx, qy, qz = ax, ay, az
-    else:
-        bpx, bpy, bpz = px - bx, py - by, pz - bz
-        d3 = abx * bpx + aby * bpy + abz * bpz
-        d4 = acx * bpx + acy * bpy + acz * bpz
-        cpx, cpy, cpz = px - cx, py - cy, pz - cz
-        d5 = abx * cpx + aby * cpy + abz * cpz
-        d6 = acx * cpx + acy * cpy + acz * cpz
-        vc = d1 * d4 - d3 * d2
-        vb = d5 * d2 - d1 * d6
-        va = d3 * d6 - d5 * d4
-        if d3 >= 0.0 and d4 <= d3:
-            qx, qy, qz = bx, by, bz
-        elif d6 >= 0.0 and d5 <= d6:
-            qx, qy, qz = cx, cy, cz
-        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0 and d1 - d3 > 0.0:
-            t = d1 / (d1 - d3)
-            qx, qy, qz = ax + t * abx, ay + t * aby, az + t * abz
-        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0 and d2 - d6 > 0.0:
-            t = d2 / (d2 - d6)
-            qx, qy, qz = ax + t * acx, ay + t * acy, az + t * acz
-        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0 and (d4 - d3) + (d5 - d6) > 0.0:
-            t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-            qx, qy, qz = bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
-        elif va + vb + vc != 0.0:
-            denom = 1.0 / (va + vb + vc)
-            v = vb * denom
-            w = vc * denom
-            qx, qy, qz = ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
-        else:  # degenerate (all three points on a line through p's projection): nearest vertex
-            qx, qy, qz = ax, ay, az
-            for ux, uy, uz in ((bx, by, bz), (cx, cy, cz)):
-                if (px - ux) ** 2 + (py - uy) ** 2 + (pz - uz) ** 2 < (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2:
-                    qx, qy, qz = ux, uy, uz
-    return (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
-
-
-@nb.njit(cache=True)
 def _nearest_triangle_distance(p, x, faces):
     best = np.inf
     for k in range(faces.shape[0]):
         a, b, c = faces[k, 0], faces[k, 1], faces[k, 2]
-        d2 = _closest_on_triangle(p[0], p[1], p[2], x[a, 0], x[a, 1], x[a, 2],
+        d2 = point_triangle_distance2(p[0], p[1], p[2], x[a, 0], x[a, 1], x[a, 2],
                                   x[b, 0], x[b, 1], x[b, 2], x[c, 0], x[c, 1], x[c, 2])
         best = min(best, d2)
     return math.sqrt(best)

@@ -216,32 +216,23 @@ def signed_distances(points, planes, grids, grid_values, distance, normal):
 
 
 # --------------------------------------------------------- building a distance grid
-@nb.njit(cache=True, inline="always")
-def _point_triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Squared distance (m^2) from a point to a triangle (Ericson, Real-Time Collision
-    Detection, 5.1.5)."""
-    abx = bx - ax
-    aby = by - ay
-    abz = bz - az
-    acx = cx - ax
-    acy = cy - ay
-    acz = cz - az
-    apx = px - ax
-    apy = py - ay
-    apz = pz - az
+@nb.njit(cache=True)
+def point_triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Squared distance (m^2) from p to the triangle abc (Ericson, *Real-Time Collision
+    Detection*, 5.1.5: Voronoi regions of the vertices, edges and face; a degenerate
+    triangle ends in one of its edges or vertices)."""
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
     d1 = abx * apx + aby * apy + abz * apz
     d2 = acx * apx + acy * apy + acz * apz
     if d1 <= 0.0 and d2 <= 0.0:
         qx, qy, qz = ax, ay, az
     else:
-        bpx = px - bx
-        bpy = py - by
-        bpz = pz - bz
+        bpx, bpy, bpz = px - bx, py - by, pz - bz
         d3 = abx * bpx + aby * bpy + abz * bpz
         d4 = acx * bpx + acy * bpy + acz * bpz
-        cpx = px - cx
-        cpy = py - cy
-        cpz = pz - cz
+        cpx, cpy, cpz = px - cx, py - cy, pz - cz
         d5 = abx * cpx + aby * cpy + abz * cpz
         d6 = acx * cpx + acy * cpy + acz * cpz
         vc = d1 * d4 - d3 * d2
@@ -251,26 +242,26 @@ def _point_triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
             qx, qy, qz = bx, by, bz
         elif d6 >= 0.0 and d5 <= d6:
             qx, qy, qz = cx, cy, cz
-        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0 and d1 - d3 > 0.0:
             t = d1 / (d1 - d3)
             qx, qy, qz = ax + t * abx, ay + t * aby, az + t * abz
-        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0 and d2 - d6 > 0.0:
             t = d2 / (d2 - d6)
             qx, qy, qz = ax + t * acx, ay + t * acy, az + t * acz
-        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0 and (d4 - d3) + (d5 - d6) > 0.0:
             t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
             qx, qy, qz = bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
-        else:
+        elif va + vb + vc != 0.0:
             denom = 1.0 / (va + vb + vc)
             v = vb * denom
             w = vc * denom
-            qx = ax + abx * v + acx * w
-            qy = ay + aby * v + acy * w
-            qz = az + abz * v + acz * w
-    dx = px - qx
-    dy = py - qy
-    dz = pz - qz
-    return dx * dx + dy * dy + dz * dz
+            qx, qy, qz = ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+        else:  # degenerate (all three points on a line through p's projection): nearest vertex
+            qx, qy, qz = ax, ay, az
+            for ux, uy, uz in ((bx, by, bz), (cx, cy, cz)):
+                if (px - ux) ** 2 + (py - uy) ** 2 + (pz - uz) ** 2 < (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2:
+                    qx, qy, qz = ux, uy, uz
+    return (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
 
 
 @nb.njit(cache=True)
@@ -297,7 +288,7 @@ def band_distances(vertices, faces, origin, h, dims, band, out):
                 py = origin[1] + j * h
                 for k in range(lo_z, hi_z + 1):
                     pz = origin[2] + k * h
-                    d2 = _point_triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
+                    d2 = point_triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
                     if d2 < out[i, j, k] * out[i, j, k]:
                         out[i, j, k] = math.sqrt(d2)
 

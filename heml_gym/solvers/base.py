@@ -136,6 +136,15 @@ class Solver:
             state_out.assign(state_in)
         return dt, active
 
+    def force_scale(self, scene: int, control: Control) -> float:
+        """Force (N) the solver tolerances of ``scene`` are relative to: its weight plus its
+        external load, else (weightless and unloaded) ``E h_min^2``."""
+        m = self.model
+        load = float(np.linalg.norm(m.gravity) * m.mass.sum() + np.abs(control.external_forces[scene]).sum())
+        if load > 0:
+            return load
+        return m.materials[scene].young_modulus * m.mesh.min_edge_length ** 2
+
     def divergence(self, x: np.ndarray, v: np.ndarray) -> tuple[str, np.ndarray]:
         """Why one scene's ``x, v`` ``(n, 3)`` counts as diverged, and the tets touching
         its bad vertices ("" and none if it does not)."""

@@ -99,15 +99,6 @@ class ImplicitSolver(Solver):
         self._add_diagonal = DiagonalAdd()
         self._add_blocks = DiagonalBlockAdd()
 
-    def force_scale(self, scene: int, control: Control) -> float:
-        """Force (N) the Newton tolerance of ``scene`` is relative to: its weight plus its
-        external load, else ``E h_min^2``."""
-        m = self.model
-        load = float(np.linalg.norm(m.gravity) * m.mass.sum() + np.abs(control.external_forces[scene]).sum())
-        if load > 0:
-            return load
-        return m.materials[scene].young_modulus * m.mesh.min_edge_length ** 2
-
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal

@@ -68,7 +68,7 @@ class StaticSolver(Solver):
             x[kin] = control.targets[s][kin]
             free_v = ~(m.fixed | kin)
             free = np.repeat(free_v, 3)
-            scale = _load(m, control, s)
+            scale = self.force_scale(s, control)
             tol = self.tol * scale
             stats.tolerance[s] = tol
             result = None
@@ -104,9 +104,3 @@ class StaticSolver(Solver):
             stats.reaction[s] = np.where(free_v[:, None], 0.0, -f)
         return stats
 
-
-def _load(model, control, s) -> float:
-    load = float(np.linalg.norm(model.gravity) * model.mass.sum() + np.abs(control.external_forces[s]).sum())
-    if load > 0:
-        return load
-    return model.materials[s].young_modulus * model.mesh.min_edge_length ** 2
