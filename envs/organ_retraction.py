@@ -88,8 +88,9 @@ class OrganRetractionEnv(RetractionEnv):
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, mesh_size=None,
-                 scene=None, physics=None):
-        super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, mesh_size=mesh_size)
+                 scene=None, physics=None, camera=None):
+        super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
+                         mesh_size=mesh_size)
 
 
 class OrganRetractionVectorEnv(RetractionVectorEnv):
@@ -98,6 +99,6 @@ class OrganRetractionVectorEnv(RetractionVectorEnv):
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
-                 render_mode=None, mesh_size=None, scene=None, physics=None):
+                 render_mode=None, mesh_size=None, scene=None, physics=None, camera=None):
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
-                         physics=physics, mesh_size=mesh_size)
+                         physics=physics, camera=camera, mesh_size=mesh_size)

@@ -99,23 +99,25 @@ class Camera:
         return uv, p[:, 2]
 
 
-@nb.njit(cache=True)
-def _rasterize_kernel(x, faces, colours, eye, rot, focal, cx, cy, near, ambient, image, inv_depth):
-    """Draw triangles ``faces`` of ``x`` with per-face ``colours`` (f, 3) in [0, 1] into ``image``.
-
-    ``image`` (H, W, 3) uint8 holds the background and ``inv_depth`` (H, W) zeros on
-    entry (``1/z_cam`` of the nearest surface so far, 0 = empty).
-    """
+@nb.njit(cache=True, inline="always")
+def draw_triangles(x, faces, colours, ox, oy, oz, seg_id, eye, rot, focal, cx, cy, near, ambient, image,
+                   inv_depth, seg):
+    """Draw triangles ``faces`` of ``x + (ox, oy, oz)`` (m) with per-face ``colours`` (f, 3)
+    in [0, 1] (one row: every face that colour) into ``image`` (H, W, 3) uint8, keeping
+    the nearest surface in ``inv_depth`` (H, W) (``1/z_cam``, 0 = empty) and writing
+    ``seg_id`` into ``seg`` (H, W) where drawn (``seg`` may be empty: not written)."""
     height = image.shape[0]
     width = image.shape[1]
+    write_seg = seg.shape[0] == height
+    one_colour = colours.shape[0] == 1
     cam = np.empty((3, 3))  # rows: vertices in camera coordinates
     for t in range(faces.shape[0]):
         behind = False
         for c in range(3):
             vi = faces[t, c]
-            wx = x[vi, 0] - eye[0]
-            wy = x[vi, 1] - eye[1]
-            wz = x[vi, 2] - eye[2]
+            wx = x[vi, 0] + ox - eye[0]
+            wy = x[vi, 1] + oy - eye[1]
+            wz = x[vi, 2] + oz - eye[2]
             for r in range(3):
                 cam[c, r] = rot[r, 0] * wx + rot[r, 1] * wy + rot[r, 2] * wz
             if not (cam[c, 2] > near):
@@ -136,9 +138,10 @@ def _rasterize_kernel(x, faces, colours, eye, rot, focal, cx, cy, near, ambient,
         if not (nn > 0.0):
             continue  # degenerate triangle
         shade = ambient + (1.0 - ambient) * abs(nz) / nn  # |n . optical axis|
-        cr = min(255, int(colours[t, 0] * shade * 255.0 + 0.5))
-        cg = min(255, int(colours[t, 1] * shade * 255.0 + 0.5))
-        cb = min(255, int(colours[t, 2] * shade * 255.0 + 0.5))
+        k = 0 if one_colour else t
+        cr = min(255, int(colours[k, 0] * shade * 255.0 + 0.5))
+        cg = min(255, int(colours[k, 1] * shade * 255.0 + 0.5))
+        cb = min(255, int(colours[k, 2] * shade * 255.0 + 0.5))
         # screen coordinates
         iz0 = 1.0 / cam[0, 2]
         iz1 = 1.0 / cam[1, 2]
@@ -193,6 +196,22 @@ def _rasterize_kernel(x, faces, colours, eye, rot, focal, cx, cy, near, ambient,
                         image[i, j, 0] = cr
                         image[i, j, 1] = cg
                         image[i, j, 2] = cb
+                        if write_seg:
+                            seg[i, j] = seg_id
+
+
+_NO_SEG = np.zeros((0, 0), dtype=np.uint8)
+
+
+@nb.njit(cache=True)
+def _rasterize_kernel(x, faces, colours, eye, rot, focal, cx, cy, near, ambient, image, inv_depth, seg):
+    """Draw triangles ``faces`` of ``x`` with per-face ``colours`` (f, 3) in [0, 1] into ``image``.
+
+    ``image`` (H, W, 3) uint8 holds the background and ``inv_depth`` (H, W) zeros on
+    entry (``1/z_cam`` of the nearest surface so far, 0 = empty).
+    """
+    draw_triangles(x, faces, colours, 0.0, 0.0, 0.0, np.uint8(1), eye, rot, focal, cx, cy, near, ambient, image,
+                   inv_depth, seg)
 
 
 def _unit_colour(c) -> np.ndarray:
@@ -248,7 +267,7 @@ def rasterize(mesh, colours, camera: Camera, width: int = 160, height: int = 120
     _rasterize_kernel(x, faces, col, np.ascontiguousarray(camera.eye, dtype=np.float64),
                       np.ascontiguousarray(camera.rotation, dtype=np.float64),
                       camera.focal_px(height), 0.5 * width, 0.5 * height, float(camera.near),
-                      float(ambient), image, inv_depth)
+                      float(ambient), image, inv_depth, _NO_SEG)
     if return_depth:
         with np.errstate(divide="ignore"):
             return image, np.where(inv_depth > 0.0, 1.0 / inv_depth, np.inf)

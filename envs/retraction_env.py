@@ -25,12 +25,14 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
+from .camera import SEGMENT_IDS, CameraRenderer, CameraSpec
 from .core import BatchedRetraction, RewardWeights, TaskSettings, as_settings, settings_with
 from .scene import PhysicsSpec, Scene, build_scene
 from .spec import SpecError, from_mapping, merge, to_mapping
 
 POINTCLOUD_SIZE = 64  # surface points in obs_mode="pointcloud"
-OBS_MODES = ("state", "pointcloud")
+OBS_MODES = ("state", "pointcloud", "rgb", "depth", "rgbd")
+IMAGE_MODES = ("rgb", "depth", "rgbd")
 POINT_BOUND = 0.5  # m: point-cloud coordinates are clipped to this
 
 
@@ -113,12 +115,29 @@ class _SceneAccess:
 
     task: BatchedRetraction
 
-    def _setup_observations(self, obs_mode: str):
+    def _setup_observations(self, obs_mode: str, camera=None):
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
         self.obs_mode = obs_mode
         low, high = self.task.state_bounds()
         state_space = spaces.Box(low, high, dtype=np.float32)
+        self.camera_renderer = None
+        if obs_mode in IMAGE_MODES:
+            spec = camera if isinstance(camera, CameraSpec) else from_mapping(CameraSpec, camera or {}, "camera")
+            self.camera_renderer = CameraRenderer(self.task, spec)
+            h, w = spec.size
+            parts = {}
+            if obs_mode in ("rgb", "rgbd"):
+                parts["rgb"] = spaces.Box(0, 255, (h, w, 3), dtype=np.uint8)
+            if obs_mode in ("depth", "rgbd"):
+                parts["depth"] = spaces.Box(0.0, spec.far, (h, w, 1), dtype=np.float32)
+            if spec.segmentation:
+                parts["segmentation"] = spaces.Box(0, max(SEGMENT_IDS.values()), (h, w, 1), dtype=np.uint8)
+            if spec.state:
+                parts["state"] = state_space
+            return next(iter(parts.values())) if len(parts) == 1 else spaces.Dict(parts)
+        if camera is not None:
+            raise ValueError(f"camera= is for obs_mode in {IMAGE_MODES}, not {obs_mode!r}")
         if obs_mode == "state":
             return state_space
         scene = self.task.scene
@@ -128,8 +147,26 @@ class _SceneAccess:
         cloud_space = spaces.Box(-POINT_BOUND, POINT_BOUND, (POINTCLOUD_SIZE, 3), dtype=np.float32)
         return spaces.Dict({"state": state_space, "points": cloud_space})
 
+    def _new_camera_poses(self, scenes) -> None:
+        """Scenes starting an episode draw their camera jitter (from their own generator)."""
+        if self.camera_renderer is not None:
+            for i in np.atleast_1d(scenes):
+                self.camera_renderer.new_pose(int(i), self.task.rngs[int(i)])
+
     def observations(self):
         """The observation of every scene of the batch (leading axis N)."""
+        if self.camera_renderer is not None:
+            rgb, depth, seg = self.camera_renderer.render()
+            parts = {}
+            if self.obs_mode in ("rgb", "rgbd"):
+                parts["rgb"] = rgb.copy()
+            if self.obs_mode in ("depth", "rgbd"):
+                parts["depth"] = depth.copy()
+            if self.camera_renderer.spec.segmentation:
+                parts["segmentation"] = seg.copy()
+            if self.camera_renderer.spec.state:
+                parts["state"] = self.task.state_observation()
+            return next(iter(parts.values())) if len(parts) == 1 else parts
         state = self.task.state_observation()
         if self.obs_mode == "state":
             return state
@@ -180,11 +217,13 @@ class _Resolving:
         return resolve_scene(spec, None, physics)
 
     @classmethod
-    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, **size) -> Scene:
+    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, camera=None, **size) -> Scene:
         """Validate the data arguments of the constructor (as ``gym.make`` would pass
         them) without building the scene's mesh; returns the resolved scene."""
         as_settings(settings, TaskSettings, "settings")
         as_settings(weights, RewardWeights, "weights")
+        if camera is not None:
+            as_settings(camera, CameraSpec, "camera")
         return cls.resolve(scene, physics, **size)
 
 
@@ -199,7 +238,8 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
 
     def __init__(self, obs_mode: str = "state", render_mode: str | None = None,
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
-                 scene: Scene | dict | str | None = None, physics: dict | None = None, **size):
+                 scene: Scene | dict | str | None = None, physics: dict | None = None, camera: dict | None = None,
+                 **size):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
         if obs_mode not in OBS_MODES:
@@ -208,14 +248,14 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
         self.task = BatchedRetraction(build_scene(spec), 1, as_settings(settings, TaskSettings, "settings"),
                                       as_settings(weights, RewardWeights, "weights"))
         self.action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
-        self.observation_space = self._setup_observations(obs_mode)
+        self.observation_space = self._setup_observations(obs_mode, camera)
         self.render_mode = render_mode
         self._renderer = None
 
     def observe(self):
         """The current observation."""
         obs = self.observations()
-        return obs[0] if self.obs_mode == "state" else {k: v[0] for k, v in obs.items()}
+        return {k: v[0] for k, v in obs.items()} if isinstance(obs, dict) else obs[0]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -223,6 +263,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
         # seed - i); without one, the scene continues from the env's generator
         scene_seed = seed if seed is not None else int(self.np_random.integers(2**63 - 1))
         self.task.reset([0], seeds=[scene_seed])
+        self._new_camera_poses([0])
         return self.observe(), self._info_at_reset()
 
     def _info_at_reset(self) -> dict[str, Any]:
@@ -265,7 +306,8 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
     def __init__(self, num_envs: int = 4, obs_mode: str = "state",
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
                  max_episode_steps: int | None = None, render_mode: str | None = None,
-                 scene: Scene | dict | str | None = None, physics: dict | None = None, **size):
+                 scene: Scene | dict | str | None = None, physics: dict | None = None, camera: dict | None = None,
+                 **size):
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -282,7 +324,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         self.task = BatchedRetraction(build_scene(spec), self.num_envs, settings,
                                       as_settings(weights, RewardWeights, "weights"))
         self.single_action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
-        self.single_observation_space = self._setup_observations(obs_mode)
+        self.single_observation_space = self._setup_observations(obs_mode, camera)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.render_mode = render_mode
@@ -298,6 +340,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         if seeds is not None and len(seeds) != len(idx):
             raise ValueError(f"give one seed per scene ({len(idx)}), got {len(seeds)}")
         self.task.reset(idx, seeds)
+        self._new_camera_poses(idx)
 
     def step_scenes(self, actions, active=None):
         """Step every scene with ``actions (N, 4)`` (checked: shape and finite values), no
@@ -324,6 +367,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         if finished.any():  # next-step autoreset: these scenes start a new episode now
             idx = np.flatnonzero(finished)
             self.task.reset(idx)
+            self._new_camera_poses(idx)
             reward[idx] = 0.0
             terminated[idx] = False
             truncated[idx] = False

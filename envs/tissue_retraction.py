@@ -134,8 +134,9 @@ class TissueRetractionEnv(RetractionEnv):
     default_scene = staticmethod(tissue_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, cells=None,
-                 scene=None, physics=None):
-        super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, cells=cells)
+                 scene=None, physics=None, camera=None):
+        super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
+                         cells=cells)
 
 
 class TissueRetractionVectorEnv(RetractionVectorEnv):
@@ -144,6 +145,6 @@ class TissueRetractionVectorEnv(RetractionVectorEnv):
     default_scene = staticmethod(tissue_scene)
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
-                 render_mode=None, cells=None, scene=None, physics=None):
+                 render_mode=None, cells=None, scene=None, physics=None, camera=None):
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
-                         physics=physics, cells=cells)
+                         physics=physics, camera=camera, cells=cells)

@@ -1,0 +1,202 @@
+"""Camera observations: RGB, depth and segmentation of N scenes in one parallel Numba call.
+
+The task camera (the scene's ``camera``: the one the target's exposure is measured from)
+sees the tissue surface, the target, the gripper's jaws and the support. Every scene is
+drawn by :func:`render_scenes` (z-buffered triangles, flat headlight shading: the
+rasteriser of :mod:`heml_gym.envs.render`), scenes over threads, no GPU and no OpenGL.
+
+* RGB: ``(H, W, 3)`` uint8;
+* depth: ``(H, W, 1)`` float32, metres along the camera's optical axis (``z`` in the
+  camera frame, not the distance to the eye), ``far`` where nothing is seen;
+* segmentation: ``(H, W, 1)`` uint8, :data:`SEGMENT_IDS` (background, tissue, target,
+  instrument, support).
+
+``jitter`` (m) moves each scene's camera eye by a uniform offset in
+``[-jitter, jitter]^3`` per episode (the same look-at point), for sim-to-real
+robustness. Units: m.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numba import prange
+
+from .render import box, draw_triangles, icosphere, look_at
+from .spec import invalid
+
+__all__ = ["CameraSpec", "CameraRenderer", "SEGMENT_IDS", "render_scenes"]
+
+#: Segmentation labels.
+SEGMENT_IDS = {"background": 0, "tissue": 1, "target": 2, "instrument": 3, "support": 4}
+TISSUE = (235 / 255, 170 / 255, 150 / 255)
+TARGET = (240 / 255, 220 / 255, 40 / 255)
+JAWS_OPEN = (150 / 255, 150 / 255, 160 / 255)
+JAWS_CLOSED = (40 / 255, 200 / 255, 90 / 255)
+SUPPORT = (120 / 255, 60 / 255, 60 / 255)
+BACKGROUND = np.array([25, 25, 35], dtype=np.uint8)
+JAW_HALF_SIZE = (0.003, 0.006, 0.006)  # m
+JAW_OFFSET = (0.0, 0.0, 0.006)  # m: box centre above the grasp point
+
+
+@dataclass
+class CameraSpec:
+    """Camera observation settings (``camera=`` of the envs, a mapping of these fields):
+    ``size`` ``[height, width]`` in pixels (or one number: square), ``segmentation`` (add
+    a segmentation image), ``state`` (add the state vector), ``jitter`` (m, camera eye
+    offset per episode), ``far`` (m, the depth of the background and the depth bound)."""
+
+    size: list[int] | int = 84
+    segmentation: bool = False
+    state: bool = False
+    jitter: float = 0.0
+    far: float = 1.0
+
+    def __post_init__(self):
+        size = [self.size, self.size] if isinstance(self.size, int) else list(self.size)
+        if len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and 8 <= v <= 1024 for v in size):
+            raise invalid(self, "size", f"must be [height, width] (or one number), each 8-1024 pixels, got {self.size}")
+        self.size = size
+        if not (math.isfinite(self.jitter) and self.jitter >= 0):
+            raise invalid(self, "jitter", f"must be a length >= 0 in metres, got {self.jitter}")
+        if not (math.isfinite(self.far) and self.far > 0):
+            raise invalid(self, "far", f"must be a positive length in metres, got {self.far}")
+
+
+@nb.njit(cache=True, inline="always")
+def _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
+                jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
+                background, rgb, depth, seg):
+    image = rgb[s]
+    labels = seg[s]
+    height, width = image.shape[0], image.shape[1]
+    inv = np.zeros((height, width))
+    for i in range(height):
+        for j in range(width):
+            image[i, j, 0] = background[0]
+            image[i, j, 1] = background[1]
+            image[i, j, 2] = background[2]
+            labels[i, j] = 0
+    eye, rot = eyes[s], rots[s]
+    draw_triangles(x[s], faces, tissue_colour, 0.0, 0.0, 0.0, np.uint8(1), eye, rot, focal, cx, cy, near, ambient,
+                   image, inv, labels)
+    draw_triangles(sphere_v, sphere_f, target_colour, targets[s, 0], targets[s, 1], targets[s, 2], np.uint8(2), eye,
+                   rot, focal, cx, cy, near, ambient, image, inv, labels)
+    draw_triangles(box_v, box_f, jaw_colours[s:s + 1], grippers[s, 0], grippers[s, 1], grippers[s, 2], np.uint8(3),
+                   eye, rot, focal, cx, cy, near, ambient, image, inv, labels)
+    draw_triangles(support_v, support_f, support_colour, 0.0, 0.0, 0.0, np.uint8(4), eye, rot, focal, cx, cy, near,
+                   ambient, image, inv, labels)
+    for i in range(height):
+        for j in range(width):
+            z = 1.0 / inv[i, j] if inv[i, j] > 0.0 else far
+            depth[s, i, j, 0] = min(z, far)
+
+
+@nb.njit(cache=True, parallel=True)
+def render_scenes(x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
+                  jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
+                  background, rgb, depth, seg):
+    """Draw every scene ``s`` (tissue ``x[s]`` over ``faces``, the target sphere template
+    ``sphere_v`` at ``targets[s]``, the jaw box ``box_v`` at ``grippers[s]`` in
+    ``jaw_colours[s]``, the support) from its camera (``eyes[s]``, world-to-camera
+    ``rots[s]``) into ``rgb (N, H, W, 3)`` uint8, ``depth (N, H, W, 1)`` float32 (m along
+    the optical axis, ``far`` where empty) and ``seg (N, H, W)`` uint8, scenes over
+    threads. Colours are ``(1, 3)`` rows in [0, 1]."""
+    for s in prange(x.shape[0]):
+        _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
+                    jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
+                    background, rgb, depth, seg)
+
+
+@nb.njit(cache=True)
+def render_scenes_serial(x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
+                         jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far,
+                         ambient, background, rgb, depth, seg):
+    """:func:`render_scenes` scene after scene (one scene: no thread launch)."""
+    for s in range(x.shape[0]):
+        _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
+                    jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
+                    background, rgb, depth, seg)
+
+
+def _row(colour) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(colour, dtype=np.float64).reshape(1, 3))
+
+
+class CameraRenderer:
+    """Camera images of every scene of a :class:`~heml_gym.envs.core.BatchedRetraction`.
+
+    ``spec``: :class:`CameraSpec`. :meth:`render` fills :attr:`rgb`, :attr:`depth` and
+    :attr:`segmentation` (arrays with a leading scene axis) and returns them;
+    :meth:`new_pose` draws scene ``i``'s camera jitter (called at each reset).
+    """
+
+    def __init__(self, task, spec: CameraSpec):
+        self.task, self.spec = task, spec
+        scene = task.scene
+        n = task.n
+        self.height, self.width = spec.size
+        self.base_eye = np.asarray(scene.camera, dtype=np.float64)
+        self.look_at = np.asarray(scene.look_at, dtype=np.float64)
+        self.up = np.asarray(scene.camera_up, dtype=np.float64)
+        self.fov_y = float(scene.camera_fov_y)
+        self.near = 1e-3
+        self.focal = 0.5 * self.height / math.tan(math.radians(0.5 * self.fov_y))
+        self.eyes = np.repeat(self.base_eye[None], n, axis=0)
+        self.rots = np.repeat(look_at(self.base_eye, self.look_at, self.up)[None], n, axis=0)
+        self.faces = np.ascontiguousarray(scene.surface_faces, dtype=np.int64)
+        sv, sf = icosphere(scene.target_radius, subdivisions=1)
+        self.sphere = (np.ascontiguousarray(sv), np.ascontiguousarray(sf))
+        bv, bf = box(JAW_OFFSET, JAW_HALF_SIZE)
+        self.box = (np.ascontiguousarray(bv), np.ascontiguousarray(bf))
+        self.support = self._support_mesh(scene)
+        self.rgb = np.zeros((n, self.height, self.width, 3), dtype=np.uint8)
+        self.depth = np.zeros((n, self.height, self.width, 1), dtype=np.float32)
+        self.segmentation = np.zeros((n, self.height, self.width, 1), dtype=np.uint8)
+
+    @staticmethod
+    def _support_mesh(scene):
+        """The support as triangles: a plane as a square 1 m across under the tissue, a mesh
+        support as its surface; none: no triangles."""
+        from heml_gym.contact import MeshSupport, PlaneSupport
+
+        verts, faces = [], []
+        for sup in scene.supports:
+            offset = sum(len(v) for v in verts)
+            if isinstance(sup, PlaneSupport):
+                n = sup.normal
+                centre = scene.mesh.vertices.mean(axis=0)
+                centre = centre - (n @ centre - sup.offset) * n
+                a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+                a /= np.linalg.norm(a)
+                b = np.cross(n, a)
+                corners = [centre + 0.5 * (sa * a + sb * b) for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+                verts.append(np.array(corners))
+                faces.append(np.array([[0, 1, 2], [0, 2, 3]]) + offset)
+            elif isinstance(sup, MeshSupport):
+                verts.append(sup.vertices)
+                faces.append(sup.faces + offset)
+        if not verts:
+            return np.zeros((1, 3)), np.zeros((0, 3), dtype=np.int64)
+        return np.ascontiguousarray(np.concatenate(verts)), np.ascontiguousarray(np.concatenate(faces), dtype=np.int64)
+
+    def new_pose(self, i: int, rng: np.random.Generator) -> None:
+        """Scene ``i``'s camera for a new episode: the scene's, its eye moved by the jitter."""
+        eye = self.base_eye + (rng.uniform(-1.0, 1.0, 3) * self.spec.jitter if self.spec.jitter else 0.0)
+        self.eyes[i] = eye
+        self.rots[i] = look_at(eye, self.look_at, self.up)
+
+    def render(self):
+        """``(rgb, depth, segmentation)`` of every scene (arrays owned by the renderer)."""
+        t = self.task
+        jaw = np.where(t.grasping[:, None], np.array(JAWS_CLOSED), np.array(JAWS_OPEN))
+        kernel = render_scenes if t.n > 1 and nb.get_num_threads() > 1 else render_scenes_serial
+        seg = self.segmentation[..., 0]
+        kernel(np.ascontiguousarray(t.x), self.faces, _row(TISSUE), np.ascontiguousarray(t.target), *self.sphere,
+               _row(TARGET), np.ascontiguousarray(t.gripper), *self.box, np.ascontiguousarray(jaw), *self.support,
+               _row(SUPPORT), self.eyes, self.rots, self.focal, 0.5 * self.width, 0.5 * self.height, self.near,
+               float(self.spec.far), 0.25, BACKGROUND, self.rgb, self.depth, seg)
+        return self.rgb, self.depth, self.segmentation
