@@ -152,13 +152,13 @@ class CameraRenderer:
         self.sphere = (np.ascontiguousarray(sv), np.ascontiguousarray(sf))
         bv, bf = box(JAW_OFFSET, JAW_HALF_SIZE)
         self.box = (np.ascontiguousarray(bv), np.ascontiguousarray(bf))
-        self.support = self._support_mesh(scene)
+        self.support = self.support_mesh(scene)
         self.rgb = np.zeros((n, self.height, self.width, 3), dtype=np.uint8)
         self.depth = np.zeros((n, self.height, self.width, 1), dtype=np.float32)
         self.segmentation = np.zeros((n, self.height, self.width, 1), dtype=np.uint8)
 
     @staticmethod
-    def _support_mesh(scene):
+    def support_mesh(scene):
         """The support as triangles: a plane as a square 1 m across under the tissue, a mesh
         support as its surface; none: no triangles."""
         from heml_gym.contact import MeshSupport, PlaneSupport

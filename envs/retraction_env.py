@@ -79,8 +79,9 @@ def resolve_scene(default: Scene, scene=None, physics=None) -> Scene:
 class SceneGeometry:
     """What does not change in an env: ``name``, ``rest_vertices (n, 3)`` m, ``surface_faces
     (f, 3)``, ``edges (e, 2)``, ``fixed`` (attached vertex indices), ``target_radius`` m,
-    ``camera`` (eye, m), ``look_at`` (m), ``settings`` (the TaskSettings) and ``physics``
-    (the PhysicsSpec)."""
+    ``camera`` (eye, m), ``look_at`` (m), ``settings`` (the TaskSettings), ``physics``
+    (the PhysicsSpec), ``weight`` (N, the tissue's), ``workspace`` (``(low, high)`` m, the
+    gripper's) and ``support_mesh`` (``(vertices, faces)``: the supports as triangles)."""
 
     name: str
     rest_vertices: np.ndarray
@@ -92,6 +93,9 @@ class SceneGeometry:
     look_at: np.ndarray
     settings: TaskSettings
     physics: PhysicsSpec
+    weight: float
+    workspace: tuple
+    support_mesh: tuple
 
 
 @dataclass(frozen=True)
@@ -185,8 +189,25 @@ class _SceneAccess:
     @property
     def geometry(self) -> SceneGeometry:
         s, t = self.task.scene, self.task
+        weight = float(t.model.mass.sum() * np.linalg.norm(t.model.gravity))
         return SceneGeometry(s.name, s.mesh.vertices, s.surface_faces, s.mesh.edges, s.fixed, s.target_radius,
-                             s.camera, s.look_at, t.settings, s.physics)
+                             s.camera, s.look_at, t.settings, s.physics, weight, (s.workspace_low, s.workspace_high),
+                             CameraRenderer.support_mesh(s))
+
+    def camera_view(self, i: int = 0, size=(240, 320)) -> dict:
+        """Scene ``i`` seen from its task camera at ``size`` ``(height, width)`` pixels, for
+        viewers and recordings: ``rgb`` (H, W, 3) uint8, ``depth`` (H, W) float32 m,
+        ``segmentation`` (H, W) uint8, and the camera: ``eye`` (m), ``rotation`` (world to
+        camera, rows the camera axes x right, y down, z forward), ``focal`` (pixels)."""
+        size = tuple(int(v) for v in size)
+        if getattr(self, "_view_renderer", None) is None or self._view_renderer.spec.size != list(size):
+            self._view_renderer = CameraRenderer(self.task, CameraSpec(size=list(size), far=10.0))
+        view = self._view_renderer
+        if self.camera_renderer is not None:  # the observation camera's pose (jitter included)
+            view.eyes[:], view.rots[:] = self.camera_renderer.eyes, self.camera_renderer.rots
+        rgb, depth, seg = view.render()
+        return {"rgb": rgb[i].copy(), "depth": depth[i, :, :, 0].copy(), "segmentation": seg[i, :, :, 0].copy(),
+                "eye": view.eyes[i].copy(), "rotation": view.rots[i].copy(), "focal": view.focal}
 
     def snapshot(self, i: int = 0) -> SceneSnapshot:
         """Scene ``i`` as it is now (copies)."""

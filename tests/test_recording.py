@@ -10,7 +10,7 @@ import pytest
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from heml_gym.agents.recording import REWARD_TERMS, SCALAR_ENTITIES, record_rollouts  # noqa: E402
+from heml_gym.agents.recording import REWARD_ENTITIES, REWARD_TERMS, SCALAR_ENTITIES, record_rollouts  # noqa: E402
 from heml_gym.envs.core import TaskSettings  # noqa: E402
 from heml_gym.envs.scripted import scripted_policy  # noqa: E402
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv  # noqa: E402
@@ -50,13 +50,16 @@ def _temporal(store) -> dict[str, dict[str, list]]:
             continue
         batch = chunk.to_record_batch()
         cols = out.setdefault(chunk.entity_path, {})
-        for name in batch.schema.names:
-            if name == "rerun.controls.RowId":
-                continue
+        before = len(cols["step"]) if "step" in cols else 0
+        names = [n for n in batch.schema.names if n != "rerun.controls.RowId"]
+        for name in names:
             column = batch.column(name)
             if name == "sim_time":  # duration[ns]
                 column = column.cast("int64")
-            cols.setdefault(name, []).extend(column.to_pylist())
+            cols.setdefault(name, [None] * before).extend(column.to_pylist())
+        for name in cols:  # columns this chunk does not have: empty for its rows
+            if name not in names:
+                cols[name].extend([None] * batch.num_rows)
     for cols in out.values():
         order = np.argsort(cols["step"], kind="stable")
         for name in cols:
@@ -103,21 +106,23 @@ def test_rrd_layout_and_frames(recording):
     (entry,) = reader.recordings()
     assert entry.recording_id == summary["recording_id"]
     assert entry.application_id == "heml_gym"
-    # the blueprint: a 3D view beside 4 time-series views and the episode log
+    # the blueprint: a 3D view and the camera view beside 6 time-series views and the episode log
     (bp_entry,) = reader.blueprints()
     bp_paths = reader.stream(store=bp_entry).collect().schema().entity_paths()
-    assert sum(1 for p in bp_paths if p.startswith("/view/") and p.count("/") == 2) == 6
+    assert sum(1 for p in bp_paths if p.startswith("/view/") and p.count("/") == 2) == 9
 
     store = reader.stream().collect()
     schema = store.schema()
     paths = set(schema.entity_paths())
-    world = {"/world/tissue", "/world/gripper", "/world/target", "/world/held", "/world/grasp_force"}
+    world = {"/world/tissue", "/world/gripper", "/world/target", "/world/held", "/world/grasp_force",
+             "/world/camera", "/world/camera/image", "/world/camera/depth", "/world/support", "/plots/outcome"}
     scalars = {"/" + e for e in SCALAR_ENTITIES}
     assert world | scalars | {"/log/episodes"} <= paths
     index = {c.name for c in schema.index_columns()}
     assert {"step", "sim_time", "episode", "episode_step"} <= index
     for entity, archetype in [("/world/tissue", "Mesh3D"), ("/world/gripper", "Boxes3D"),
-                              ("/world/target", "Points3D")]:
+                              ("/world/target", "Points3D"), ("/world/camera", "Pinhole"),
+                              ("/world/camera/image", "Image"), ("/world/camera/depth", "DepthImage")]:
         assert schema.column_names_for(entity_path=entity, archetype=archetype)
 
     n_frames, n_steps = summary["frames"], summary["steps"]
@@ -134,15 +139,23 @@ def test_rrd_layout_and_frames(recording):
     assert mesh["episode"] == expected_episode
     assert mesh["episode_step"] == expected_episode_step
 
-    # the mesh: every tissue vertex, the scene's surface triangles (static)
+    # the mesh: the scene's surface triangles, flat-shaded (three own vertices each)
     task = env.unwrapped.task
-    n_vertices = task.scene.mesh.n_vertices
-    assert all(len(v) == n_vertices for v in mesh["Mesh3D:vertex_positions"])
-    assert all(len(c) == n_vertices for c in mesh["Mesh3D:vertex_colors"])
+    faces = task.scene.surface_faces
+    assert all(len(v) == 3 * len(faces) for v in mesh["Mesh3D:vertex_positions"])
+    assert all(len(c) == 3 * len(faces) for c in mesh["Mesh3D:vertex_colors"])
     (triangles,) = _static(store)["/world/tissue"]["Mesh3D:triangle_indices"]
-    np.testing.assert_array_equal(np.array(triangles), task.scene.surface_faces)
+    np.testing.assert_array_equal(np.array(triangles), np.arange(3 * len(faces)).reshape(-1, 3))
     # the last frame's positions are the env's final state (recorded as float32)
-    np.testing.assert_allclose(np.array(mesh["Mesh3D:vertex_positions"][-1]), task.x[0], atol=1e-6)
+    np.testing.assert_allclose(np.array(mesh["Mesh3D:vertex_positions"][-1]), task.x[0][faces].reshape(-1, 3),
+                               atol=1e-6)
+    # the normals are the faces' own: perpendicular to the triangle's edges
+    tri = np.array(mesh["Mesh3D:vertex_positions"][-1]).reshape(-1, 3, 3)
+    normals = np.array(mesh["Mesh3D:vertex_normals"][-1]).reshape(-1, 3, 3)
+    assert np.abs((normals[:, 0] * (tri[:, 1] - tri[:, 0])).sum(axis=1)).max() < 1e-5
+    # the camera image is the env's own view of that frame
+    image = data["/world/camera/image"]
+    assert image["step"] == list(range(n_frames))
 
     for entity in ("/world/gripper", "/world/target", "/world/held"):
         assert data[entity]["step"] == list(range(n_frames))
@@ -159,9 +172,13 @@ def test_rrd_layout_and_frames(recording):
     np.testing.assert_allclose(values["plots/exposure/exposure"], [f["exposure"] for f in frames])
     np.testing.assert_allclose(values["plots/strain/max_strain"], [f["max_strain"] for f in frames])
     np.testing.assert_allclose(values["plots/grasp_force"], [f["grasp_force"] for f in frames])
-    np.testing.assert_allclose(values["plots/reward/total"], [r for r, _ in rewards])
+    np.testing.assert_allclose(values[REWARD_ENTITIES["total"]], [r for r, _ in rewards])
     for term in REWARD_TERMS:
-        np.testing.assert_allclose(values[f"plots/reward/{term}"], [i[f"reward_{term}"] for _, i in rewards])
+        np.testing.assert_allclose(values[REWARD_ENTITIES[term]], [i[f"reward_{term}"] for _, i in rewards])
+    # one outcome marker per episode, at its last frame
+    outcome = data["/plots/outcome"]
+    ends = list(np.cumsum([n + 1 for n in lengths]) - 1)
+    assert outcome["step"] == ends
 
     # episode boundaries: a start and an end line per episode
     log = data["/log/episodes"]
