@@ -1,0 +1,113 @@
+"""Reward and termination logic against values computed here from the actions, the
+settings and the measurements, not by re-adding the env's own terms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from heml_gym.envs.core import RewardWeights, TaskSettings
+from heml_gym.envs.scripted import scripted_policy
+from heml_gym.envs.tissue_retraction import TissueRetractionEnv
+
+W = RewardWeights(exposure=7.0, lift=3.0, grasp=0.8, strain=4.0, effort=0.05, success=9.0)
+
+
+def test_effort_is_the_squared_clipped_velocity_command():
+    env = TissueRetractionEnv(weights=W)
+    env.reset(seed=0)
+    rng = np.random.default_rng(1)
+    for _ in range(10):
+        a = rng.uniform(-3, 3, 4)  # out of range: the env clips to [-1, 1]
+        *_, info = env.step(a.astype(np.float32))
+        expected = -W.effort * float((np.clip(a[:3], -1, 1) ** 2).sum())
+        assert info["reward_effort"] == pytest.approx(expected, rel=1e-6)
+
+
+def test_the_grasp_bonus_is_paid_once_per_episode():
+    env = TissueRetractionEnv(weights=W)
+    bonuses = []
+    env.reset(seed=2)
+    for action in ([0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 0, -1], [0, 0, 0, 1], [0, 0, 0.5, 1]):
+        *_, info = env.step(np.array(action, dtype=np.float32))
+        bonuses.append(info["reward_grasp"])
+    assert bonuses == [W.grasp, 0.0, 0.0, 0.0, 0.0]  # the re-grasp earns nothing
+    env.reset(seed=3)
+    *_, info = env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    assert info["reward_grasp"] == W.grasp  # a new episode pays again
+    env.reset(seed=4)
+    env.unwrapped.task.gripper[0] = [0.06, 0.06, 0.05]  # far from the grasp line: nothing held
+    *_, info = env.step(np.array([0, 0, 0, 1], dtype=np.float32))
+    assert info["reward_grasp"] == 0.0 and not info["grasping"]
+
+
+def _pull(env, seed, steps, action=(0.6, 0.0, 1.0, 1.0)):
+    env.reset(seed=seed)
+    out = []
+    for _ in range(steps):
+        obs, reward, terminated, truncated, info = env.step(np.array(action, dtype=np.float32))
+        out.append((reward, terminated, truncated, info))
+        if terminated or truncated:
+            break
+    return out
+
+
+def test_the_strain_penalty_is_the_strain_above_damage():
+    settings = TaskSettings(damage_strain=0.02, tear_strain=5.0)
+    env = TissueRetractionEnv(settings=settings, weights=W)
+    steps = _pull(env, seed=5, steps=12)
+    above = [info for _, _, _, info in steps if info["max_strain"] > settings.damage_strain]
+    assert above, "the pull never strained the tissue past the damage threshold"
+    for _, _, _, info in steps:
+        expected = -W.strain * max(0.0, info["max_strain"] - settings.damage_strain)
+        assert info["reward_strain"] == pytest.approx(expected, rel=1e-9, abs=1e-12)
+
+
+def test_tearing_ends_the_episode_without_success():
+    settings = TaskSettings(damage_strain=0.01, tear_strain=0.03)
+    env = TissueRetractionEnv(settings=settings, weights=W)
+    steps = _pull(env, seed=6, steps=30)
+    reward, terminated, truncated, info = steps[-1]
+    assert terminated and not truncated
+    assert info["tissue_torn"] and info["max_strain"] >= settings.tear_strain
+    assert not info["is_success"] and info["reward_success"] == 0.0
+    assert all(not i["tissue_torn"] for *_, i in steps[:-1])  # it ends at the first tearing step
+
+
+def test_success_needs_the_strain_below_damage():
+    """The scripted fold exposes the target; with a damage threshold below the strain the
+    fold needs, exposure alone does not end the episode and pays no success bonus."""
+    strict = TaskSettings(damage_strain=1e-4, tear_strain=10.0, max_steps=40)
+    for settings, should_succeed in ((TaskSettings(max_steps=40), True), (strict, False)):
+        env = TissueRetractionEnv(settings=settings, weights=W)
+        obs, _ = env.reset(seed=7)
+        policy = scripted_policy(env.scene)
+        exposed, succeeded = False, False
+        for _ in range(40):
+            obs, reward, terminated, truncated, info = env.step(policy(obs))
+            exposed |= info["exposure"] >= settings.success_exposure
+            if info["is_success"]:
+                succeeded = True
+                assert info["max_strain"] < settings.damage_strain
+                assert info["reward_success"] == W.success and terminated
+            else:
+                assert info["reward_success"] == 0.0
+            if terminated or truncated:
+                break
+        assert exposed
+        assert succeeded == should_succeed
+
+
+def test_exposure_and_lift_rewards_telescope_to_the_changes_of_the_measurements():
+    env = TissueRetractionEnv(weights=W)
+    obs, start = env.reset(seed=8)
+    policy = scripted_policy(env.scene)
+    total_exposure = total_lift = 0.0
+    for _ in range(30):
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        total_exposure += info["reward_exposure"]
+        total_lift += info["reward_lift"]
+        if terminated or truncated:
+            break
+    assert total_exposure == pytest.approx(W.exposure * (info["exposure"] - start["exposure"]), abs=1e-9)
+    assert total_lift == pytest.approx(W.lift * (info["lift"] - start["lift"]), abs=1e-9)
