@@ -138,7 +138,8 @@ def _sweep(args) -> int:
 
 
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
-              "env_throughput", "scene_convergence", "reliability", "scale_out", "camera_throughput"]
+              "env_throughput", "scene_convergence", "scene_stability", "reliability", "scale_out",
+              "camera_throughput"]
 
 
 def _bench(args) -> int:

@@ -128,7 +128,7 @@ def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: 
             diverged = np.atleast_1d(info["simulation_diverged"])
             converged = np.atleast_1d(info["solver_converged"])
             rec["diverged"] += int(diverged.sum())
-            rec["unconverged"] += int((~converged).sum())
+            rec["unconverged"] += int((~converged & ~diverged).sum())  # diverged ones are counted above
             if not (_all_finite(obs) and _all_finite(reward) and _all_finite(info)):
                 rec["non_finite"] += 1
             if vector:

@@ -54,25 +54,45 @@ TOLERANCE = 0.05
 
 @dataclass(frozen=True)
 class Model:
-    """One model of a scene: a label, how to build its scene, its explicit safety factor."""
+    """One model of a scene: a label, how to build its scene, its explicit safety factor and
+    any other physics (``(key, value)`` pairs of :class:`~heml_gym.envs.scene.PhysicsSpec`:
+    the law, the integrator and its step)."""
 
     label: str
     scene_args: tuple
     safety: float
+    physics: tuple = ()
 
     def env(self, scene_name: str):
         build = tissue_scene if scene_name == "TissueRetraction" else organ_scene
         cls = TissueRetractionEnv if scene_name == "TissueRetraction" else OrganRetractionEnv
-        return cls(scene=build(*self.scene_args), physics={"safety": self.safety})
+        return cls(scene=build(*self.scene_args), physics={"safety": self.safety, **dict(self.physics)})
+
+    @property
+    def integrator(self) -> str:
+        return dict(self.physics).get("integrator", "explicit")
 
 
-def tissue(cells, safety, mirrored=True) -> Model:
+def _tag(physics) -> str:
+    p = dict(physics)
+    parts = []
+    if "material" in p:
+        parts.append({"StVenantKirchhoff": "StVK", "StableNeoHookean": "SNH"}.get(p["material"], p["material"]))
+    if p.get("integrator", "explicit") != "explicit":
+        parts.append(f"{p['integrator']} dt={p.get('max_dt', 1 / 30):.3g}")
+    return (" " + " ".join(parts)) if parts else ""
+
+
+def tissue(cells, safety, mirrored=True, **physics) -> Model:
     tag = "" if mirrored else " uniform split"
-    return Model(f"{'x'.join(map(str, cells))}{tag} s={safety:g}", (tuple(cells), mirrored), safety)
+    step = "" if physics.get("integrator", "explicit") != "explicit" else f" s={safety:g}"
+    return Model(f"{'x'.join(map(str, cells))}{tag}{step}{_tag(physics)}", (tuple(cells), mirrored), safety,
+                 tuple(sorted(physics.items())))
 
 
-def organ(size, safety) -> Model:
-    return Model(f"{1e3 * size:g} mm s={safety:g}", (size,), safety)
+def organ(size, safety, **physics) -> Model:
+    step = "" if physics.get("integrator", "explicit") != "explicit" else f" s={safety:g}"
+    return Model(f"{1e3 * size:g} mm{step}{_tag(physics)}", (size,), safety, tuple(sorted(physics.items())))
 
 
 #: per scene: default, models (cheapest first), reference, check (finer than the reference)
@@ -82,13 +102,23 @@ SCENES = {
         default=tissue((8, 8, 1), 0.75),
         models=[tissue((8, 8, 1), 0.75), tissue((8, 8, 1), 0.9), tissue((8, 8, 1), 0.5),
                 tissue((8, 8, 1), 0.25), tissue((8, 8, 1), 0.75, mirrored=False), tissue((12, 12, 1), 0.75),
-                tissue((16, 16, 2), 0.75), tissue((24, 24, 3), 0.75)],
+                tissue((16, 16, 2), 0.75), tissue((24, 24, 3), 0.75),
+                # the other laws and integrators on the default mesh (speed vs accuracy)
+                tissue((8, 8, 1), 0.75, material="StVenantKirchhoff"),
+                tissue((8, 8, 1), 0.75, material="StableNeoHookean"),
+                tissue((8, 8, 1), 0.75, integrator="implicit", max_dt=0.1),
+                tissue((8, 8, 1), 0.75, integrator="implicit", max_dt=1 / 30),
+                tissue((8, 8, 1), 0.75, integrator="quasi_newton", max_dt=0.1, max_newton=60),
+                tissue((16, 16, 2), 0.75, integrator="implicit", max_dt=0.1)],
         reference=tissue((32, 32, 4), 0.5), check=(tissue((40, 40, 5), 0.5), (1, 2)),
         seeds=(0, 1, 2, 3, 4), steps=40),
     "OrganRetraction": dict(
         default=organ(0.007, 0.5),
         models=[organ(0.016, 0.5), organ(0.012, 0.5), organ(0.010, 0.5), organ(0.008, 0.5),
-                organ(0.007, 0.75), organ(0.007, 0.5), organ(0.007, 0.25)],
+                organ(0.007, 0.75), organ(0.007, 0.5), organ(0.007, 0.25),
+                organ(0.007, 0.5, material="StableNeoHookean"),
+                organ(0.007, 0.5, integrator="implicit", max_dt=0.1),
+                organ(0.010, 0.5, integrator="implicit", max_dt=0.1)],
         reference=organ(0.005, 0.5), check=(organ(0.004, 0.5), (0, 1)),
         seeds=(0, 1, 2, 3, 4), steps=30),
 }
@@ -112,7 +142,7 @@ def replay(scene: str, model: Model, seed: int, actions: np.ndarray) -> dict:
     """Per-step grasp force (N), exposure, gauge strain, outcomes and CPU time of ``model``."""
     env = model.env(scene)
     _, info0 = env.reset(seed=seed)
-    rec = {k: [] for k in ("grasp_force", "exposure", "max_strain", "success", "diverged", "cpu_s")}
+    rec = {k: [] for k in ("grasp_force", "exposure", "max_strain", "success", "diverged", "unconverged", "cpu_s")}
     for a in actions:
         c0 = time.thread_time()
         _, _, _, _, info = env.step(a)
@@ -121,6 +151,7 @@ def replay(scene: str, model: Model, seed: int, actions: np.ndarray) -> dict:
             rec[k].append(float(info[k]))
         rec["success"].append(bool(info["is_success"]))
         rec["diverged"].append(bool(info["simulation_diverged"]))
+        rec["unconverged"].append(not bool(info["solver_converged"]))
     task = env.task
     return {**rec, "young_modulus": float(info0["young_modulus"]), "n_tets": task.scene.mesh.n_tets,
             "n_vertices": task.scene.mesh.n_vertices, "substeps": task.substeps,
@@ -176,6 +207,7 @@ def errors(run: dict, ref: dict, window: int) -> dict:
     out["success_step"] = first(run["success"])
     out["success_step_ref"] = first(ref["success"])
     out["diverged"] = bool(any(run["diverged"]))
+    out["unconverged_steps"] = int(sum(run.get("unconverged", [])))
     return out
 
 
@@ -189,7 +221,8 @@ def summarise(scene: str, spec: dict, runs: dict, windows: dict, ref_label: str,
            "cpu_ms_per_step": 1e3 * float(np.median(cpu)), "per_seed": errs,
            "success_steps": [e["success_step"] for e in errs],
            "success_steps_ref": [e["success_step_ref"] for e in errs],
-           "diverged": any(e["diverged"] for e in errs)}
+           "diverged": any(e["diverged"] for e in errs), "integrator": model.integrator,
+           "unconverged_steps": int(sum(e["unconverged_steps"] for e in errs))}
     shifts = [e["crossing_shift_ms"] for e in errs if e["crossing_shift_ms"] is not None]
     row["crossing_shift_ms"] = float(max(shifts)) if shifts else None
     for k in ("force", "force_mean", "exposure_strict", "exposure", "force_all", "exposure_all",
@@ -197,7 +230,8 @@ def summarise(scene: str, spec: dict, runs: dict, windows: dict, ref_label: str,
         row[k] = float(max(e[k] for e in errs))
     for k in ("peak_force_N", "peak_strain", "peak_strain_ref"):
         row[k] = float(np.median([e[k] for e in errs]))
-    row["within_5pct"] = bool(row["force"] <= TOLERANCE and row["exposure"] <= TOLERANCE and not row["diverged"])
+    row["within_5pct"] = bool(row["force"] <= TOLERANCE and row["exposure"] <= TOLERANCE and not row["diverged"]
+                              and row["unconverged_steps"] == 0)
     return row
 
 
@@ -283,7 +317,8 @@ def markdown(results: dict, wall: float) -> str:
               "-" if r["crossing_shift_ms"] is None else f"{r['crossing_shift_ms']:.0f}", f"{100 * r['force_all']:.1f}",
               f"{r['peak_strain']:.2f} ({r['peak_strain_ref']:.2f})",
               f"{_steps(r['success_steps'])} ({_steps(r['success_steps_ref'])})",
-              ("yes" if r["within_5pct"] else "no") + (" (diverged)" if r["diverged"] else "")]
+              ("yes" if r["within_5pct"] else "no") + (" (diverged)" if r["diverged"] else "")
+              + (f" ({r['unconverged_steps']} unconverged steps)" if r.get("unconverged_steps") else "")]
              for r in rows])
         md += "\n" + verdict(res) + "\n"
     return md
@@ -339,6 +374,52 @@ def charts(results: dict) -> None:
     fig.suptitle("The same gripper path on each model (dotted: the default's success)", fontsize=10)
     fig.tight_layout()
     fig.savefig(IMAGES / "scene_convergence_traces.png", dpi=110)
+    plt.close(fig)
+    speed_accuracy_chart(results, IMAGES / "scene_speed_accuracy.png")
+
+
+def pareto(rows) -> list:
+    """The rows no other row beats on both CPU time and error."""
+    front = []
+    for r in sorted(rows, key=lambda r: (r["cpu_ms_per_step"], max(r["force"], r["exposure"]))):
+        err = max(r["force"], r["exposure"])
+        if not front or err < max(front[-1]["force"], front[-1]["exposure"]):
+            front.append(r)
+    return front
+
+
+def speed_accuracy_chart(results: dict, path: Path) -> None:
+    """CPU time per env step against the worst error (max of force and exposure errors),
+    every model of each scene, the Pareto front, the default starred, the 5 % line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    markers = {"explicit": "o", "implicit": "s", "quasi_newton": "^"}
+    fig, axes = plt.subplots(1, len(results), figsize=(6.5 * len(results), 4.8), squeeze=False)
+    for ax, (scene, res) in zip(axes[0], results.items()):
+        rows = [r for r in res["table"] if not r["diverged"]]
+        for i, r in enumerate(res["table"]):
+            err = 100 * max(r["force"], r["exposure"])
+            ax.plot(r["cpu_ms_per_step"], err, "*" if r["default"] else markers.get(r.get("integrator"), "o"),
+                    color="tab:green" if r["within_5pct"] else "tab:red", ms=14 if r["default"] else 7)
+            ax.annotate(r["model"], (r["cpu_ms_per_step"], err), fontsize=6, xytext=(4, 3 - 9 * (i % 2)),
+                        textcoords="offset points")
+        front = pareto(rows)
+        ax.plot([r["cpu_ms_per_step"] for r in front], [100 * max(r["force"], r["exposure"]) for r in front],
+                "-", color="0.5", lw=1, label="Pareto front")
+        ax.axhline(100 * TOLERANCE, color="k", ls="--", lw=1, label="5 % tolerance")
+        ax.set_xscale("log")
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_xlabel("CPU ms per env step (one thread, median)")
+        ax.set_ylabel("worst error over seeds: max(force, exposure) (%)")
+        ax.set_title(f"{scene} vs {res['reference']}", fontsize=9)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, title="o explicit, s implicit, ^ quasi-Newton, * default", title_fontsize=7)
+    fig.suptitle("Speed vs accuracy on the env scenes (green: within 5 % of the fine model)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
