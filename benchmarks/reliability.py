@@ -302,7 +302,9 @@ def report(results: dict) -> str:
     lines.append(markdown_table(header, rows))
     sums = {k: sum(r[k] for r in soak_rows) for k in ("diverged", "unconverged", "non_finite", "outside_space",
                                                        "exceptions")}
-    lines.append("Totals: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sums.items()) + ".\n")
+    lines.append("Totals: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sums.items()) + ". (The "
+                 "slowest step of the first configurations includes compiling the Numba kernels they first "
+                 "use: seconds, once per process.)\n")
     for r in soak_rows:
         for msg in r["exception_messages"][:3]:
             lines.append(f"- exception in {r['env']} {r['mode']} {r['actions']}: `{msg}`")
@@ -310,7 +312,7 @@ def report(results: dict) -> str:
     lines.append(markdown_table(["input", "error", "message"],
                                 [[b["input"], b["error"] or "**none**", b["message"].replace("|", "/")]
                                  for b in results["bad_inputs"]]))
-    lines.append("Chart: [reliability.png](../img/reliability.png).")
+    lines.append("![reliability soak](../img/reliability.png)")
     return "\n".join(lines) + "\n"
 
 
@@ -321,7 +323,15 @@ def main(argv=None) -> int:
                     "smoke run")
     ap.add_argument("--envs", default=",".join(ENV_IDS), help="comma-separated environment ids")
     ap.add_argument("--out", default=str(RESULTS), help="folder for reliability.json / .md")
+    ap.add_argument("--from-json", action="store_true", help="rewrite the report and chart from the stored run")
     args = ap.parse_args(argv)
+    if args.from_json:
+        import json
+
+        results = json.loads((Path(args.out) / "reliability.json").read_text())
+        (Path(args.out) / "reliability.md").write_text(report(results))
+        chart(results, IMAGES / "reliability.png")
+        return 0
     env_ids = [e for e in args.envs.split(",") if e]
     try:
         steps = [int(float(v)) for v in args.steps.split(",")]

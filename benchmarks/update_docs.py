@@ -28,7 +28,9 @@ def update(path: Path) -> list[str]:
         if not table.is_file():
             return m.group(0)
         done.append(m.group(2))
-        return m.group(1) + table.read_text().rstrip() + "\n" + m.group(4)
+        # links relative to docs/benchmarks/ become relative to docs/, where the table lands
+        text = table.read_text().rstrip().replace("](../img/", "](img/").replace("](../", "](")
+        return m.group(1) + text + "\n" + m.group(4)
 
     new = PATTERN.sub(replace, text)
     if new != text:
