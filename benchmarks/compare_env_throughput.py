@@ -35,10 +35,15 @@ def compare(before: dict, after: dict, label_before: str, label_after: str) -> s
             if not match:
                 continue
             o = match[0]
-            rows.append([r["env"], r["actions"], r["num_envs"], r["threads"], f"{o['median_steps_per_s']:.0f}",
-                         f"{r['median_steps_per_s']:.0f}", f"{r['median_steps_per_s'] / o['median_steps_per_s']:.2f}"])
+            rows.append([r["env"], r["actions"], r["num_envs"], r["threads"],
+                         f"{o['median_steps_per_s']:.0f} ± {o['iqr_steps_per_s']:.0f}",
+                         f"{r['median_steps_per_s']:.0f} ± {r['iqr_steps_per_s']:.0f}",
+                         f"{r['median_steps_per_s'] / o['median_steps_per_s']:.2f}"])
         lines.append(f"\n### {env_id}\n\n" + markdown_table(
-            ["env", "actions", "N", "threads", label_before, label_after, "ratio"], rows))
+            ["env", "actions", "N", "threads", f"{label_before} (median ± IQR)", f"{label_after} (median ± IQR)",
+             "ratio"], rows))
+    lines.append("\nA ratio whose two rates lie within each other's IQR is noise on a 2-core machine shared with "
+                 "the benchmark's own threads; re-run a row before reading a change into it.")
     return "\n".join(lines)
 
 
