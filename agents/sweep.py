@@ -123,7 +123,8 @@ def plan_sweep(config_path: str | Path, seeds, sets: dict | None = None, grid: d
     if len(set(seeds)) != len(seeds):
         raise ConfigError(f"--seeds: repeated seeds in {seeds}")
     grid = grid or {}
-    out = Path(out) if out is not None else Path("runs") / f"sweep-{base['name']}"
+    # absolute: Ray Tune runs each trial in a working folder of its own
+    out = (Path(out) if out is not None else Path("runs") / f"sweep-{base['name']}").resolve()
     keys = list(grid)
     trials = []
     for values in itertools.product(*(grid[k] for k in keys)):

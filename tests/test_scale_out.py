@@ -97,13 +97,14 @@ def test_a_two_seed_sweep_lands_on_both_nodes_of_a_two_node_cluster(tmp_path):
 
 
 @pytest.mark.ray
-def test_a_failing_trial_is_reported_and_the_others_go_on(tmp_path):
+def test_a_failing_trial_is_reported_and_the_others_go_on(tmp_path, monkeypatch):
     pytest.importorskip("ray")
     from heml_gym.agents.sweep import run_sweep
 
     config = tiny_config(tmp_path)
+    monkeypatch.chdir(tmp_path)
     out = tmp_path / "sweep"
-    trials = plan_sweep(config, [0, 1], {}, {}, out)
+    trials = plan_sweep(config, [0, 1], {}, {}, "sweep")  # a relative folder, as the CLI's default
     # trial 1 cannot write its run folder: a file stands where its folder would be
     trials[1].run_dir.parent.mkdir(parents=True, exist_ok=True)
     trials[1].run_dir.write_text("in the way")
@@ -112,6 +113,9 @@ def test_a_failing_trial_is_reported_and_the_others_go_on(tmp_path):
     assert status == {0: "finished", 1: "failed"}
     failed = next(r for r in summary["trials"] if r["seed"] == 1)
     assert "not a directory" in failed["error"]
+    # the finished trial's run folder is under the sweep folder, not in Ray's trial working folder
+    assert (out / trials[0].name / "evaluations.json").is_file()
+    assert (out / "summary.json").is_file()
 
 
 @pytest.mark.ray
