@@ -266,7 +266,7 @@ def chart(trials: list[Trial], summary: dict, path: Path) -> None:
                 steps = [e["timesteps"] for e in h]
                 rate = [e["success_rate"] for e in h]
                 curves[t.seed] = (steps, rate)
-                ax.plot(steps, rate, color="0.6", lw=1, marker=".", label=f"seed {t.seed}")
+                ax.plot(steps, rate, color=f"C{len(curves)}", alpha=0.7, lw=1, marker=".", label=f"seed {t.seed}")
         if curves:
             grid_steps = sorted({s for steps, _ in curves.values() for s in steps})
             values = np.array([[np.interp(s, st, r, right=math.nan) for s in grid_steps] for st, r in curves.values()])

@@ -1,4 +1,4 @@
-"""Copy the benchmark tables (docs/benchmarks/*.md) into the prose docs.
+"""Copy the benchmark tables (docs/benchmarks/*.md) into the prose docs and README.md.
 
 Each doc marks where a table goes with ``<!-- BEGIN name -->`` and ``<!-- END name -->``;
 this script replaces what is between them with ``docs/benchmarks/name.md``. Run it after
@@ -9,14 +9,21 @@ re-running benchmarks so the docs match the measurements.
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import DOCS, RESULTS  # noqa: E402
+from common import DOCS, RESULTS, ROOT  # noqa: E402
 
 PATTERN = re.compile(r"(<!-- BEGIN (\w+) -->\n)(.*?)(<!-- END \2 -->)", re.S)
+LINK = re.compile(r"\]\((?!https?:|#|/)([^)#\s]+)")
+
+
+def relink(text: str, into: Path) -> str:
+    """Links written relative to docs/benchmarks/, rewritten relative to the folder ``into``."""
+    return LINK.sub(lambda m: "](" + Path(os.path.relpath(RESULTS / m.group(1), into)).as_posix(), text)
 
 
 def update(path: Path) -> list[str]:
@@ -28,8 +35,7 @@ def update(path: Path) -> list[str]:
         if not table.is_file():
             return m.group(0)
         done.append(m.group(2))
-        # links relative to docs/benchmarks/ become relative to docs/, where the table lands
-        text = table.read_text().rstrip().replace("](../img/", "](img/").replace("](../", "](")
+        text = relink(table.read_text().rstrip(), path.parent)
         return m.group(1) + text + "\n" + m.group(4)
 
     new = PATTERN.sub(replace, text)
@@ -39,7 +45,7 @@ def update(path: Path) -> list[str]:
 
 
 if __name__ == "__main__":
-    for doc in sorted(DOCS.glob("*.md")):
+    for doc in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]:
         names = update(doc)
         if names:
-            print(f"{doc.relative_to(DOCS.parent)}: {', '.join(names)}")
+            print(f"{doc.relative_to(ROOT)}: {', '.join(names)}")

@@ -5,7 +5,15 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 HEML_EXTRAS="${HEML_EXTRAS:-train,viz}" source scripts/setup_env.sh
 set -euo pipefail
-run="${RUN_DIR:-runs/quick-seed0}"
+seed=0  # the run folder follows --seed (bash scripts/main.sh --seed 3 -> runs/quick-seed3)
+args=("$@")
+for i in "${!args[@]}"; do
+  case "${args[$i]}" in
+    --seed) seed="${args[$((i + 1))]:-0}" ;;
+    --seed=*) seed="${args[$i]#--seed=}" ;;
+  esac
+done
+run="${RUN_DIR:-runs/quick-seed$seed}"
 heml-gym train configs/quick.yaml --run-dir "$run" "$@"
 heml-gym eval "$run" --episodes 20 --out "$run/eval.json"
 heml-gym rollout --policy "$run" --episodes 2 --rrd "$run/rollout.rrd"

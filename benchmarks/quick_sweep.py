@@ -1,0 +1,100 @@
+"""The README's main job across seeds: configs/quick.yaml trained with several seeds.
+
+Runs (or resumes: finished trials are kept) ``heml-gym sweep configs/quick.yaml`` on a
+local Ray instance, one CPU per trial, then stores what the README and docs quote:
+per seed its evaluation history, final success on 20 fresh episodes (95 % Wilson
+interval), the first evaluation at >= 90 %, and wall time; across seeds the IQM of the
+final success with a 95 % bootstrap interval.
+
+Writes docs/benchmarks/quick_sweep.json, .md and docs/img/quick_sweep.png.
+
+    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4] [--config configs/quick.yaml] [--out runs/sweep-quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json  # noqa: E402
+
+
+def collect(trials, summary: dict, config_path: Path, concurrent: int) -> dict:
+    from heml_gym.agents.stats import iqm, iqm_interval
+
+    seeds = []
+    for t, record in zip(trials, summary["trials"]):
+        if record["status"] != "finished":
+            seeds.append({"seed": t.seed, "status": record["status"], "error": record.get("error")})
+            continue
+        history = json.loads((t.run_dir / "evaluations.json").read_text())
+        evaluations = [{"env_steps": e["timesteps"], "success_rate": e["success_rate"]} for e in history]
+        first = next((e["env_steps"] for e in evaluations if e["success_rate"] >= 0.9), None)
+        seeds.append({"seed": t.seed, "status": "finished", "env_steps": record["env_steps"],
+                      "wall_s": record["wall_s"], "success_rate": record["success_rate"],
+                      "success_ci95": record["success_ci95"], "first_eval_at_90_percent": first,
+                      "evaluations": evaluations})
+    finals = [s["success_rate"] for s in seeds if s["status"] == "finished"]
+    out = {"machine": machine_info(), "config": str(config_path.relative_to(ROOT)),
+           "trials_at_once": concurrent, "seeds": seeds,
+           "seeds_at_90_percent": sum(f >= 0.9 for f in finals), "seeds_finished": len(finals)}
+    if finals:
+        out["iqm"] = iqm(finals)
+        out["iqm_ci95"] = list(iqm_interval(finals))
+    return out
+
+
+def table(result: dict) -> str:
+    m = result["machine"]
+    rows = []
+    for s in result["seeds"]:
+        if s["status"] != "finished":
+            rows.append([s["seed"], s["status"], "-", "-", "-", s.get("error") or "-"])
+            continue
+        lo, hi = s["success_ci95"]
+        history = " / ".join(f"{e['success_rate']:.0%}" for e in s["evaluations"])
+        first = f"{s['first_eval_at_90_percent']:,}" if s["first_eval_at_90_percent"] is not None else "never"
+        rows.append([s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", first, history,
+                     f"{s['env_steps']:,}", f"{s['wall_s'] / 60:.1f}"])
+    head = (f"`{result['config']}` with {len(result['seeds'])} seeds on {m['cpu']} ({m['cores']} cores), "
+            f"{m['date']}, {result['trials_at_once']} trials at a time with one CPU each "
+            "(`python benchmarks/quick_sweep.py`). Final success: 20 fresh seeded evaluation episodes, "
+            "deterministic policy, 95 % Wilson interval.\n\n")
+    summary = (f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**; IQM of the "
+               f"final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "
+               f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%}).\n" if "iqm" in result else "")
+    chart = "\n![success vs env steps, every seed and the IQM](../img/quick_sweep.png)\n"
+    return head + markdown_table(["seed", "final success", "first eval >= 90 % at (steps)",
+                                  "evaluations (every 40 k steps)", "env steps", "wall min"], rows) + summary + chart
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--config", default=str(ROOT / "configs" / "quick.yaml"))
+    ap.add_argument("--out", default=str(ROOT / "runs" / "sweep-quick"))
+    ap.add_argument("--cpus-per-trial", type=float, default=1)
+    args = ap.parse_args(argv)
+
+    import os
+
+    from heml_gym.agents.sweep import chart, plan_sweep, run_sweep
+
+    trials = plan_sweep(args.config, [int(s) for s in args.seeds.split(",")], {}, {}, args.out)
+    summary = run_sweep(trials, args.out, cpus_per_trial=args.cpus_per_trial, verbose=False)
+    concurrent = max(1, int((os.cpu_count() or 1) // args.cpus_per_trial))
+    result = collect(trials, summary, Path(args.config).resolve(), concurrent)
+    write_json("quick_sweep.json", result)
+    text = table(result)
+    (RESULTS / "quick_sweep.md").write_text(text)
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    chart(trials, summary, IMAGES / "quick_sweep.png")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,149 @@
+"""The README's "Results" and its quick-start sentence, written from the stored results.
+
+Reads docs/benchmarks/{quick_sweep,env_throughput,force_throughput,simulation_speed,
+scene_convergence,rllib_learning}.json and writes docs/benchmarks/readme_results.md, one
+sentence per result with the CPU and date it was measured on (a result that is missing is
+left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
+gives across seeds). ``python benchmarks/update_docs.py`` then copies them into README.md.
+
+    python benchmarks/readme_results.py
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS  # noqa: E402
+
+
+def load(name: str) -> dict | None:
+    path = RESULTS / f"{name}.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def where(data: dict) -> str:
+    m = data["machine"]
+    return f"{m['cpu']}, {m['cores']} cores, {m['date']}"
+
+
+def learning(data: dict) -> str:
+    done = [s for s in data["seeds"] if s["status"] == "finished"]
+    wall = sorted(s["wall_s"] / 60 for s in done)
+    rates = ", ".join(f"{s['success_rate']:.0%}" for s in data["seeds"] if s["status"] == "finished")
+    steps = done[0]["env_steps"] if done else 0
+    firsts = [s["first_eval_at_90_percent"] for s in done if s["first_eval_at_90_percent"] is not None]
+    reach = (f"; the first evaluation at >= 90 % came at {min(firsts) // 1000}-{max(firsts) // 1000} k steps"
+             if firsts else "")
+    return (f"**Learning.** The main job (`{data['config']}`, PPO, {steps:,} env steps) reached >= 90 % success on "
+            f"20 fresh episodes for **{data['seeds_at_90_percent']} of {data['seeds_finished']} seeds** "
+            f"(final success {rates}; IQM {data['iqm']:.0%}, 95 % bootstrap interval {data['iqm_ci95'][0]:.0%}-"
+            f"{data['iqm_ci95'][1]:.0%}){reach}; {wall[0]:.1f}-{wall[-1]:.1f} min of training per seed with one "
+            f"core each, two seeds at a time ({where(data)}; [per seed](quick_sweep.md)).")
+
+
+def quickstart(data: dict) -> str:
+    """The quick-start sentence: what the main job gives a fresh clone, across seeds."""
+    done = [s for s in data["seeds"] if s["status"] == "finished"]
+    wall = sorted(s["wall_s"] / 60 for s in done)
+    misses = [f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done if s["success_rate"] < 0.9]
+    m = data["machine"]
+    text = (f"Measured on a {m['cores']}-core {m['cpu']} ({m['date']}), {len(done)} seeds: training took "
+            f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed (one core each, two seeds at a time), and "
+            f"**{data['seeds_at_90_percent']} of {data['seeds_finished']} seeds** reached >= 90 % success on 20 fresh "
+            "evaluation episodes")
+    text += f" (below it: {', '.join(misses)})." if misses else "."
+    return text + " [Per seed](quick_sweep.md)."
+
+
+def rllib(data: dict) -> str:
+    first = data["first_eval_at_90_percent"]
+    reach = (f"passed 90 % at {first // 1000} k env steps" if first is not None
+             else "did not reach 90 %")
+    return (f"**RLlib.** RLlib PPO with {data['env_runners']} env runners of {data['scenes_per_runner']} scenes "
+            f"{reach} on TissueRetraction (seed {data['seed']}; final {data['final_success_rate']:.0%} at "
+            f"{data['env_steps'] // 1000} k steps, {data['wall_s'] / 60:.0f} min; {where(data)}; "
+            "[scale_out.md](../scale_out.md#measured)).")
+
+
+def throughput(data: dict) -> str:
+    def rate(env_id, env, n, threads):
+        rows = data["envs"][env_id]["throughput"]
+        match = [r for r in rows if r["env"] == env and r["actions"] == "random" and r["num_envs"] == n
+                 and r["threads"] == threads]
+        return match[0]["median_steps_per_s"] if match else None
+
+    tissue, organ = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+    vec_n = max(r["num_envs"] for r in data["envs"][tissue]["throughput"])
+    threads = max(r["threads"] for r in data["envs"][tissue]["throughput"])
+    return (f"**Env speed** (random actions, 0.1 s of tissue per step): TissueRetraction {rate(tissue, 'single', 1, 1):,.0f} "
+            f"env steps/s as a single env on one core, {rate(tissue, 'vector', vec_n, threads):,.0f}/s as a {vec_n}-scene "
+            f"vector env on {threads} cores; OrganRetraction (5,206 tets, explicit) {rate(organ, 'single', 1, 1):,.0f}/s "
+            f"single and {rate(organ, 'vector', vec_n, threads):,.0f}/s vectorised ({where(data)}; "
+            "[envs.md](../envs.md#measured)).")
+
+
+def forces(data: dict) -> str:
+    laws = data.get("laws")
+    if not laws:
+        return ""
+    nh, stvk = (laws["native"]["tets_per_s"][k] / 1e6 for k in ("HEML Neo-Hookean", "HEML StVK"))
+    avx2 = laws["avx2_target"]["tets_per_s"]["HEML Neo-Hookean"] / 1e6
+    flags = "AVX-512" if any(f.startswith("avx512") for f in laws.get("cpu_avx_flags", [])) else "AVX2 only"
+    return (f"**Forces.** HEML equals textbook FEM to 1e-15; its Neo-Hookean kernel runs {nh:.0f} M tets/s on one core "
+            f"({stvk:.0f} M for StVK; {avx2:.0f} M when compiled for a plain AVX2 CPU) on a "
+            f"{laws['native']['n_tets']:,}-tet box ({where(data)}, {flags}; "
+            "[physics_core.md](../physics_core.md#force-kernel-throughput)).")
+
+
+def implicit(data: dict) -> str:
+    rows = [r for r in data.get("implicit_slab", []) if r["label"] == "default"]
+    if not rows:
+        return ""
+    r = rows[0]
+    return (f"**Implicit step.** A backward-Euler 1/30 s step of a LapGym-size slab ({r['n_tets']:,} tets) takes "
+            f"{r['median_step_ms']:.1f} ms on one core, {r['mean_newton_iterations']:.1f} Newton iterations on average "
+            f"({where(data)}; [dynamics.md](../dynamics.md#measured-speed-one-thread)).")
+
+
+def convergence(data: dict) -> str:
+    parts = []
+    for scene, res in data["results"].items():
+        default = next(r for r in res["table"] if r.get("default"))
+        force = max(s["force"] for s in default["per_seed"]) * 100
+        exposure = max(s["exposure"] for s in default["per_seed"])
+        parts.append(f"{scene} ({default['model']}, {default['n_tets']:,} tets): force within {force:.1f} %, "
+                     f"exposure within {exposure:.3f} of a fine reference")
+    return (f"**Accuracy of the env scenes.** The default models against fine models of the same scene, on the "
+            f"scripted baseline's path: {'; '.join(parts)} "
+            "([scene_convergence.md](../scene_convergence.md)).")
+
+
+def main() -> int:
+    sections = [("quick_sweep", learning), ("env_throughput", throughput), ("force_throughput", forces),
+                ("simulation_speed", implicit), ("scene_convergence", convergence), ("rllib_learning", rllib)]
+    lines, missing = [], []
+    for name, write in sections:
+        data = load(name)
+        if data is None:
+            missing.append(name)
+            continue
+        text = write(data)
+        if text:
+            lines.append(text)
+    out = "Written by `benchmarks/readme_results.py` from the stored results in docs/benchmarks/.\n\n"
+    out += "\n\n".join(f"- {line}" for line in lines) + "\n"
+    if missing:
+        out += f"\n(Not measured yet: {', '.join(missing)}.)\n"
+    (RESULTS / "readme_results.md").write_text(out)
+    print(out)
+    sweep = load("quick_sweep")
+    if sweep is not None:
+        (RESULTS / "readme_quickstart.md").write_text(quickstart(sweep) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
