@@ -62,6 +62,7 @@ class RewardWeights:
     strain: float = 5.0  # times the strain above the damage threshold
     effort: float = 0.01  # times |gripper velocity command|^2
     success: float = 5.0  # once, on success
+    hold: float = 1.0  # per second of simulated time the success condition is held before success (hold_time > 0)
 
     def __post_init__(self):
         for f in fields(self):
@@ -80,6 +81,7 @@ class TaskSettings:
     damage_strain: float = 0.5  # gauge strain above which the strain penalty applies
     tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
+    hold_time: float = 0.0  # s the success condition must hold, continuously, before success (0: at once)
     max_steps: int = 100  # steps before truncation
     exposure_samples: int = 256  # points on the target sphere for exposure
 
@@ -93,6 +95,9 @@ class TaskSettings:
                             f"got {self.tear_strain}")
         if not (isinstance(self.success_exposure, (int, float)) and 0 < self.success_exposure <= 1):
             raise SpecError(f"TaskSettings.success_exposure: must lie in (0, 1], got {self.success_exposure!r}")
+        if isinstance(self.hold_time, bool) or not isinstance(self.hold_time, (int, float)) \
+                or not math.isfinite(self.hold_time) or self.hold_time < 0:
+            raise SpecError(f"TaskSettings.hold_time: must be a finite number of seconds >= 0, got {self.hold_time!r}")
         for name in ("max_steps", "exposure_samples"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -169,6 +174,9 @@ class BatchedRetraction:
         self.young_modulus = np.full(n, E_high)
         self.steps = np.zeros(n, dtype=np.int64)
         self.grasped_once = np.zeros(n, dtype=bool)
+        # env steps the success condition has held in a row; success once it has held hold_time
+        self.held_steps = np.zeros(n, dtype=np.int64)
+        self.hold_steps = math.ceil(self.settings.hold_time / self.settings.control_dt - 1e-9)
         self.rngs = [np.random.default_rng() for _ in range(n)]
 
     @property
@@ -198,6 +206,7 @@ class BatchedRetraction:
             self.held[i] = False
             self.steps[i] = 0
             self.grasped_once[i] = False
+            self.held_steps[i] = 0
             self.grasp_force[i] = 0.0
         idx = np.atleast_1d(scenes)
         self.exposure[idx] = self._exposure(idx)
@@ -265,7 +274,12 @@ class BatchedRetraction:
             "reward_strain": -w.strain * np.maximum(0.0, self.max_strain - st.damage_strain),
             "reward_effort": -w.effort * (a[:, :3] ** 2).sum(axis=1),
         }
-        success = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~failed
+        # success: the target exposed with the tissue below damage strain, held for hold_time
+        # (the condition first met counts as 0 s; each further step in a row adds control_dt)
+        meets = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~failed
+        self.held_steps = np.where(meets, self.held_steps + 1, 0)
+        success = meets & (self.held_steps > self.hold_steps)
+        terms["reward_hold"] = np.where(meets & ~success, w.hold * st.control_dt, 0.0)
         terms["reward_success"] = np.where(success, w.success, 0.0)
         # a failed scene earns nothing: every term is zeroed, so they still add up
         terms = {k: np.where(failed, 0.0, v) for k, v in terms.items()}
@@ -281,6 +295,7 @@ class BatchedRetraction:
             "grasp_force": np.linalg.norm(self.grasp_force, axis=1),
             "grasping": self.grasping.copy(),
             "is_success": success,
+            "hold_time": np.maximum(self.held_steps - 1, 0) * st.control_dt,
             "tissue_torn": torn,
             "simulation_diverged": diverged.copy(),
             "solver_converged": stats.converged.copy(),

@@ -290,7 +290,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
     def _info_at_reset(self) -> dict[str, Any]:
         t = self.task
         return {"exposure": float(t.exposure[0]), "lift": float(t.lift[0]), "max_strain": float(t.max_strain[0]),
-                "grasp_force": 0.0, "is_success": False, "young_modulus": float(t.young_modulus[0])}
+                "grasp_force": 0.0, "is_success": False, "hold_time": 0.0, "young_modulus": float(t.young_modulus[0])}
 
     def step(self, action):
         a = check_actions(action, (4,))
@@ -401,6 +401,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
             info["lift"][idx] = self.task.lift[idx]
             info["max_strain"][idx] = self.task.max_strain[idx]
             info["grasp_force"][idx] = 0.0
+            info["hold_time"][idx] = 0.0
         self._needs_reset = terminated | truncated
         return self.observations(), reward, terminated, truncated, info
 

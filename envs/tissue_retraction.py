@@ -50,7 +50,8 @@ for folding the free edge (x = 120 mm) back about the attached edge's top line, 
 90 degrees (``info["lift"]``); ``reward_grasp`` = 0.5 the
 first time a grasp holds tissue; ``reward_strain`` = -5 x (largest gauge strain - 0.5, if
 positive); ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
-success. Exposure is the fraction of the tumour's camera-facing surface samples (256
+success; with a hold time, ``reward_hold`` = 1 per second the success condition has held
+before success. Exposure is the fraction of the tumour's camera-facing surface samples (256
 points) that the deformed tissue surface does not hide, by ray casting. Tissue strain is
 measured over a 15 mm gauge (:mod:`heml_gym.envs.strain_gauges`): the largest
 ``|l / L - 1|`` of segments between material points 15 mm apart on the flap's mid-plane,
@@ -66,7 +67,9 @@ fixes all of them.
 
 ## Episode End
 
-Terminated on success (exposure >= 0.8 with gauge strain below 0.5), when the tissue
+Terminated on success (exposure >= 0.8 with gauge strain below 0.5; with
+``settings={"hold_time": T}``, held continuously for T seconds of simulated time, the
+time held so far in ``info["hold_time"]``, not observed; default 0: at once), when the tissue
 tears (gauge strain >= 1.0), or on a physics failure: a simulation that diverged
 (``info["simulation_diverged"]``) or a Newton solve that did not converge
 (``info["solver_converged"]`` False, implicit integrator); the reward is then 0 and the

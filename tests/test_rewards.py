@@ -111,3 +111,63 @@ def test_exposure_and_lift_rewards_telescope_to_the_changes_of_the_measurements(
             break
     assert total_exposure == pytest.approx(W.exposure * (info["exposure"] - start["exposure"]), abs=1e-9)
     assert total_lift == pytest.approx(W.lift * (info["lift"] - start["lift"]), abs=1e-9)
+
+
+def _scripted_episode(settings, seed, release_at=None):
+    """The scripted fold; ``release_at``: (steps after the condition is first met, steps)
+    to open the gripper for, to break the hold."""
+    env = TissueRetractionEnv(settings=settings, weights=W)
+    obs, _ = env.reset(seed=seed)
+    policy = scripted_policy(env.scene)
+    steps, met_at = [], None
+    for k in range(settings.max_steps):
+        action = policy(obs)
+        if release_at is not None and met_at is not None and 0 <= k - met_at - release_at[0] < release_at[1]:
+            action = np.array([0.0, 0.0, 0.0, -1.0], dtype=np.float32)  # open: the flap falls back
+            policy.reset()
+        obs, reward, terminated, truncated, info = env.step(action)
+        steps.append((terminated, truncated, info))
+        meets = info["exposure"] >= settings.success_exposure and info["max_strain"] < settings.damage_strain
+        if meets and met_at is None:
+            met_at = k
+        if terminated or truncated:
+            break
+    return steps
+
+
+@pytest.mark.parametrize("release_at", [None, (2, 1)])
+def test_success_needs_the_condition_held_for_the_hold_time(release_at):
+    """With ``hold_time`` = 1 s (10 steps of 0.1 s) success comes on the step the
+    condition (exposure >= threshold, strain below damage) has held for 10 steps after
+    first being met; breaking it restarts the timer. The run lengths are counted here
+    from the measurements in ``info``; the hold reward is paid per held step before success."""
+    settings = TaskSettings(hold_time=1.0, max_steps=100)
+    steps = _scripted_episode(settings, seed=7, release_at=release_at)
+    run, broken = 0, False
+    for terminated, truncated, info in steps:
+        meets = info["exposure"] >= settings.success_exposure and info["max_strain"] < settings.damage_strain
+        broken |= run > 0 and not meets
+        run = run + 1 if meets else 0
+        held = max(run - 1, 0) * settings.control_dt
+        assert info["hold_time"] == pytest.approx(held, abs=1e-12)
+        success = run - 1 >= 10
+        assert info["is_success"] == success and (terminated == success)
+        assert info["reward_success"] == (W.success if success else 0.0)
+        expected_hold = W.hold * settings.control_dt if meets and not success else 0.0
+        assert info["reward_hold"] == pytest.approx(expected_hold, abs=1e-12)
+    # the fold holds the target exposed and succeeds; released 0.2 s into the hold, the flap
+    # falls back, the timer restarts and the episode runs out without success
+    assert steps[-1][2]["is_success"] == (release_at is None)
+    assert broken == (release_at is not None), "the release should (only) break the hold"
+    # without a hold time the same fold succeeds at the first step the condition is met
+    first = _scripted_episode(TaskSettings(max_steps=100), seed=7)
+    met = [k for k, (_, _, i) in enumerate(steps) if i["exposure"] >= 0.8 and i["max_strain"] < 0.5]
+    if release_at is None:
+        assert len(first) == met[0] + 1 and len(steps) == met[0] + 11
+
+
+def test_hold_time_is_checked():
+    with pytest.raises(Exception, match="hold_time"):
+        TaskSettings(hold_time=-1.0)
+    with pytest.raises(Exception, match="hold_time"):
+        TaskSettings(hold_time=float("nan"))
