@@ -32,7 +32,7 @@ z 24-27 mm (above the grasp line); E uniform in 4-8 kPa.
 
 ## Arguments
 
-``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics`` as for
+``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics``, ``difficulty`` as for
 TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
 ``mesh_size`` (m, gmsh element size; default 7 mm).
 
@@ -88,9 +88,9 @@ class OrganRetractionEnv(RetractionEnv):
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, mesh_size=None,
-                 scene=None, physics=None, camera=None):
+                 scene=None, physics=None, camera=None, difficulty=0):
         super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
-                         mesh_size=mesh_size)
+                         difficulty=difficulty, mesh_size=mesh_size)
 
 
 class OrganRetractionVectorEnv(RetractionVectorEnv):
@@ -99,6 +99,6 @@ class OrganRetractionVectorEnv(RetractionVectorEnv):
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
-                 render_mode=None, mesh_size=None, scene=None, physics=None, camera=None):
+                 render_mode=None, mesh_size=None, scene=None, physics=None, camera=None, difficulty=0):
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
-                         physics=physics, camera=camera, mesh_size=mesh_size)
+                         physics=physics, camera=camera, difficulty=difficulty, mesh_size=mesh_size)

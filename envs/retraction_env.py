@@ -27,6 +27,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from .camera import SEGMENT_IDS, CameraRenderer, CameraSpec
 from .core import BatchedRetraction, RewardWeights, TaskSettings, as_settings, settings_with
+from .difficulty import apply_difficulty
 from .scene import PhysicsSpec, Scene, build_scene
 from .spec import SpecError, from_mapping, merge, to_mapping
 
@@ -238,14 +239,15 @@ class _Resolving:
         return resolve_scene(spec, None, physics)
 
     @classmethod
-    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, camera=None, **size) -> Scene:
+    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, camera=None, difficulty=0,
+                     **size) -> Scene:
         """Validate the data arguments of the constructor (as ``gym.make`` would pass
         them) without building the scene's mesh; returns the resolved scene."""
-        as_settings(settings, TaskSettings, "settings")
+        settings = as_settings(settings, TaskSettings, "settings")
         as_settings(weights, RewardWeights, "weights")
         if camera is not None:
             as_settings(camera, CameraSpec, "camera")
-        return cls.resolve(scene, physics, **size)
+        return apply_difficulty(difficulty, settings, cls.resolve(scene, physics, **size))[1]
 
 
 class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
@@ -260,14 +262,15 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
     def __init__(self, obs_mode: str = "state", render_mode: str | None = None,
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
                  scene: Scene | dict | str | None = None, physics: dict | None = None, camera: dict | None = None,
-                 **size):
+                 difficulty: int = 0, **size):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
-        spec = self.resolve(scene, physics, **size)
-        self.task = BatchedRetraction(build_scene(spec), 1, as_settings(settings, TaskSettings, "settings"),
-                                      as_settings(weights, RewardWeights, "weights"))
+        settings, spec = apply_difficulty(difficulty, as_settings(settings, TaskSettings, "settings"),
+                                          self.resolve(scene, physics, **size))
+        self.difficulty = difficulty
+        self.task = BatchedRetraction(build_scene(spec), 1, settings, as_settings(weights, RewardWeights, "weights"))
         self.action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
         self.observation_space = self._setup_observations(obs_mode, camera)
         self.render_mode = render_mode
@@ -328,7 +331,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
                  max_episode_steps: int | None = None, render_mode: str | None = None,
                  scene: Scene | dict | str | None = None, physics: dict | None = None, camera: dict | None = None,
-                 **size):
+                 difficulty: int = 0, **size):
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -340,7 +343,8 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
             if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)):
                 raise ValueError(f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}")
             settings = settings_with(settings, max_steps=int(max_episode_steps))  # a copy: never the caller's
-        spec = self.resolve(scene, physics, **size)
+        settings, spec = apply_difficulty(difficulty, settings, self.resolve(scene, physics, **size))
+        self.difficulty = difficulty
         self.num_envs = int(num_envs)
         self.task = BatchedRetraction(build_scene(spec), self.num_envs, settings,
                                       as_settings(weights, RewardWeights, "weights"))

@@ -86,6 +86,14 @@ cells along x, y, z), ``scene`` (a :class:`~heml_gym.envs.scene.Scene`, a mappin
 changes to this scene, or a scene YAML path: ``configs/scenes/tissue_retraction.yaml``),
 ``physics`` (a mapping of :class:`~heml_gym.envs.scene.PhysicsSpec` fields: ``material``,
 ``young_modulus``, ``poisson``, ``field``, ``integrator``, ``safety``, ``max_dt``, ...).
+``difficulty`` (:mod:`heml_gym.envs.difficulty`; the scripted baseline's success rate
+and episode length on each level are measured in docs/envs.md):
+
+| difficulty | task |
+|---|---|
+| 0 (default) | success as soon as the target is exposed below damage strain |
+| 1 | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) |
+| 2 | as 1, with tissue E drawn from half the scene's lowest to 1.5x its highest |
 
 ## Version History
 
@@ -137,9 +145,9 @@ class TissueRetractionEnv(RetractionEnv):
     default_scene = staticmethod(tissue_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, cells=None,
-                 scene=None, physics=None, camera=None):
+                 scene=None, physics=None, camera=None, difficulty=0):
         super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
-                         cells=cells)
+                         difficulty=difficulty, cells=cells)
 
 
 class TissueRetractionVectorEnv(RetractionVectorEnv):
@@ -148,6 +156,6 @@ class TissueRetractionVectorEnv(RetractionVectorEnv):
     default_scene = staticmethod(tissue_scene)
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
-                 render_mode=None, cells=None, scene=None, physics=None, camera=None):
+                 render_mode=None, cells=None, scene=None, physics=None, camera=None, difficulty=0):
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
-                         physics=physics, camera=camera, cells=cells)
+                         physics=physics, camera=camera, difficulty=difficulty, cells=cells)
