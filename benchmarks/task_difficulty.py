@@ -3,7 +3,7 @@
 For each env and level (:mod:`heml_gym.envs.difficulty`): the scripted fold
 (:func:`heml_gym.envs.scripted.scripted_policy`) on ``--episodes`` seeded episodes:
 success rate (95 % Wilson interval), median and mean episode length (env steps of
-0.1 s), mean largest gauge strain, and CPU seconds per episode.
+0.1 s), mean largest gauge strain, and mean CPU seconds per episode.
 
 Writes docs/benchmarks/task_difficulty.{json,md}.
 
@@ -30,31 +30,18 @@ def measure(env_id: str, level: int, episodes: int) -> dict:
 
     import heml_gym.envs  # noqa: F401
     from heml_gym.agents.train import wilson_interval
-    from heml_gym.envs.scripted import scripted_policy
+    from heml_gym.envs.scripted import run_episodes, scripted_policy
 
     env = gym.make(env_id, difficulty=level)
-    policy = scripted_policy(env.unwrapped.scene)
-    lengths, successes, strains, cpu = [], [], [], []
-    for seed in range(episodes):
-        obs, _ = env.reset(seed=seed)
-        policy.reset()
-        t0 = time.process_time()
-        done, steps, strain = False, 0, 0.0
-        while not done:
-            obs, reward, terminated, truncated, info = env.step(policy(obs))
-            done = terminated or truncated
-            steps += 1
-            strain = max(strain, info["max_strain"])
-        cpu.append(time.process_time() - t0)
-        lengths.append(steps)
-        successes.append(bool(info["is_success"]))
-        strains.append(strain)
+    t0 = time.process_time()
+    run = run_episodes(env, scripted_policy(env.unwrapped.scene), episodes)
+    cpu = (time.process_time() - t0) / episodes
     env.close()
-    k = int(np.sum(successes))
+    k = int(np.sum(run["successes"]))
     return {"env": env_id, "difficulty": level, "episodes": episodes, "success_rate": k / episodes,
-            "success_ci95": list(wilson_interval(k, episodes)), "median_length": float(np.median(lengths)),
-            "mean_length": float(np.mean(lengths)), "lengths": lengths, "mean_max_strain": float(np.mean(strains)),
-            "cpu_s_per_episode": float(np.median(cpu))}
+            "success_ci95": list(wilson_interval(k, episodes)), "median_length": float(np.median(run["lengths"])),
+            "mean_length": run["mean_length"], "lengths": run["lengths"], "mean_max_strain": run["mean_max_strain"],
+            "cpu_s_per_episode": cpu}
 
 
 def main(argv=None) -> int:

@@ -72,7 +72,8 @@ def scripted_policy(scene) -> FoldBackPolicy:
 
 
 def run_episodes(env, policy, episodes: int, seed: int = 0) -> dict:
-    """Roll ``policy`` out for ``episodes`` seeded episodes; success rate and means."""
+    """Roll ``policy`` out for ``episodes`` seeded episodes (seeds ``seed``, ``seed + 1``, ...):
+    success rate and means, and every episode's length (steps) and success."""
     successes, exposures, strains, lengths = [], [], [], []
     for k in range(episodes):
         obs, info = env.reset(seed=seed + k)
@@ -91,4 +92,4 @@ def run_episodes(env, policy, episodes: int, seed: int = 0) -> dict:
         lengths.append(steps)
     return {"episodes": episodes, "success_rate": float(np.mean(successes)),
             "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
-            "mean_length": float(np.mean(lengths))}
+            "mean_length": float(np.mean(lengths)), "lengths": lengths, "successes": successes}
