@@ -6,9 +6,10 @@ per seed its evaluation history, final success on 20 fresh episodes (95 % Wilson
 interval), the first evaluation at >= 90 %, and wall time; across seeds the IQM of the
 final success with a 95 % bootstrap interval.
 
-Writes docs/benchmarks/quick_sweep.json, .md and docs/img/quick_sweep.png.
+Writes docs/benchmarks/quick_sweep.json, .md and docs/img/quick_sweep.png (``--name``
+for another config's results).
 
-    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4] [--config configs/quick.yaml] [--out runs/sweep-quick]
+    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4] [--config configs/quick.yaml] [--out runs/sweep-quick] [--name quick_sweep]
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json  # noqa: E402
 
 
-def collect(trials, summary: dict, config_path: Path, concurrent: int) -> dict:
+def collect(trials, summary: dict, config_path: Path, concurrent: int, command: str) -> dict:
     from heml_gym.agents.stats import iqm, iqm_interval
 
     seeds = []
@@ -39,7 +40,7 @@ def collect(trials, summary: dict, config_path: Path, concurrent: int) -> dict:
                       "evaluations": evaluations})
     finals = [s["success_rate"] for s in seeds if s["status"] == "finished"]
     out = {"machine": machine_info(), "config": str(config_path.relative_to(ROOT)),
-           "trials_at_once": concurrent, "seeds": seeds,
+           "trials_at_once": concurrent, "command": command, "seeds": seeds,
            "seeds_at_90_percent": sum(f >= 0.9 for f in finals), "seeds_finished": len(finals)}
     if finals:
         out["iqm"] = iqm(finals)
@@ -47,7 +48,7 @@ def collect(trials, summary: dict, config_path: Path, concurrent: int) -> dict:
     return out
 
 
-def table(result: dict) -> str:
+def table(result: dict, name: str = "quick_sweep") -> str:
     m = result["machine"]
     rows = []
     for s in result["seeds"]:
@@ -61,12 +62,12 @@ def table(result: dict) -> str:
                      f"{s['env_steps']:,}", f"{s['wall_s'] / 60:.1f}"])
     head = (f"`{result['config']}` with {len(result['seeds'])} seeds on {m['cpu']} ({m['cores']} cores), "
             f"{m['date']}, {result['trials_at_once']} trials at a time with one CPU each "
-            "(`python benchmarks/quick_sweep.py`). Final success: 20 fresh seeded evaluation episodes, "
+            f"(`{result.get('command', 'python benchmarks/quick_sweep.py')}`). Final success: 20 fresh seeded evaluation episodes, "
             "deterministic policy, 95 % Wilson interval.\n\n")
     summary = (f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**; IQM of the "
                f"final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "
                f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%}).\n" if "iqm" in result else "")
-    chart = "\n![success vs env steps, every seed and the IQM](../img/quick_sweep.png)\n"
+    chart = f"\n![success vs env steps, every seed and the IQM](../img/{name}.png)\n"
     return head + markdown_table(["seed", "final success", "first eval >= 90 % at (steps)",
                                   "evaluations (every 40 k steps)", "env steps", "wall min"], rows) + summary + chart
 
@@ -77,6 +78,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=str(ROOT / "configs" / "quick.yaml"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "sweep-quick"))
     ap.add_argument("--cpus-per-trial", type=float, default=1)
+    ap.add_argument("--name", default="quick_sweep", help="name of the results: docs/benchmarks/NAME.{json,md}")
     args = ap.parse_args(argv)
 
     import os
@@ -86,12 +88,15 @@ def main(argv=None) -> int:
     trials = plan_sweep(args.config, [int(s) for s in args.seeds.split(",")], {}, {}, args.out)
     summary = run_sweep(trials, args.out, cpus_per_trial=args.cpus_per_trial, verbose=False)
     concurrent = max(1, int((os.cpu_count() or 1) // args.cpus_per_trial))
-    result = collect(trials, summary, Path(args.config).resolve(), concurrent)
-    write_json("quick_sweep.json", result)
-    text = table(result)
-    (RESULTS / "quick_sweep.md").write_text(text)
+    config = Path(args.config).resolve()
+    command = "python benchmarks/quick_sweep.py" + (
+        f" --config {config.relative_to(ROOT)} --name {args.name}" if args.name != "quick_sweep" else "")
+    result = collect(trials, summary, config, concurrent, command)
+    write_json(f"{args.name}.json", result)
+    text = table(result, args.name)
+    (RESULTS / f"{args.name}.md").write_text(text)
     IMAGES.mkdir(parents=True, exist_ok=True)
-    chart(trials, summary, IMAGES / "quick_sweep.png")
+    chart(trials, summary, IMAGES / f"{args.name}.png")
     print(text)
     return 0
 
