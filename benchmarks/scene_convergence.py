@@ -396,27 +396,41 @@ def speed_accuracy_chart(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
     markers = {"explicit": "o", "implicit": "s", "quasi_newton": "^"}
-    fig, axes = plt.subplots(1, len(results), figsize=(6.5 * len(results), 4.8), squeeze=False)
+    top = 100.0  # a diverged or unconverged model is drawn at the top, as an x
+    fig, axes = plt.subplots(1, len(results), figsize=(6.5 * len(results), 5.6), squeeze=False)
     for ax, (scene, res) in zip(axes[0], results.items()):
         rows = [r for r in res["table"] if not r["diverged"]]
-        for i, r in enumerate(res["table"]):
-            err = 100 * max(r["force"], r["exposure"])
-            ax.plot(r["cpu_ms_per_step"], err, "*" if r["default"] else markers.get(r.get("integrator"), "o"),
-                    color="tab:green" if r["within_5pct"] else "tab:red", ms=14 if r["default"] else 7)
-            ax.annotate(r["model"], (r["cpu_ms_per_step"], err), fontsize=6, xytext=(4, 3 - 9 * (i % 2)),
-                        textcoords="offset points")
         front = pareto(rows)
+        labelled = {id(r) for r in front}
+        for r in sorted(res["table"], key=lambda r: r["default"]):  # the default drawn last, on top
+            failed = r["diverged"] or r.get("unconverged_steps", 0) > 0
+            err = top if failed else 100 * max(r["force"], r["exposure"])
+            marker = "*" if r["default"] else ("x" if failed else markers.get(r.get("integrator"), "o"))
+            ax.plot(r["cpu_ms_per_step"], err, marker, color="tab:green" if r["within_5pct"] else "tab:red",
+                    ms=15 if r["default"] else 7, mew=2 if failed else 1, zorder=5 if r["default"] else 3)
+            if r["default"] or failed or not r["within_5pct"] or id(r) in labelled:
+                text = r["model"] + (" (default)" if r["default"] else "") + (" failed" if failed else "")
+                ax.annotate(text, (r["cpu_ms_per_step"], err), fontsize=6, xytext=(5, -3),
+                            textcoords="offset points")
         ax.plot([r["cpu_ms_per_step"] for r in front], [100 * max(r["force"], r["exposure"]) for r in front],
                 "-", color="0.5", lw=1, label="Pareto front")
         ax.axhline(100 * TOLERANCE, color="k", ls="--", lw=1, label="5 % tolerance")
         ax.set_xscale("log")
-        ax.set_yscale("symlog", linthresh=1.0)
+        ax.set_yscale("log")
+        ax.set_ylim(0.5, 2 * top)
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            axis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("CPU ms per env step (one thread, median)")
         ax.set_ylabel("worst error over seeds: max(force, exposure) (%)")
         ax.set_title(f"{scene} vs {res['reference']}", fontsize=9)
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7, title="o explicit, s implicit, ^ quasi-Newton, * default", title_fontsize=7)
+        ax.legend(fontsize=7, title="o explicit, s implicit, ^ quasi-Newton, * default,\nx diverged or unconverged "
+                  "(drawn at 100 %); unlabelled green: in the table", title_fontsize=7, loc="upper center",
+                  bbox_to_anchor=(0.5, -0.14), ncol=2)
     fig.suptitle("Speed vs accuracy on the env scenes (green: within 5 % of the fine model)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

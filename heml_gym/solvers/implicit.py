@@ -19,6 +19,7 @@ factorisation. Units: m, s, kg, N.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import scipy.sparse.linalg as spla
@@ -252,12 +253,17 @@ class ImplicitSolver(Solver):
             a = hessian(x_n, True).tocsr()
             d = (targets - x_n).reshape(-1)
             u = np.zeros_like(d)
-            u[free] = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, kin] @ d[kin]))
+            with warnings.catch_warnings():  # a singular step matrix: no such start (reported below)
+                warnings.simplefilter("error", spla.MatrixRankWarning)
+                try:
+                    u[free] = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, kin] @ d[kin]))
+                except spla.MatrixRankWarning:
+                    u[free] = np.nan
             u[kin] = d[kin]
             x = x_n + u.reshape(x_n.shape)
             v = v_n.copy()
             self._constrain(s, x, v, control, targets, h, x_n)
-            if np.isfinite(potential(x)):
+            if np.all(np.isfinite(x)) and np.isfinite(potential(x)):
                 return x
         inverted = np.flatnonzero(signed_volumes(x, self.model.mesh.tets) <= 0)
         raise _Diverged("no feasible start: the driven vertices invert elements within one step", inverted)
