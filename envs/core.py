@@ -176,7 +176,7 @@ class BatchedRetraction:
         self.grasped_once = np.zeros(n, dtype=bool)
         # env steps the success condition has held in a row; success once it has held hold_time
         self.held_steps = np.zeros(n, dtype=np.int64)
-        self.hold_steps = math.ceil(self.settings.hold_time / self.settings.control_dt - 1e-9)
+        self.steps_to_hold = math.ceil(self.settings.hold_time / self.settings.control_dt - 1e-9)
         self.rngs = [np.random.default_rng() for _ in range(n)]
 
     @property
@@ -278,7 +278,7 @@ class BatchedRetraction:
         # (the condition first met counts as 0 s; each further step in a row adds control_dt)
         meets = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~failed
         self.held_steps = np.where(meets, self.held_steps + 1, 0)
-        success = meets & (self.held_steps > self.hold_steps)
+        success = meets & (self.held_steps > self.steps_to_hold)
         terms["reward_hold"] = np.where(meets & ~success, w.hold * st.control_dt, 0.0)
         terms["reward_success"] = np.where(success, w.success, 0.0)
         # a failed scene earns nothing: every term is zeroed, so they still add up
