@@ -118,7 +118,7 @@ def convergence(data: dict) -> str:
                      f"exposure within {exposure:.3f} of a fine reference")
     return (f"**Accuracy of the env scenes.** The default models against fine models of the same scene, on the "
             f"scripted baseline's path: {'; '.join(parts)} "
-            "([scene_convergence.md](../scene_convergence.md)).")
+            f"({where(data)}; [scene_convergence.md](../scene_convergence.md)).")
 
 
 def main() -> int:
