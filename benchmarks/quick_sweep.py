@@ -9,7 +9,7 @@ final success with a 95 % bootstrap interval.
 Writes docs/benchmarks/quick_sweep.json, .md and docs/img/quick_sweep.png (``--name``
 for another config's results).
 
-    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4] [--config configs/quick.yaml] [--out runs/sweep-quick] [--name quick_sweep]
+    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4,5,6,7,8,9] [--config configs/quick.yaml] [--out runs/sweep-quick] [--name quick_sweep]
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def table(result: dict, name: str = "quick_sweep") -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--seeds", default="0,1,2,3,4,5,6,7,8,9")
     ap.add_argument("--config", default=str(ROOT / "configs" / "quick.yaml"))
     ap.add_argument("--out", default=str(ROOT / "runs" / "sweep-quick"))
     ap.add_argument("--cpus-per-trial", type=float, default=1)
@@ -90,7 +90,8 @@ def main(argv=None) -> int:
     concurrent = max(1, int((os.cpu_count() or 1) // args.cpus_per_trial))
     config = Path(args.config).resolve()
     command = "python benchmarks/quick_sweep.py" + (
-        f" --config {config.relative_to(ROOT)} --name {args.name}" if args.name != "quick_sweep" else "")
+        f" --config {config.relative_to(ROOT)} --name {args.name}" if args.name != "quick_sweep" else "") + (
+        f" --seeds {args.seeds}" if args.seeds != ap.get_default("seeds") else "")
     result = collect(trials, summary, config, concurrent, command)
     write_json(f"{args.name}.json", result)
     text = table(result, args.name)
