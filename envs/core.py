@@ -95,9 +95,7 @@ class TaskSettings:
                             f"got {self.tear_strain}")
         if not (isinstance(self.success_exposure, (int, float)) and 0 < self.success_exposure <= 1):
             raise SpecError(f"TaskSettings.success_exposure: must lie in (0, 1], got {self.success_exposure!r}")
-        if isinstance(self.hold_time, bool) or not isinstance(self.hold_time, (int, float)) \
-                or not math.isfinite(self.hold_time) or self.hold_time < 0:
-            raise SpecError(f"TaskSettings.hold_time: must be a finite number of seconds >= 0, got {self.hold_time!r}")
+        _positive(self, "hold_time", self.hold_time, allow_zero=True)
         for name in ("max_steps", "exposure_samples"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
