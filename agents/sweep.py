@@ -243,8 +243,9 @@ def summarise(trials: list[Trial], errors: dict | None = None) -> dict:
 
 
 def chart(trials: list[Trial], summary: dict, path: Path) -> None:
-    """Success rate vs env steps: every seed's evaluations, and the IQM across seeds with
-    its 95 % bootstrap interval, one panel per grid point."""
+    """Success rate vs env steps (top row: every seed's evaluations, and the IQM across
+    seeds with its 95 % bootstrap interval) and vs wall time (bottom row: every seed),
+    one column per grid point."""
     try:
         import matplotlib
     except ImportError:
@@ -253,8 +254,9 @@ def chart(trials: list[Trial], summary: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     points = summary["grid_points"]
-    fig, axes = plt.subplots(1, max(1, len(points)), figsize=(5 * max(1, len(points)), 3.6), squeeze=False)
-    for ax, point in zip(axes[0], points):
+    cols = max(1, len(points))
+    fig, axes = plt.subplots(2, cols, figsize=(5 * cols, 6.4), squeeze=False)
+    for ax, wall_ax, point in zip(axes[0], axes[1], points):
         key = json.dumps(point["grid_point"], sort_keys=True)
         curves = {}
         for t in trials:
@@ -266,7 +268,11 @@ def chart(trials: list[Trial], summary: dict, path: Path) -> None:
                 steps = [e["timesteps"] for e in h]
                 rate = [e["success_rate"] for e in h]
                 curves[t.seed] = (steps, rate)
-                ax.plot(steps, rate, color=f"C{len(curves)}", alpha=0.7, lw=1, marker=".", label=f"seed {t.seed}")
+                color = f"C{(len(curves) - 1) % 10}"
+                ax.plot(steps, rate, color=color, alpha=0.7, lw=1, marker=".", label=f"seed {t.seed}")
+                if all("wall_s" in e for e in h):
+                    wall_ax.plot([e["wall_s"] / 60 for e in h], rate, color=color, alpha=0.7, lw=1, marker=".",
+                                 label=f"seed {t.seed}")
         if curves:
             grid_steps = sorted({s for steps, _ in curves.values() for s in steps})
             values = np.array([[np.interp(s, st, r, right=math.nan) for s in grid_steps] for st, r in curves.values()])
@@ -277,12 +283,15 @@ def chart(trials: list[Trial], summary: dict, path: Path) -> None:
                 a, b = iqm_interval(col, reps=500)
                 lo.append(a)
                 hi.append(b)
-            ax.plot(grid_steps, centre, color="C0", lw=2, label="IQM across seeds")
-            ax.fill_between(grid_steps, lo, hi, color="C0", alpha=0.2, label="95 % bootstrap interval")
-        ax.set_ylim(-0.02, 1.02)
+            ax.plot(grid_steps, centre, color="black", lw=2, label="IQM across seeds")
+            ax.fill_between(grid_steps, lo, hi, color="black", alpha=0.12, label="95 % bootstrap interval")
         ax.set_xlabel("env steps")
-        ax.set_ylabel("evaluated success rate")
+        wall_ax.set_xlabel("wall time (min, one CPU per trial)")
         ax.set_title(", ".join(f"{k}={v}" for k, v in point["grid_point"].items()) or "all seeds", fontsize=9)
+        for a in (ax, wall_ax):
+            a.set_ylim(-0.02, 1.02)
+            a.set_ylabel("evaluated success rate")
+            a.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -39,7 +39,10 @@ def collect(trials, summary: dict, config_path: Path, concurrent: int, command: 
                       "success_ci95": record["success_ci95"], "first_eval_at_90_percent": first,
                       "evaluations": evaluations})
     finals = [s["success_rate"] for s in seeds if s["status"] == "finished"]
+    from heml_gym.agents.config import load_config
+
     out = {"machine": machine_info(), "config": str(config_path.relative_to(ROOT)),
+           "evaluation_every_steps": load_config(config_path).evaluation.every_steps,
            "trials_at_once": concurrent, "command": command, "seeds": seeds,
            "seeds_at_90_percent": sum(f >= 0.9 for f in finals), "seeds_finished": len(finals)}
     if finals:
@@ -69,7 +72,8 @@ def table(result: dict, name: str = "quick_sweep") -> str:
                f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%}).\n" if "iqm" in result else "")
     chart = f"\n![success vs env steps, every seed and the IQM](../img/{name}.png)\n"
     return head + markdown_table(["seed", "final success", "first eval >= 90 % at (steps)",
-                                  "evaluations (every 40 k steps)", "env steps", "wall min"], rows) + summary + chart
+                                  f"evaluations (every {result.get('evaluation_every_steps', 40000) // 1000} k steps)",
+                                  "env steps", "wall min"], rows) + summary + chart
 
 
 def main(argv=None) -> int:

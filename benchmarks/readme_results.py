@@ -1,7 +1,7 @@
 """The README's "Results" and its quick-start sentence, written from the stored results.
 
 Reads docs/benchmarks/{quick_sweep,env_throughput,force_throughput,simulation_speed,
-scene_convergence,rllib_learning}.json and writes docs/benchmarks/readme_results.md, one
+scene_convergence,rllib_learning,pixel_learning}.json and writes docs/benchmarks/readme_results.md, one
 sentence per result with the CPU and date it was measured on (a result that is missing is
 left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
 gives across seeds). ``python benchmarks/update_docs.py`` then copies them into README.md.
@@ -56,6 +56,20 @@ def quickstart(data: dict) -> str:
             "evaluation episodes")
     text += f" (below it: {', '.join(misses)})." if misses else "."
     return text + " [Per seed](quick_sweep.md)."
+
+
+def pixels(data: dict) -> str:
+    done = [s for s in data["seeds"] if s["status"] == "finished"]
+    if not done:
+        return ""
+    per_seed = []
+    for s in done:
+        first = next((e["env_steps"] for e in s["evaluations"] if e["success_rate"] >= 0.8), None)
+        reach = f"passed 80 % at {first // 1000} k env steps" if first is not None else "never passed 80 %"
+        per_seed.append(f"seed {s['seed']} {reach}, final {s['success_rate']:.0%} at {s['env_steps'] // 1000} k "
+                        f"steps in {s['wall_s'] / 60:.0f} min")
+    return (f"**From pixels.** PPO with a CNN on the task camera's images alone (`{data['config']}`): "
+            f"{'; '.join(per_seed)} ({where(data)}; [envs.md](../envs.md#learning-from-pixels)).")
 
 
 def rllib(data: dict) -> str:
@@ -123,7 +137,8 @@ def convergence(data: dict) -> str:
 
 def main() -> int:
     sections = [("quick_sweep", learning), ("env_throughput", throughput), ("force_throughput", forces),
-                ("simulation_speed", implicit), ("scene_convergence", convergence), ("rllib_learning", rllib)]
+                ("simulation_speed", implicit), ("scene_convergence", convergence), ("rllib_learning", rllib),
+                ("pixel_learning", pixels)]
     lines, missing = [], []
     for name, write in sections:
         data = load(name)

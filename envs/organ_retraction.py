@@ -34,7 +34,15 @@ z 24-27 mm (above the grasp line); E uniform in 4-8 kPa.
 
 ``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics``, ``difficulty`` as for
 TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
-``mesh_size`` (m, gmsh element size; default 7 mm).
+``mesh_size`` (m, gmsh element size; default 7 mm). Difficulty levels:
+
+| difficulty | task | scripted success | scripted episode, median steps |
+|---|---|---|---|
+| 0 (default) | success as soon as the target is exposed below damage strain | 100 % | 6 |
+| 1 | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 26 |
+| 2 | as 1, with E drawn in 2-12 kPa, and the target under the lobe's body, halfway towards the base (x 15-27.5 mm): its thin edge must be turned up by 22-28 degrees about the base, against 13-16 at level 0 | 100 % | 30 |
+
+(20 seeded episodes each, ``python benchmarks/task_difficulty.py``.)
 
 ## Version History
 

@@ -56,3 +56,26 @@ def test_bad_difficulty_is_refused_naming_it():
         TissueRetractionEnv(difficulty=1, settings={"hold_time": 0.5})
     # the level's own hold time given again is not a conflict
     assert TissueRetractionEnv(difficulty=1, settings={"hold_time": 2.0}).task.settings.hold_time == 2.0
+
+
+@pytest.mark.parametrize("env_id", ["heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"])
+def test_level_2_hides_the_target_halfway_deeper_towards_the_hinge(env_id):
+    """The target region's x moves half the way to the fold hinge (from the scene's own
+    numbers), every drawn target lies in it, and the scripted fold still exposes it and
+    holds it, later than at level 1 (the fold must go further; the hold is the same 2 s)."""
+    base = gym.make(env_id).unwrapped.scene
+    env = gym.make(env_id, difficulty=2)
+    scene = env.unwrapped.scene
+    hinge_x = base.fold.hinge[0]
+    expected = sorted(x + 0.5 * (hinge_x - x) for x in (base.target.low[0], base.target.high[0]))
+    assert [scene.target.low[0], scene.target.high[0]] == pytest.approx(expected)
+    assert scene.target.low[1:] == base.target.low[1:] and scene.target.high[1:] == base.target.high[1:]
+    for seed in range(5):
+        env.reset(seed=seed)
+        x = env.unwrapped.task.target[0, 0]
+        assert expected[0] - 1e-12 <= x <= expected[1] + 1e-12
+    lengths = {}
+    for level in (1, 2):
+        lengths[level], info = _scripted_length(gym.make(env_id, difficulty=level), seed=0)
+        assert info["is_success"] and info["hold_time"] == pytest.approx(2.0)
+    assert lengths[2] >= lengths[1] + 2
