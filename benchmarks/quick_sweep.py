@@ -9,7 +9,7 @@ final success with a 95 % bootstrap interval.
 Writes docs/benchmarks/quick_sweep.json, .md and docs/img/quick_sweep.png (``--name``
 for another config's results).
 
-    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4,5,6,7,8,9] [--config configs/quick.yaml] [--out runs/sweep-quick] [--name quick_sweep]
+    python benchmarks/quick_sweep.py [--seeds 0,1,2,3,4,5,6,7,8,9] [--config configs/quick.yaml] [--out runs/sweep-quick] [--name quick_sweep] [--note TEXT]
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def table(result: dict, name: str = "quick_sweep") -> str:
     head = (f"`{result['config']}` with {len(result['seeds'])} seeds on {m['cpu']} ({m['cores']} cores), "
             f"{m['date']}, {result['trials_at_once']} trials at a time with one CPU each "
             f"(`{result.get('command', 'python benchmarks/quick_sweep.py')}`). Final success: 20 fresh seeded evaluation episodes, "
-            "deterministic policy, 95 % Wilson interval.\n\n")
+            "deterministic policy, 95 % Wilson interval." + (f" {result['note']}" if result.get("note") else "") + "\n\n")
     summary = (f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**; IQM of the "
                f"final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "
                f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%}).\n" if "iqm" in result else "")
@@ -83,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "runs" / "sweep-quick"))
     ap.add_argument("--cpus-per-trial", type=float, default=1)
     ap.add_argument("--name", default="quick_sweep", help="name of the results: docs/benchmarks/NAME.{json,md}")
+    ap.add_argument("--note", default="", help="what else ran on the machine meanwhile (printed with the results)")
     args = ap.parse_args(argv)
 
     import os
@@ -97,6 +98,8 @@ def main(argv=None) -> int:
         f" --config {config.relative_to(ROOT)} --name {args.name}" if args.name != "quick_sweep" else "") + (
         f" --seeds {args.seeds}" if args.seeds != ap.get_default("seeds") else "")
     result = collect(trials, summary, config, concurrent, command)
+    if args.note:
+        result["note"] = args.note
     write_json(f"{args.name}.json", result)
     text = table(result, args.name)
     (RESULTS / f"{args.name}.md").write_text(text)

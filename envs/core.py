@@ -60,6 +60,7 @@ class RewardWeights:
     lift: float = 5.0  # times the change of lift progress (0..1) this step (shaping)
     grasp: float = 0.5  # once per episode, when a grasp first holds tissue
     strain: float = 5.0  # times the strain above the damage threshold
+    stretch: float = 0.0  # times the rise of the largest gauge strain this step, as a cost (shaping: fold, don't stretch)
     effort: float = 0.01  # times |gripper velocity command|^2
     success: float = 5.0  # once, on success
     hold: float = 1.0  # per second of simulated time the success condition is held before success (hold_time > 0)
@@ -220,7 +221,7 @@ class BatchedRetraction:
         are meaningless; the vector env resets them right after)."""
         st, w = self.settings, self.weights
         a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
-        prev_exposure, prev_lift = self.exposure.copy(), self.lift.copy()
+        prev_exposure, prev_lift, prev_strain = self.exposure.copy(), self.lift.copy(), self.max_strain.copy()
         grasp_bonus = np.zeros(self.n)
         x = self.state.x
         # grasp / release
@@ -270,6 +271,7 @@ class BatchedRetraction:
             "reward_lift": w.lift * (self.lift - prev_lift),
             "reward_grasp": grasp_bonus,
             "reward_strain": -w.strain * np.maximum(0.0, self.max_strain - st.damage_strain),
+            "reward_stretch": -w.stretch * (self.max_strain - prev_strain),
             "reward_effort": -w.effort * (a[:, :3] ** 2).sum(axis=1),
         }
         # success: the target exposed with the tissue below damage strain, held for hold_time

@@ -171,3 +171,33 @@ def test_hold_time_is_checked():
         TaskSettings(hold_time=-1.0)
     with pytest.raises(Exception, match="hold_time"):
         TaskSettings(hold_time=float("nan"))
+
+
+def test_the_stretch_cost_charges_each_rise_of_the_gauge_strain_and_favours_folding():
+    """``reward_stretch`` is -w times each step's change of the reported gauge strain (the
+    first step from the strain at reset); stretching the flap away from its hinge costs,
+    folding it back about the hinge (the scripted path) costs far less, and the term is
+    absent at its default weight 0."""
+    weights = RewardWeights(stretch=6.0)
+    env = TissueRetractionEnv(weights=weights)
+    _, start = env.reset(seed=5)
+    previous = start["max_strain"]
+    for _ in range(12):  # up and away from the hinge: stretches
+        *_, info = env.step(np.array([1.0, 0.0, 1.0, 1.0], dtype=np.float32))
+        assert info["reward_stretch"] == pytest.approx(-6.0 * (info["max_strain"] - previous), abs=1e-12)
+        previous = info["max_strain"]
+    stretched = -6.0 * (info["max_strain"] - start["max_strain"])
+    assert info["max_strain"] > 0.3 and stretched < -1.5
+
+    obs, start = env.reset(seed=5)
+    policy = scripted_policy(env.scene)
+    total = 0.0
+    for _ in range(12):
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        total += info["reward_stretch"]
+    assert total > stretched / 2
+
+    env = TissueRetractionEnv()
+    env.reset(seed=5)
+    *_, info = env.step(np.array([1.0, 0.0, 1.0, 1.0], dtype=np.float32))
+    assert info["reward_stretch"] == 0.0
