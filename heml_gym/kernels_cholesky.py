@@ -79,6 +79,38 @@ def envelope_solve(first, ptr, values, b, x):
             x[k] -= values[pi + k] * xi
 
 
+@nb.njit(cache=True, fastmath=_FAST)
+def envelope_solve_pair(first, ptr, values, b0, b1, x0, x1):
+    """Solve ``L L^T x0 = b0`` and ``L L^T x1 = b1`` in one pass over the factor (read once
+    for both right-hand sides: the factor of a mid-size mesh does not fit in the L2
+    cache). ``b0``, ``b1`` are kept."""
+    n = first.shape[0]
+    for i_signed in range(n):  # forward: L y = b
+        i = np.uint64(i_signed)
+        fi, pi = _row(first, ptr, i)
+        s0 = b0[i]
+        s1 = b1[i]
+        for k in range(fi, i):
+            lik = values[pi + k]
+            s0 -= lik * x0[k]
+            s1 -= lik * x1[k]
+        d = values[pi + i]
+        x0[i] = s0 / d
+        x1[i] = s1 / d
+    for i_signed in range(n - 1, -1, -1):  # backward: L^T x = y, row by row of L
+        i = np.uint64(i_signed)
+        fi, pi = _row(first, ptr, i)
+        d = values[pi + i]
+        xi0 = x0[i] / d
+        xi1 = x1[i] / d
+        x0[i] = xi0
+        x1[i] = xi1
+        for k in range(fi, i):
+            lik = values[pi + k]
+            x0[k] -= lik * xi0
+            x1[k] -= lik * xi1
+
+
 @nb.njit(cache=True)
 def scatter_into_envelope(data, target, values):
     """``values[:] = 0``, then ``values[target[e]] += data[e]`` for the kept entries

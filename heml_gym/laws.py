@@ -70,6 +70,17 @@ def volumetric_gradient_fast(law, p0, p1, J):
 
 
 @nb.njit(cache=True, inline="always")
+def volumetric_energy_fast(law, p0, p1, J):
+    """The ``J`` part of ``Psi`` (Pa) for the laws with constant ``Psi_1`` and no ``I2``
+    (Neo-Hookean: ``-mu ln J + lambda/2 (ln J)^2``), inline; as
+    :func:`volumetric_gradient_fast`, only for normal, positive, finite ``J``."""
+    if law == NEO_HOOKEAN:
+        lnj = log_positive(J)
+        return lnj * (0.5 * p1 * lnj - p0)
+    return _NAN
+
+
+@nb.njit(cache=True, inline="always")
 def law_gradient(law, p, I1, I2, J):
     """``(dPsi/dI1, dPsi/dI2, dPsi/dJ)`` in Pa."""
     if law == NEO_HOOKEAN:

@@ -110,6 +110,57 @@ class NotPositiveDefinite(ValueError):
     """The matrix given to :class:`EnvelopeCholesky` is not symmetric positive definite."""
 
 
+class EnvelopeLayout:
+    """Where the lower factor of a sparse symmetric matrix lives in envelope storage.
+
+    ``inverse[i]``: the position of row ``i`` in the factor's order (reverse Cuthill-McKee
+    or the natural order, whichever has the smaller envelope); ``first[r]``: the first
+    stored column of factor row ``r``; ``ptr``: the offsets of the rows in the values
+    array of length ``size``. Used by :class:`EnvelopeCholesky` and by solvers that
+    assemble their matrices straight into envelope storage (scalar Laplacians of
+    :class:`heml_gym.solvers.QuasiNewtonSolver`).
+    """
+
+    def __init__(self, inverse: np.ndarray, first: np.ndarray):
+        n = len(first)
+        self.inverse = np.ascontiguousarray(inverse, dtype=np.int64)
+        self.first = np.ascontiguousarray(first, dtype=np.int64)
+        self.ptr = np.concatenate([[0], np.cumsum(np.arange(n) - self.first + 1)]).astype(np.int64)
+        self.size = int(self.ptr[-1])
+
+    @classmethod
+    def of(cls, a: sp.csr_matrix) -> "EnvelopeLayout":
+        """The layout of the symmetric pattern of ``a`` (CSR) after the better ordering."""
+        a = a.tocsr()
+        n = a.shape[0]
+        rows = np.repeat(np.arange(n), np.diff(a.indptr))
+        cols = a.indices.astype(np.int64)
+
+        def candidate(order):
+            inverse = np.empty(n, dtype=np.int64)
+            inverse[order] = np.arange(n)
+            first = np.arange(n, dtype=np.int64)
+            np.minimum.at(first, inverse[rows], inverse[cols])
+            return inverse, first, int(np.sum(np.arange(n) - first + 1))
+
+        natural = candidate(np.arange(n))
+        rcm = candidate(reverse_cuthill_mckee(a, symmetric_mode=True).astype(np.int64))
+        inverse, first, _ = min(natural, rcm, key=lambda c: c[-1])
+        return cls(inverse, first)
+
+    def positions(self, rows: np.ndarray, cols: np.ndarray, upper: str | int = "mirror") -> np.ndarray:
+        """Index in the values array of each entry ``(rows[k], cols[k])`` (original
+        numbering) of the lower factor. An entry above the diagonal in the factor's order
+        maps to its mirror (``upper="mirror"``) or to the given integer (e.g. -1: skip)."""
+        r, c = self.inverse[np.asarray(rows, dtype=np.int64)], self.inverse[np.asarray(cols, dtype=np.int64)]
+        if upper == "mirror":
+            r, c = np.maximum(r, c), np.minimum(r, c)
+            if np.any(c < self.first[r]):
+                raise ValueError("an entry lies outside the envelope of the analysed pattern")
+            return (self.ptr[r] + c - self.first[r]).astype(np.int64)
+        return np.where(c <= r, self.ptr[r] + c - self.first[r], int(upper)).astype(np.int64)
+
+
 class EnvelopeCholesky:
     """``A = P^T L L^T P`` for a sparse symmetric positive definite ``A`` (CSR).
 
@@ -132,29 +183,15 @@ class EnvelopeCholesky:
     def _analyse(self, a):
         n = a.shape[0]
         self._indptr, self._indices = a.indptr, a.indices
+        layout = EnvelopeLayout.of(a)
+        self.layout = layout
+        self._inverse, self._first, self._ptr = layout.inverse, layout.first, layout.ptr
         rows = np.repeat(np.arange(n), np.diff(a.indptr))
-        cols = a.indices.astype(np.int64)
-
-        def envelope(order):
-            inverse = np.empty(n, dtype=np.int64)
-            inverse[order] = np.arange(n)
-            r, c = inverse[rows], inverse[cols]
-            first = np.arange(n, dtype=np.int64)
-            np.minimum.at(first, r, c)
-            return inverse, r, c, first, int(np.sum(np.arange(n) - first + 1))
-
-        natural = envelope(np.arange(n))
-        rcm = envelope(reverse_cuthill_mckee(a, symmetric_mode=True).astype(np.int64))
-        inverse, r, c, first, size = min(natural, rcm, key=lambda e: e[-1])
-        self._inverse = inverse
-        self._first = first
-        self._ptr = np.concatenate([[0], np.cumsum(np.arange(n) - first + 1)]).astype(np.int64)
-        lower = c <= r
-        self._target = np.where(lower, self._ptr[r] + c - first[r], -1).astype(np.int64)
-        self._values = np.zeros(size)
+        self._target = layout.positions(rows, a.indices.astype(np.int64), upper=-1)
+        self._values = np.zeros(layout.size)
         self._b = np.empty(n)
         self._x = np.empty(n)
-        self.envelope_size = size
+        self.envelope_size = layout.size
 
     def factor(self, a: sp.csr_matrix) -> None:
         """Factorise ``a`` (same pattern as the analysed matrix, else analysed afresh).

@@ -182,8 +182,8 @@ def test_quasi_newton_reaches_the_newton_solution(supports):
     materials = [M.NeoHookean(E=E, nu=0.45) for E in STIFFNESS]
     p = paths(4, 5, seed=4, scale=0.001)
     results = []
-    for cls, kw in ((hg.ImplicitSolver, {"newton_tol": 1e-8}), (hg.QuasiNewtonSolver, {"newton_tol": 1e-8,
-                                                                                        "max_iter": 1000})):
+    for cls, kw in ((hg.ImplicitSolver, {"newton_tol": 1e-8, "contact_stiffness": 1000.0}),
+                    (hg.QuasiNewtonSolver, {"newton_tol": 1e-8, "max_iter": 1000, "contact_stiffness": 1000.0})):
         model = hg.Model(MESH, materials, density=DENSITY, gravity=GRAVITY, fixed=FIXED, damping=DAMPING,
                          supports=supports)
         solver = cls(model, **kw)

@@ -32,7 +32,7 @@ import numpy as np
 from numba import prange
 
 from ..fastlog import SMALLEST_NORMAL
-from ..laws import law_energy, law_gradient, volumetric_gradient_fast
+from ..laws import law_energy, law_gradient, volumetric_energy_fast, volumetric_gradient_fast
 from ..materials import ST_VENANT_KIRCHHOFF, STABLE_NEO_HOOKEAN
 
 
@@ -238,6 +238,51 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
                                       c3x * g, c3y * g, c3z * g,
                                       w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
         scatter_block(f, tets, first, size, work)
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def constant_psi1_energy_and_forces_chunk(x, tets, inv_det, volume, w, psi1, law, p, f, lo, hi):
+    """Add the forces (N) of tets ``lo..hi-1`` into ``f`` as
+    :func:`constant_psi1_forces_chunk` and return their energy (J) in the same pass:
+    ``sum_k w_k s_k / 2 - 3 Psi_1 V0`` (the springs) plus ``V0 Psi_vol(J)``. ``volume``
+    is ``V0`` per tet, ``psi1`` the law's constant ``Psi_1`` (Pa). Returns ``inf`` (and
+    leaves ``f`` partly summed) as soon as a tet's J is not positive and normal: the law
+    is undefined there, which is what line searches need to know.
+    """
+    edges = np.empty((9, BLOCK), dtype=x.dtype)
+    work = np.empty((12, BLOCK), dtype=x.dtype)
+    lane_energy = np.empty(BLOCK, dtype=x.dtype)  # summed after the loop: a sum inside would not vectorise
+    p0 = p[0]
+    p1 = p[1]
+    total = 0.0
+    for start in range(lo, hi, BLOCK):
+        size = min(BLOCK, hi - start)
+        first = np.uint64(start)
+        gather_block(x, tets, first, size, edges)
+        n_bad = 0
+        for k in range(size):  # vectorises, as constant_psi1_forces_chunk
+            t = first + np.uint64(k)
+            ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, k)
+            s0, s1, s2, s3, s4, s5 = squared_edge_lengths(ax, ay, az, bx, by, bz, cx, cy, cz)
+            c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
+            jac = (ax * c1x + ay * c1y + az * c1z) * inv_det[t]
+            good = jac >= SMALLEST_NORMAL and jac < math.inf
+            n_bad += 0 if good else 1
+            j_safe = jac if good else 1.0
+            lane_energy[k] = (0.5 * (w[0, t] * s0 + w[1, t] * s1 + w[2, t] * s2 + w[3, t] * s3 + w[4, t] * s4
+                              + w[5, t] * s5)
+                       + volume[t] * (volumetric_energy_fast(law, p0, p1, j_safe) - 3.0 * psi1))
+            g = volumetric_gradient_fast(law, p0, p1, j_safe) * (1.0 / 6.0)
+            _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
+                              c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
+                              c3x * g, c3y * g, c3z * g,
+                              w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
+        if n_bad:
+            return math.inf
+        for k in range(size):
+            total += lane_energy[k]
+        scatter_block(f, tets, first, size, work)
+    return total
 
 
 @nb.njit(cache=True, inline="always")

@@ -30,7 +30,7 @@ from ..forces.heml import HemlForce
 from ..model import Model
 from ..state import State
 from . import kernels_explicit as ke
-from .base import Solver, StepStats, stiffness_damping
+from .base import Solver, StepStats, stack_law_params, stiffness_damping
 
 __all__ = ["ExplicitSolver"]
 
@@ -136,7 +136,7 @@ class ExplicitSolver(Solver):
                   m.damping.alpha, h, n_sub, m.fixed, control.kinematic, x0, control.targets, self.max_speed)
         if all(fd.split for fd in fields):
             weights = np.stack([fd.spring_weights for fd in fields]) if N > 1 else fields[0].spring_weights[None]
-            params = _stack_params(fields)
+            params = stack_law_params(fields)
             kernel = ke.split_substeps_parallel if parallel else ke.split_substeps_serial
             kernel(*common, rest.tets, rest.inv_det, weights, fields[0].law_id, params, planes, grids, values,
                    active, bad)
@@ -145,7 +145,7 @@ class ExplicitSolver(Solver):
             q_t = rest.q_t if use_q else fields[0].q_t
             laws = np.array([fd.law_id for fd in fields], dtype=np.int64)
             kernel = ke.heml_substeps_parallel if parallel else ke.heml_substeps_serial
-            kernel(*common, rest.tets, rest.coef_t, q_t, use_q, laws, _stack_params(fields), planes, grids,
+            kernel(*common, rest.tets, rest.coef_t, q_t, use_q, laws, stack_law_params(fields), planes, grids,
                    values, active, bad)
         return bad
 
@@ -167,7 +167,7 @@ class ExplicitSolver(Solver):
         def from_lanes(a):
             return np.moveaxis(a, -1, 1).reshape((blocks * lanes,) + a.shape[1:-1])[:N]
 
-        params = _stack_params(fields)
+        params = stack_law_params(fields)
         psi1 = np.array([fd.psi1 for fd in fields])
         xl, vl = to_lanes(state.x), to_lanes(state.v)
         reaction = np.empty_like(xl)
@@ -209,12 +209,3 @@ class ExplicitSolver(Solver):
                     break
                 reaction[s] += sub_reaction / n_sub
         return bad
-
-
-def _stack_params(fields) -> np.ndarray:
-    """``(N, k)`` law constants of the scenes' fields, zero-padded to the longest."""
-    width = max(len(f.params) for f in fields)
-    out = np.zeros((len(fields), width))
-    for s, f in enumerate(fields):
-        out[s, :len(f.params)] = f.params
-    return out

@@ -1,17 +1,26 @@
-"""Numba kernels of the quasi-Newton (L-BFGS) backward Euler solver, one scene per call
-of :func:`_lbfgs_scene`, scenes over threads in :func:`lbfgs_steps_parallel`.
+"""Numba kernels of the quasi-Newton (L-BFGS) backward Euler solver: one scene per call
+of :func:`_lbfgs_scene`, scenes over threads in :func:`lbfgs_steps_parallel`, and the
+assembly and factorisation of its scalar initial Hessians (:func:`factor_jobs`).
 
 Each step minimises the incremental potential of backward Euler over the free vertices,
 
     Phi(x) = c/2 sum_i m_i |x_i - x_hat_i|^2 + W(x) - sum_i (f_ext,i + m_i g) . x_i
              + sum_i k_i/2 min(d_i(x), 0)^2,       c = 1/h^2 + alpha/h,
 
-by L-BFGS whose initial inverse Hessian is ``P A^-1 P``: ``A = c M + K(X)`` (the rest
-stiffness of a reference material, on the non-fixed degrees of freedom) factorised
-once per mesh and step length (an envelope Cholesky factor), ``P`` zeroing the held
-degrees of freedom. The factor is shared by every scene and never redone when a grasp
-starts or ends: the held set is a projection. A backtracking line search on ``Phi``
-(Armijo) keeps every iterate finite. Units: m, s, kg, N.
+by L-BFGS whose initial Hessian is, on each axis ``a``, the scalar matrix
+
+    A_a = c M + (lambda + mu) L + diag(k_i n_ia^2 over the vertices in contact),
+
+``L`` the mesh's P1 Laplacian (edge weights ``sum V0 a_k`` over the tets of an edge: the
+Hessian of ``V0 (I1 - 3) / 2`` on one axis; Neo-Hookean's ``I1`` stiffness is ``mu L``),
+``lambda + mu`` the material's small-strain stiffness (the Laplacian at that weight
+approximates the shear and volumetric stiffness together), held and fixed vertices
+eliminated (their rows made identity), the support penalty of the vertices in contact on
+the diagonal. Unlike the rest stiffness ``K(X)`` it does not depend on the orientation
+of the tissue, so it stays a good model of the Hessian when the tissue turns over (Liu,
+Bouaziz and Kavan 2017 use the same Laplacian, from Projective Dynamics). A backtracking
+line search on ``Phi`` (Armijo, or a smaller residual near convergence) keeps every
+iterate finite. Units: m, s, kg, N.
 """
 
 from __future__ import annotations
@@ -22,30 +31,104 @@ import numba as nb
 import numpy as np
 from numba import prange
 
-from ..forces.kernels_heml import constant_psi1_forces_chunk, heml_energy_chunk, heml_forces_chunk
-from ..kernels_cholesky import envelope_precondition
+from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
+                                   heml_energy_chunk, heml_forces_chunk)
+from ..kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
 from ..kernels_contact import signed_distances
 
 
+# ------------------------------------------------------------------ initial Hessians
+@nb.njit(cache=True)
+def assemble_factor(values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w, lap_diag, mass, c, stiffness,
+                    held, extra):
+    """Assemble ``c M + stiffness L + diag(extra)`` with the ``held`` rows and columns made
+    identity into envelope storage ``values`` and factorise it in place.
+
+    ``diag_pos (n,)`` / ``edge_pos (E,)``: positions of the diagonal and edge entries in
+    ``values``; ``edge_w (E,)`` the Laplacian's edge weights (m), ``lap_diag (n,)`` its
+    diagonal. Returns -1, or the factor row whose pivot was not positive.
+    """
+    values[:] = 0.0
+    n = mass.shape[0]
+    for i in range(n):
+        if held[i]:
+            values[diag_pos[i]] = 1.0
+        else:
+            values[diag_pos[i]] = c * mass[i] + stiffness * lap_diag[i] + extra[i]
+    for e in range(edge_i.shape[0]):
+        i = edge_i[e]
+        j = edge_j[e]
+        if not (held[i] or held[j]):
+            values[edge_pos[e]] = -stiffness * edge_w[e]
+    return envelope_cholesky(first, ptr, values)
+
+
+@nb.njit(cache=True, parallel=True)
+def factor_jobs(job_scene, job_slot, values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w, lap_diag, mass,
+                c, stiffness, held, extra, status):
+    """Factorise ``values[s, slot]`` for each job ``(s, slot)`` (over threads), with the
+    scene's ``stiffness[s]``, ``held[s]`` and ``extra[s, slot]`` (see
+    :func:`assemble_factor`); ``status[job]`` receives its result."""
+    for k in prange(job_scene.shape[0]):
+        s = job_scene[k]
+        slot = job_slot[k]
+        status[k] = assemble_factor(values[s, slot], first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
+                                    lap_diag, mass, c[s], stiffness[s], held[s], extra[s, slot])
+
+
+@nb.njit(cache=True)
+def _precondition(g, z, held, inverse, first, ptr, values, axis_slot, b, y):
+    """``z = A^-1 g`` axis by axis (``A_a`` the factor ``values[axis_slot[a]]``; two axes
+    that share a factor are solved in one pass over it); zero on held vertices. ``b``,
+    ``y`` are ``(3, n)`` scratch arrays."""
+    n = g.shape[0]
+    for a in range(3):
+        for i in range(n):
+            b[a, np.uint64(inverse[i])] = 0.0 if held[i] else g[i, a]
+    done = np.zeros(3, dtype=np.bool_)
+    for a in range(3):
+        if done[a]:
+            continue
+        done[a] = True
+        pair = -1
+        for o in range(a + 1, 3):
+            if axis_slot[o] == axis_slot[a]:
+                pair = o
+                break
+        if pair >= 0:
+            done[pair] = True
+            envelope_solve_pair(first, ptr, values[axis_slot[a]], b[a], b[pair], y[a], y[pair])
+        else:
+            envelope_solve(first, ptr, values[axis_slot[a]], b[a], y[a])
+    for i in range(n):
+        k = np.uint64(inverse[i])
+        for a in range(3):
+            z[i, a] = 0.0 if held[i] else y[a, k]
+
+
+# ------------------------------------------------------------------------ potential
 @nb.njit(cache=True)
 def _potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat, load, held, k_contact,
-                            tets, coef_t, q_t, use_q, law, p, split, w, inv_det, planes, grids, grid_values,
+                            tets, coef_t, q_t, use_q, law, p, split, w, psi1, inv_det, planes, grids, grid_values,
                             n_supports):
     """``Phi(x)`` (J) and, if ``want_gradient``, its gradient into ``g`` (N; zero on held
-    vertices). ``f``, ``dist``, ``normal`` are scratch."""
+    vertices). ``f``, ``dist``, ``normal`` are scratch (``dist``, ``normal``: the signed
+    distances to the supports at ``x``)."""
     n = x.shape[0]
     m = tets.shape[0]
-    phi = heml_energy_chunk(x, tets, coef_t, q_t, use_q, law, p, 0, m)
-    if not math.isfinite(phi):
-        return math.inf
+    if split and want_gradient:  # energy and forces in one pass
+        f[:, :] = 0.0
+        phi = constant_psi1_energy_and_forces_chunk(x, tets, inv_det, coef_t[0], w, psi1, law, p, f, 0, m)
+        if not math.isfinite(phi):
+            return math.inf
+    else:
+        phi = heml_energy_chunk(x, tets, coef_t, q_t, use_q, law, p, 0, m)
+        if not math.isfinite(phi):
+            return math.inf
+        if want_gradient:
+            _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
     if n_supports:
         signed_distances(x, planes, grids, grid_values, dist, normal)
-    if want_gradient:
-        f[:, :] = 0.0
-        if split:
-            constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, 0, m)
-        else:
-            heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, 0, m)
     for i in range(n):
         if held[i]:
             if want_gradient:
@@ -65,88 +148,154 @@ def _potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat
     return phi
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
+def _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
+    """``f`` = the HEML forces (N) at ``x``."""
+    f[:, :] = 0.0
+    if split:
+        constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, 0, tets.shape[0])
+    else:
+        heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, 0, tets.shape[0])
+
+
+_FAST = {"reassoc", "contract", "nsz", "arcp"}  # lets the dot products vectorise
+
+
+@nb.njit(cache=True, fastmath=_FAST)
 def _dot(a, b):
+    """``sum a * b`` over two ``(n, 3)`` arrays."""
+    af = a.reshape(-1)
+    bf = b.reshape(-1)
     total = 0.0
-    for i in range(a.shape[0]):
-        total += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
+    for i in range(af.shape[0]):
+        total += af[i] * bf[i]
     return total
 
 
-@nb.njit(cache=True)
-def _precondition(g, z, held, dof_index, first, ptr, values, inverse, r, zr, wb, wx):
-    """``z = P A^-1 P g`` (``dof_index[i, d]``: the row of vertex ``i``, axis ``d`` in ``A``,
-    -1 for fixed vertices)."""
-    n = g.shape[0]
-    for i in range(n):
-        for d in range(3):
-            k = dof_index[i, d]
-            if k >= 0:
-                r[k] = 0.0 if held[i] else g[i, d]
-    envelope_precondition(first, ptr, values, inverse, r, zr, wb, wx)
-    for i in range(n):
-        for d in range(3):
-            k = dof_index[i, d]
-            z[i, d] = 0.0 if (k < 0 or held[i]) else zr[k]
+@nb.njit(cache=True, fastmath=_FAST)
+def _axpy(alpha, x, y):
+    """``y += alpha x`` over two ``(n, 3)`` arrays, in place."""
+    xf = x.reshape(-1)
+    yf = y.reshape(-1)
+    for i in range(xf.shape[0]):
+        yf[i] += alpha * xf[i]
 
 
 @nb.njit(cache=True)
-def _lbfgs_scene(x, v, mass, gravity, ext, alpha, h, held, tets, coef_t, q_t, use_q, law, p, split, w, inv_det,
-                 planes, grids, grid_values, k_contact, dof_index, first, ptr, values, inverse, tol, max_iter,
-                 history, out):
-    """One backward Euler step of one scene by L-BFGS, in place on ``x, v`` ``(n, 3)``.
+def _positive_volumes(x, tets, inv_det, vt_ptr, vt_tets, moved):
+    """True when every tet touching a ``moved`` vertex keeps a positive volume at ``x``."""
+    for i in range(moved.shape[0]):
+        if not moved[i]:
+            continue
+        for k in range(vt_ptr[i], vt_ptr[i + 1]):
+            t = vt_tets[k]
+            i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+            ax, ay, az = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+            bx, by, bz = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
+            cx, cy, cz = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
+            det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+            if not det * inv_det[t] > 0.0:
+                return False
+    return True
 
-    On entry ``x`` holds the held vertices' end positions (and the fixed ones' positions)
-    and the rest's start positions; ``v`` the start velocities. ``out`` receives
+
+# ----------------------------------------------------------------------- one scene
+@nb.njit(cache=True)
+def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, tets, coef_t, q_t, use_q,
+                 law, p, split, w, psi1, inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values,
+                 axis_slot, edge_i, edge_j, edge_w, stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho,
+                 memory, first_substep, r_prev, reaction, out):
+    """One backward Euler sub-step of one scene by L-BFGS, in place on ``x, v`` ``(n, 3)``.
+
+    Held (``kinematic``) vertices move a ``fraction`` of the way from where they are to
+    their ``targets``; fixed ones stay. The free vertices start from the explicit
+    predictor plus the linear response (through the initial Hessian) of the held
+    vertices' jump beyond it, else from where they are. ``reaction`` (N) receives the
+    step-mean constraint force on held and fixed vertices of this sub-step, by the
+    trapezoidal rule between ``r_prev`` (the sub-step's start: the quasi-static holding
+    force at ``first_substep``) and its end; ``r_prev`` then holds the end. ``out`` receives
     ``(iterations, residual (N), converged, feasible)``.
     """
     n = x.shape[0]
     c = 1.0 / (h * h) + alpha / h
+    k_contact = kappa * c
     x_n = x.copy()
-    x_hat = np.empty((n, 3))
+    v_n = v.copy()
+    held = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        held[i] = kinematic[i] or fixed[i]
     load = np.empty((n, 3))
     for i in range(n):
         for d in range(3):
-            x_hat[i, d] = x[i, d] + h * v[i, d] / (1.0 + alpha * h)
             load[i, d] = ext[i, d] + mass[i] * gravity[d]
-    n_supports = planes.shape[0] + grids.shape[0]
     f = np.empty((n, 3))
+    # the start's holding force: what held vertices need to stay put (quasi-static)
+    if first_substep:
+        _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+        for i in range(n):
+            for d in range(3):
+                r_prev[i, d] = -(f[i, d] + load[i, d] - alpha * mass[i] * v[i, d]) if held[i] else 0.0
+    x_hat = np.empty((n, 3))
+    jump = np.zeros((n, 3))  # the held vertices' move beyond their own predictor
+    any_jump = False
+    for i in range(n):
+        for d in range(3):
+            x_hat[i, d] = x_n[i, d] + h * v_n[i, d] / (1.0 + alpha * h)
+        if kinematic[i] and not fixed[i]:
+            for d in range(3):
+                xi = x[i, d] + (targets[i, d] - x[i, d]) * fraction
+                jump[i, d] = xi - x_n[i, d] - h * v_n[i, d]
+                any_jump = any_jump or jump[i, d] != 0.0
+                x[i, d] = xi
+    n_supports = planes.shape[0] + grids.shape[0]
     g = np.zeros((n, 3))
     g_new = np.zeros((n, 3))
     d_vec = np.empty((n, 3))
     trial = np.empty((n, 3))
+    response = np.zeros((n, 3))
     dist = np.full(n, math.inf)
     normal = np.zeros((n, 3))
     nd = first.shape[0]
-    r = np.empty(nd)
-    zr = np.empty(nd)
-    wb = np.empty(nd)
-    wx = np.empty(nd)
-    s_hist = np.zeros((history, n, 3))
-    y_hist = np.zeros((history, n, 3))
-    rho = np.zeros(history)
+    b = np.empty((3, nd))
+    y = np.empty((3, nd))
+    history = rho.shape[0]
     a_coef = np.zeros(history)
-    # start: the explicit predictor for the free vertices, else where they are
-    for i in range(n):
-        if not held[i]:
-            for d in range(3):
-                trial[i, d] = x[i, d] + h * v[i, d]
-        else:
+    if any_jump:  # -A_ff^-1 A_fh jump: the free vertices follow the held ones smoothly
+        for e in range(edge_i.shape[0]):
+            i = edge_i[e]
+            j = edge_j[e]
+            if held[i] != held[j]:
+                we = stiffness * edge_w[e]
+                if held[j]:
+                    for d in range(3):
+                        g[i, d] += we * jump[j, d]
+                else:
+                    for d in range(3):
+                        g[j, d] += we * jump[i, d]
+        _precondition(g, response, held, inverse, first, ptr, values, axis_slot, b, y)
+    args = (mass, c, x_hat, load, held, k_contact, tets, coef_t, q_t, use_q, law, p, split, w, psi1, inv_det,
+            planes, grids, grid_values, n_supports)
+    phi = math.inf
+    for attempt in range(4):  # predictor + response, predictor, start + response, start
+        for i in range(n):
             for d in range(3):
                 trial[i, d] = x[i, d]
-    args = (mass, c, x_hat, load, held, k_contact, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, planes,
-            grids, grid_values, n_supports)
-    phi = _potential_and_gradient(trial, True, g, f, dist, normal, *args)
-    if math.isfinite(phi):
-        x[:, :] = trial
-    else:
-        phi = _potential_and_gradient(x, True, g, f, dist, normal, *args)
-        if not math.isfinite(phi):
-            out[0], out[1], out[2], out[3] = 0.0, math.inf, 0.0, 0.0
-            return
+                if not held[i]:
+                    if attempt < 2:
+                        trial[i, d] = x_n[i, d] + h * v_n[i, d]
+                    if attempt % 2 == 0:
+                        trial[i, d] += response[i, d]
+        phi = _potential_and_gradient(trial, True, g, f, dist, normal, *args)
+        if math.isfinite(phi):
+            break
+    if not math.isfinite(phi):
+        out[0], out[1], out[2], out[3] = 0.0, math.inf, 0.0, 0.0
+        return
+    x[:, :] = trial
+    last_at_x = True  # ``f`` holds the elastic forces at ``x``
     gnorm = math.sqrt(_dot(g, g))
-    stored = 0
-    newest = -1
+    stored = memory[0]  # curvature pairs kept from the scene's earlier steps (same initial Hessian)
+    newest = memory[1]
     it = 0
     while gnorm > tol and it < max_iter:
         it += 1
@@ -155,26 +304,27 @@ def _lbfgs_scene(x, v, mass, gravity, ext, alpha, h, held, tets, coef_t, q_t, us
         k = newest
         for _ in range(stored):
             a_coef[k] = rho[k] * _dot(s_hist[k], d_vec)
-            d_vec -= a_coef[k] * y_hist[k]
+            _axpy(-a_coef[k], y_hist[k], d_vec)
             k = (k - 1) % history
-        _precondition(d_vec, trial, held, dof_index, first, ptr, values, inverse, r, zr, wb, wx)
+        _precondition(d_vec, trial, held, inverse, first, ptr, values, axis_slot, b, y)
         d_vec[:, :] = trial
         k = (newest - stored + 1) % history
         for _ in range(stored):
-            b = rho[k] * _dot(y_hist[k], d_vec)
-            d_vec += (a_coef[k] - b) * s_hist[k]
+            b_coef = rho[k] * _dot(y_hist[k], d_vec)
+            _axpy(a_coef[k] - b_coef, s_hist[k], d_vec)
             k = (k + 1) % history
         d_vec *= -1.0
         slope = _dot(g, d_vec)
-        if not slope < 0.0:  # not a descent direction: restart from the constant Hessian
+        if not slope < 0.0:  # not a descent direction: restart from the initial Hessian
             stored = 0
-            _precondition(g, d_vec, held, dof_index, first, ptr, values, inverse, r, zr, wb, wx)
+            _precondition(g, d_vec, held, inverse, first, ptr, values, axis_slot, b, y)
             d_vec *= -1.0
             slope = _dot(g, d_vec)
             if not slope < 0.0:
                 break
         step = 1.0
         accepted = False
+        phi_t = phi
         for _ in range(40):
             for i in range(n):
                 for dd in range(3):
@@ -188,10 +338,12 @@ def _lbfgs_scene(x, v, mass, gravity, ext, alpha, h, held, tets, coef_t, q_t, us
                     break
             step *= 0.5
         if not accepted:
-            break  # no progress possible at this precision: keep the best iterate
+            # no progress possible at this precision: keep the best iterate (its distances)
+            _potential_and_gradient(x, False, g_new, f, dist, normal, *args)
+            last_at_x = False
+            break
         phi = phi_t
         newest = (newest + 1) % history
-        sy = 0.0
         for i in range(n):
             for dd in range(3):
                 s_hist[newest, i, dd] = trial[i, dd] - x[i, dd]
@@ -205,41 +357,75 @@ def _lbfgs_scene(x, v, mass, gravity, ext, alpha, h, held, tets, coef_t, q_t, us
         x[:, :] = trial
         g[:, :] = g_new
         gnorm = math.sqrt(_dot(g, g))
-    # velocities; vertices inside a support (``dist``, ``normal``: at the last gradient's
-    # iterate, which is ``x``) go onto it and lose their velocity into it
+    # vertices inside a support (``dist``, ``normal``: at ``x``) go onto it, unless that
+    # would turn a tet inside out (a sliver on the support), and lose their velocity into it
+    inside = np.zeros(n, dtype=np.bool_)
+    n_inside = 0
     for i in range(n):
-        inside = n_supports > 0 and not held[i] and dist[i] < 0.0
-        if inside:
+        if n_supports > 0 and not held[i] and dist[i] < 0.0:
+            inside[i] = True
+            n_inside += 1
             for d in range(3):
-                x[i, d] -= dist[i] * normal[i, d]
+                trial[i, d] = x[i, d] - dist[i] * normal[i, d]
+        else:
+            for d in range(3):
+                trial[i, d] = x[i, d]
+    moved = False
+    if n_inside and _positive_volumes(trial, tets, inv_det, vt_ptr, vt_tets, inside):
+        x[:, :] = trial
+        moved = True
+    for i in range(n):
         for d in range(3):
             v[i, d] = (x[i, d] - x_n[i, d]) / h
-        if inside:
+        if inside[i]:
             vn = min(v[i, 0] * normal[i, 0] + v[i, 1] * normal[i, 1] + v[i, 2] * normal[i, 2], 0.0)
             for d in range(3):
                 v[i, d] -= vn * normal[i, d]
+    # the constraint force on held vertices: m a minus every other force on them (``f`` holds
+    # the forces at ``x`` from its last evaluation, unless the projection moved it)
+    if moved or not last_at_x:
+        _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+    for i in range(n):
+        if held[i]:
+            for d in range(3):
+                r_end = mass[i] * (v[i, d] - v_n[i, d]) / h - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
+                reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
+                r_prev[i, d] = r_end
+        else:
+            for d in range(3):
+                r_prev[i, d] = 0.0
+    memory[0] = stored
+    memory[1] = newest
     out[0], out[1], out[2], out[3] = float(it), gnorm, 1.0 if gnorm <= tol else 0.0, 1.0
 
 
 @nb.njit(cache=True, parallel=True)
-def lbfgs_steps_parallel(x, v, mass, gravity, ext, alpha, h, held, tets, coef_t, q_t, use_q, laws, params, split,
-                         weights, inv_det, planes, grids, grid_values, k_contact, dof_index, first, ptr, values,
-                         inverse, tol, max_iter, history, active, out):
+def lbfgs_steps_parallel(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction,
+                         tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
+                         grid_values, kappa, inverse, first, ptr, values, axis_slot, edge_i, edge_j, edge_w, stiffness,
+                         vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active, r_prev,
+                         reaction, out):
     """:func:`_lbfgs_scene` for every active scene (leading axis N), scenes over threads."""
     for s in prange(x.shape[0]):
         if active[s]:
-            _lbfgs_scene(x[s], v[s], mass, gravity, ext[s], alpha, h, held[s], tets, coef_t, q_t, use_q, laws[s],
-                         params[s], split, weights[s], inv_det, planes, grids, grid_values, k_contact, dof_index,
-                         first, ptr, values, inverse, tol[s], max_iter, history, out[s])
+            _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], fixed, mass, gravity,
+                         ext[s], alpha, h, fraction, tets, coef_t, q_t, use_q, laws[s], params[s], split, weights[s],
+                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values[s],
+                         axis_slot[s], edge_i, edge_j, edge_w, stiffness[s], vt_ptr, vt_tets, tol[s], max_iter,
+                         s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s], reaction[s], out[s])
 
 
 @nb.njit(cache=True)
-def lbfgs_steps_serial(x, v, mass, gravity, ext, alpha, h, held, tets, coef_t, q_t, use_q, laws, params, split,
-                       weights, inv_det, planes, grids, grid_values, k_contact, dof_index, first, ptr, values,
-                       inverse, tol, max_iter, history, active, out):
+def lbfgs_steps_serial(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction,
+                       tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
+                       grid_values, kappa, inverse, first, ptr, values, axis_slot, edge_i, edge_j, edge_w, stiffness,
+                       vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active, r_prev,
+                       reaction, out):
     """:func:`lbfgs_steps_parallel` scene after scene."""
     for s in range(x.shape[0]):
         if active[s]:
-            _lbfgs_scene(x[s], v[s], mass, gravity, ext[s], alpha, h, held[s], tets, coef_t, q_t, use_q, laws[s],
-                         params[s], split, weights[s], inv_det, planes, grids, grid_values, k_contact, dof_index,
-                         first, ptr, values, inverse, tol[s], max_iter, history, out[s])
+            _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], fixed, mass, gravity,
+                         ext[s], alpha, h, fraction, tets, coef_t, q_t, use_q, laws[s], params[s], split, weights[s],
+                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values[s],
+                         axis_slot[s], edge_i, edge_j, edge_w, stiffness[s], vt_ptr, vt_tets, tol[s], max_iter,
+                         s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s], reaction[s], out[s])

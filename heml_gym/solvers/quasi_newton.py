@@ -1,15 +1,22 @@
-"""Backward Euler by quasi-Newton (L-BFGS) with a constant, factorised initial Hessian.
+"""Backward Euler by quasi-Newton (L-BFGS) from a scalar Laplacian initial Hessian.
 
 After Liu, Bouaziz and Kavan (2017), "Quasi-Newton methods for real-time simulation of
-hyperelastic materials": each step minimises backward Euler's incremental potential
-(the same as :class:`~heml_gym.solvers.ImplicitSolver`'s, supports included) by L-BFGS,
-whose initial Hessian is the constant matrix ``c M + K(X)`` (``c = 1/h^2 + alpha/h``; the
-stiffness at rest of a reference material), factorised once per mesh and step length by
-the envelope Cholesky of :mod:`heml_gym.linear_solvers` and shared by every scene. No
-Hessian is assembled, and nothing is refactorised when a grasp starts or ends (held
-vertices are a projection) or when a scene draws another stiffness (L-BFGS's history
-corrects the initial guess). For HEML this is natural: Neo-Hookean's ``I1`` stiffness is
-the constant spring Laplacian, and the rest stiffness is exact for small strain.
+hyperelastic materials": each step minimises backward Euler's incremental potential (the
+same as :class:`~heml_gym.solvers.ImplicitSolver`'s, supports included) by L-BFGS whose
+initial Hessian is, axis by axis, the scalar matrix ``c M + (lambda + mu) L``: the mesh's
+P1 Laplacian ``L`` (for HEML, the constant spring network of ``I1``: Neo-Hookean's ``I1``
+stiffness is exactly ``mu L``) weighted by the material's small-strain stiffness, with
+the support penalty of the vertices in contact on its diagonal (see
+:mod:`heml_gym.solvers.kernels_quasi_newton`). It is a third of the size of the full
+Hessian, does not depend on how the tissue is turned (the rest stiffness ``K(X)`` does,
+and stalls L-BFGS once the tissue has rotated), and is factorised (an envelope Cholesky
+factor per scene and axis) only when what it holds changes: the scene's material, the
+held vertices (a grasp or a release), the step length, or, by more than
+``contact_refresh`` vertices, the set of vertices in contact.
+
+The constraint force on held vertices is reported as the step mean, by the trapezoidal
+rule between each sub-step's start and end (backward Euler's own force is the end's: half
+a step late against the step-mean force of the explicit solver).
 
 All iterations of all scenes run in one compiled call, scenes over threads. Each scene
 reports its iterations, residual against its tolerance and whether it converged. Units:
@@ -25,25 +32,23 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..control import Control
-from ..forces.heml import HemlForce
-from ..linear_solvers import EnvelopeCholesky, FreeSubmatrix, NotPositiveDefinite
-from ..materials import Material
+from ..forces.heml import HemlForce, assembled_edge_weights
+from ..linear_solvers import EnvelopeLayout
 from ..model import Model
 from ..state import State
 from . import kernels_quasi_newton as kq
-from .base import Solver, StepStats
-from .explicit import _stack_params
+from .base import Solver, StepStats, stack_law_params
 
 __all__ = ["QuasiNewtonSolver"]
 
 
 class QuasiNewtonSolver(Solver):
-    """Backward Euler for every scene of ``model`` by L-BFGS (HEML force fields).
+    """Backward Euler for every scene of ``model`` by L-BFGS (HEML force fields, any law).
 
     Parameters
     ----------
     model : Model
-        Every scene's field must be a :class:`~heml_gym.HemlForce` (any law).
+        Every scene's field must be a :class:`~heml_gym.HemlForce`.
     newton_tol : float
         A step stops when the force residual on the free vertices is below ``newton_tol``
         times the scene's load (weight plus external forces), as for the Newton solver.
@@ -52,16 +57,20 @@ class QuasiNewtonSolver(Solver):
         reported (``StepStats.converged``), never silently.
     history : int
         L-BFGS memory (pairs of past steps and gradient changes).
-    reference : Material or None
-        The material of the constant Hessian (default: scene 0's at the first step).
     contact_stiffness : float
-        Penalty stiffness of the supports, in units of a vertex's inertia ``c m_i``.
+        Penalty stiffness of the supports, in units of a vertex's inertia ``c m_i``
+        (penetration at rest under gravity ``g / (contact_stiffness c)``: 0.07 mm at
+        0.1 s steps).
+    contact_refresh : int
+        The initial Hessian is factorised again when the vertices in contact differ from
+        those it holds by more than this many (a stale contact set costs iterations, a
+        factorisation about as much as ten of them).
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
     """
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_iter: int = 50, history: int = 8,
-                 reference: Material | None = None, contact_stiffness: float = 100.0, max_speed: float = 1e3):
+                 contact_stiffness: float = 1000.0, contact_refresh: int = 50, max_speed: float = 1e3):
         super().__init__(model, max_speed)
         for f in model.fields:
             if not isinstance(f, HemlForce):
@@ -70,44 +79,118 @@ class QuasiNewtonSolver(Solver):
         newton_tol = float(newton_tol)
         if not (math.isfinite(newton_tol) and newton_tol > 0):
             raise ValueError(f"newton_tol must be a positive number, got {newton_tol}")
-        for name, value in (("max_iter", max_iter), ("history", history)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        for name, value, low in (("max_iter", max_iter, 1), ("history", history, 1),
+                                 ("contact_refresh", contact_refresh, 0)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
         contact_stiffness = float(contact_stiffness)
         if not (math.isfinite(contact_stiffness) and contact_stiffness > 0):
             raise ValueError(f"contact_stiffness must be a positive number, got {contact_stiffness}")
-        if reference is not None and not isinstance(reference, Material):
-            raise TypeError(f"reference must be a heml_gym.materials.Material, got {type(reference).__name__}")
         self.newton_tol = newton_tol
         self.max_iter = int(max_iter)
         self.history = int(history)
         self.contact_stiffness = contact_stiffness
-        self.reference = reference
-        free = ~model.fixed
-        index = -np.ones((model.n_vertices, 3), dtype=np.int64)
-        index[free] = np.arange(3 * int(free.sum())).reshape(-1, 3)
-        self._dof_index = index
-        self._factors: dict[float, EnvelopeCholesky] = {}
+        self.contact_refresh = int(contact_refresh)
+        mesh = model.mesh
+        n = mesh.n_vertices
+        # the P1 Laplacian: per tet the Hessian of V0 (I1 - 3) / 2 on one axis, edge weights V0 a_k
+        edges, weights = assembled_edge_weights(mesh, model.fields[0].rest.edge_weights.T)
+        self._edge_i = np.ascontiguousarray(edges[:, 0], dtype=np.int64)
+        self._edge_j = np.ascontiguousarray(edges[:, 1], dtype=np.int64)
+        self._edge_w = np.ascontiguousarray(0.5 * weights)
+        self._lap_diag = (np.bincount(self._edge_i, self._edge_w, minlength=n)
+                          + np.bincount(self._edge_j, self._edge_w, minlength=n))
+        rows = np.concatenate([np.arange(n), self._edge_i, self._edge_j])
+        cols = np.concatenate([np.arange(n), self._edge_j, self._edge_i])
+        pattern = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+        self.layout = EnvelopeLayout.of(pattern)
+        self._diag_pos = self.layout.positions(np.arange(n), np.arange(n))
+        self._edge_pos = self.layout.positions(self._edge_i, self._edge_j)
+        # the tets around each vertex (to check that a projection onto a support keeps them)
+        order = np.argsort(mesh.tets.ravel(), kind="stable")
+        self._vt_tets = np.ascontiguousarray(order // 4, dtype=np.int64)
+        self._vt_ptr = np.concatenate([[0], np.cumsum(np.bincount(mesh.tets.ravel(), minlength=n))]).astype(np.int64)
+        self._contact_margin = 0.01 * mesh.min_edge_length  # m: closer to a support than this is in contact
+        N = model.n_scenes
+        self._values = np.zeros((N, 3, self.layout.size))
+        self._axis_slot = np.zeros((N, 3), dtype=np.int64)
+        self._factor_key: list = [None] * N  # (held mask bytes, stiffness, c) each factor holds
+        self._factor_contact = np.zeros((N, n), dtype=bool)
+        self._extra = np.zeros((N, 3, n))  # the contact penalty on the diagonal of each factor
+        # L-BFGS curvature pairs kept from step to step (dropped when the initial Hessian's
+        # material, held set or step length changes): memory[s] = (pairs stored, newest)
+        self._s_hist = np.zeros((N, self.history, n, 3))
+        self._y_hist = np.zeros((N, self.history, n, 3))
+        self._rho = np.zeros((N, self.history))
+        self._memory = np.zeros((N, 2), dtype=np.int64)
+        self._memory[:, 1] = -1
         self.factorizations = 0
 
-    def factor(self, h: float) -> EnvelopeCholesky:
-        """The envelope Cholesky factor of ``c M + K(X)`` on the non-fixed degrees of
-        freedom for step length ``h`` (s), computed once and cached."""
-        key = float(h)
-        if key not in self._factors:
-            m = self.model
-            material = self.reference if self.reference is not None else m.materials[0]
-            field = m.fields[0].with_material(material)
-            c = 1.0 / h ** 2 + m.damping.alpha / h
-            a = field.hessian(m.mesh.vertices, project=True).tocsr() + sp.diags(c * np.repeat(m.mass, 3))
-            sub = FreeSubmatrix()(a.tocsr(), np.repeat(~m.fixed, 3))
-            try:
-                self._factors[key] = EnvelopeCholesky(sub)
-            except NotPositiveDefinite as exc:  # pragma: no cover - c M alone is positive definite
-                raise ValueError(f"the constant Hessian is not positive definite: {exc}") from None
-            self.factorizations += 1
-        return self._factors[key]
+    # ------------------------------------------------------------ initial Hessians
+    def stiffness(self, scene: int) -> float:
+        """``lambda + mu`` (Pa) of ``scene``'s material at small strain: the weight of the
+        Laplacian in its initial Hessian."""
+        mat = self.model.materials[scene]
+        return float(mat.lame_lambda + mat.shear_modulus)
 
+    def _refresh_factors(self, scenes: np.ndarray, held: np.ndarray, x: np.ndarray, c: np.ndarray) -> None:
+        """Factorise again the initial Hessians of ``scenes`` whose material, held set or
+        step length changed, or whose contact set moved by more than ``contact_refresh``
+        vertices (then only the factors of the axes the contact acts on)."""
+        m = self.model
+        n = m.n_vertices
+        if len(scenes) == 0:
+            return
+        stiffness = np.array([self.stiffness(s) for s in range(m.n_scenes)])
+        if len(m.supports):
+            d, normal = m.supports.signed_distance(x[scenes])
+            contact = (d.reshape(len(scenes), n) <= self._contact_margin) & ~held[scenes]
+            normal = normal.reshape(len(scenes), n, 3)
+        jobs = []
+        for k, s in enumerate(scenes):
+            key = (held[s].tobytes(), stiffness[s], c[s])
+            same_key = key == self._factor_key[s]
+            if len(m.supports):
+                if same_key and np.count_nonzero(contact[k] != self._factor_contact[s]) <= self.contact_refresh:
+                    continue
+                self._factor_contact[s] = contact[k]
+                extra = (self.contact_stiffness * c[s] * m.mass * contact[k])[None, :] * normal[k].T ** 2  # (3, n)
+            elif same_key:
+                continue
+            else:
+                extra = np.zeros((3, n))
+            slots, distinct = [0, 0, 0], [extra[0]]
+            for a in (1, 2):
+                for i, e in enumerate(distinct):
+                    if np.array_equal(extra[a], e):
+                        slots[a] = i
+                        break
+                else:
+                    slots[a] = len(distinct)
+                    distinct.append(extra[a])
+            for i, e in enumerate(distinct):
+                if not (same_key and np.array_equal(self._extra[s, i], e)):  # else: this factor holds it already
+                    self._extra[s, i] = e
+                    jobs.append((s, i))
+            self._axis_slot[s] = slots
+            if not same_key:
+                self._memory[s] = (0, -1)
+            self._factor_key[s] = key
+        if not jobs:
+            return
+        jobs = np.array(jobs, dtype=np.int64)
+        status = np.empty(len(jobs), dtype=np.int64)
+        kq.factor_jobs(jobs[:, 0], jobs[:, 1], self._values, self.layout.first, self.layout.ptr, self._diag_pos,
+                       self._edge_pos, self._edge_i, self._edge_j, self._edge_w, self._lap_diag, m.mass,
+                       c, stiffness, held, self._extra, status)
+        self.factorizations += len(jobs)
+        if np.any(status >= 0):  # c M is positive definite: only a broken material gets here
+            s = int(jobs[np.argmax(status >= 0), 0])
+            self._factor_key[s] = None
+            raise ValueError(f"the initial Hessian of scene {s} is not positive definite: check its material "
+                             f"({m.materials[s]!r})")
+
+    # ------------------------------------------------------------------------ step
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
@@ -123,53 +206,51 @@ class QuasiNewtonSolver(Solver):
         stats = StepStats.empty(N, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
-        factor = self.factor(h)
+        c = np.full(N, 1.0 / h ** 2 + m.damping.alpha / h)
         fields = m.fields
         rest = fields[0].rest
         split = all(f.split for f in fields)
         use_q = any(f.use_q for f in fields)
-        weights = (np.stack([f.spring_weights for f in fields]) if split
-                   else np.zeros((N, 6, 1)))
+        weights = (np.stack([f.spring_weights for f in fields]) if split else np.zeros((N, 6, 1)))
         laws = np.array([f.law_id for f in fields], dtype=np.int64)
-        params = _stack_params(fields)
+        psi1 = np.array([f.psi1 if f.split else 0.0 for f in fields])
+        params = stack_law_params(fields)
         held = control.kinematic | m.fixed[None, :]
         tol = np.array([self.newton_tol * self.force_scale(s, control) for s in range(N)])
         stats.tolerance[:] = tol
         planes, grids, values = m.supports.kernel_args()
-        x0, v0 = state_out.x.copy(), state_out.v.copy()
         x, v = state_out.x, state_out.v
+        x0, v0 = x.copy(), v.copy()
+        stiffness = np.array([self.stiffness(s) for s in range(N)])
         out = np.zeros((N, 4))
+        r_prev = np.zeros_like(x)
+        stats.reaction[:] = 0.0
         kernel = kq.lbfgs_steps_parallel if N > 1 and numba.get_num_threads() > 1 else kq.lbfgs_steps_serial
         feasible = np.ones(N, dtype=bool)
         with np.errstate(all="ignore"):
             for k in range(1, substeps + 1):
-                targets = x0 + (control.targets - x0) * (k / substeps)
-                v_start = v.copy()
-                kin = control.kinematic & active[:, None]
-                x[kin] = targets[kin]  # held vertices at their end positions; fixed ones stay
-                kernel(x, v, m.mass, m.gravity, control.external_forces, m.damping.alpha, h, held, rest.tets,
-                       rest.coef_t, rest.q_t if use_q else fields[0].q_t, use_q, laws, params, split, weights,
-                       rest.inv_det, planes, grids, values, self.contact_stiffness * (1.0 / h ** 2 + m.damping.alpha / h),
-                       self._dof_index, *factor.kernel_args(), tol,
-                       self.max_iter, self.history, active, out)
-                stats.newton_iterations += out[:, 0].astype(np.int64) * active
-                stats.residual = np.maximum(stats.residual, np.where(active, out[:, 1], 0.0))
-                stats.converged &= ~active | (out[:, 2] > 0.5)
-                feasible &= ~active | (out[:, 3] > 0.5)
-                # constraint forces on held vertices: m a minus every other force on them
-                f_el = np.zeros_like(x)
-                for s in np.flatnonzero(active & feasible):
-                    fields[s].forces(x[s], out=f_el[s])
-                total = (f_el + control.external_forces + m.mass[None, :, None] * m.gravity
-                         - m.damping.alpha * m.mass[None, :, None] * v)
-                sub_reaction = m.mass[None, :, None] * (v - v_start) / h - total
-                stats.reaction += np.where(held[:, :, None] & active[:, None, None], sub_reaction, 0.0) / substeps
+                run = active & feasible
+                self._refresh_factors(np.flatnonzero(run), held, x, c)
+                kernel(x, v, control.targets, control.kinematic, m.fixed, m.mass,
+                       m.gravity, control.external_forces,
+                       m.damping.alpha, h, 1.0 / (substeps - k + 1), rest.tets, rest.coef_t,
+                       rest.q_t if use_q else fields[0].q_t, use_q, laws, params, split, weights, psi1, rest.inv_det,
+                       planes, grids, values, self.contact_stiffness, self.layout.inverse, self.layout.first,
+                       self.layout.ptr, self._values, self._axis_slot, self._edge_i, self._edge_j, self._edge_w,
+                       stiffness, self._vt_ptr, self._vt_tets, tol, self.max_iter, self._s_hist, self._y_hist,
+                       self._rho, self._memory, k == 1, run, r_prev, stats.reaction, out)
+                stats.newton_iterations += np.where(run, out[:, 0], 0).astype(np.int64)
+                stats.residual = np.maximum(stats.residual, np.where(run, out[:, 1], 0.0))
+                stats.converged &= ~run | (out[:, 2] > 0.5)
+                feasible &= ~run | (out[:, 3] > 0.5)
+        stats.reaction /= substeps
         for s in np.flatnonzero(active):
             reason, elements = self.divergence(x[s], v[s])
             if not feasible[s]:
                 reason = "no feasible start: the held vertices invert elements within one step"
             if reason:
                 x[s], v[s] = x0[s], v0[s]
+                self._memory[s] = (0, -1)
                 stats.diverged[s] = True
                 stats.converged[s] = False
                 stats.reaction[s] = 0.0
@@ -178,4 +259,5 @@ class QuasiNewtonSolver(Solver):
             elif not stats.converged[s]:
                 stats.messages[s] = (f"L-BFGS stopped at a force residual of {stats.residual[s]:.3g} N, above its "
                                      f"tolerance of {tol[s]:.3g} N, after {stats.newton_iterations[s]} iterations")
+        stats.reaction[~active] = 0.0
         return stats

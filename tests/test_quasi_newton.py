@@ -1,0 +1,215 @@
+"""The quasi-Newton (L-BFGS) backward Euler solver and the kernels it adds, against
+independent computations: Newton's solution of the same potential, scipy's linear
+algebra, the general energy and force kernels, equilibrium, and the initial Hessian's
+meaning (the P1 Laplacian is the Hessian of |F|^2 V0 / 2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+import heml_gym as hg
+from heml_gym import materials as M
+from heml_gym.forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
+                                          heml_energy_chunk)
+from heml_gym.kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
+from heml_gym.linear_solvers import EnvelopeLayout
+
+MESH = hg.box_mesh((0.06, 0.03, 0.008), (4, 2, 1))
+FIXED = np.flatnonzero(np.isclose(MESH.vertices[:, 0], 0.0))
+HELD = np.flatnonzero(np.isclose(MESH.vertices[:, 0], 0.06))
+DENSITY, GRAVITY = 950.0, (0.0, 0.0, -9.81)
+
+
+def model(materials, supports=(), damping=5.0, fixed=FIXED, mesh=MESH):
+    return hg.Model(mesh, materials, density=DENSITY, gravity=GRAVITY, fixed=fixed, damping=damping,
+                    supports=supports)
+
+
+def test_fused_energy_and_forces_equal_the_separate_kernels():
+    mesh = hg.box_mesh((0.03, 0.02, 0.01), (3, 2, 2))
+    field = hg.HemlForce(mesh, M.NeoHookean(E=7e3, nu=0.45))
+    rest = field.rest
+    x = mesh.vertices + np.random.default_rng(0).normal(scale=6e-4, size=mesh.vertices.shape)
+    f_fused, f_alone = np.zeros_like(x), np.zeros_like(x)
+    energy = constant_psi1_energy_and_forces_chunk(x, rest.tets, rest.inv_det, rest.coef_t[0], field.spring_weights,
+                                                   field.psi1, field.law_id, field.params, f_fused, 0, mesh.n_tets)
+    constant_psi1_forces_chunk(x, rest.tets, rest.inv_det, field.spring_weights, field.law_id, field.params,
+                               f_alone, 0, mesh.n_tets)
+    # the general energy kernel: per tet, with math.log and I1 from the edge coefficients
+    reference = heml_energy_chunk(x, *field.kernel_args(), 0, mesh.n_tets)
+    assert energy == pytest.approx(reference, rel=1e-12)
+    np.testing.assert_allclose(f_fused, f_alone, rtol=0, atol=1e-14 * np.abs(f_alone).max())
+    # an inverted tet (vertex 0 of tet 0 mirrored through its opposite face): the law is
+    # undefined there, and the energy says so
+    x_bad = x.copy()
+    t = mesh.tets[0]
+    normal = np.cross(x[t[2]] - x[t[1]], x[t[3]] - x[t[1]])
+    normal /= np.linalg.norm(normal)
+    x_bad[t[0]] = x[t[0]] - 2.0 * ((x[t[0]] - x[t[1]]) @ normal) * normal
+    assert hg.kinematics.volume_ratios(mesh, x_bad)[0] < 0
+    assert np.isinf(constant_psi1_energy_and_forces_chunk(
+        x_bad, rest.tets, rest.inv_det, rest.coef_t[0], field.spring_weights, field.psi1, field.law_id,
+        field.params, np.zeros_like(x), 0, mesh.n_tets))
+
+
+def test_envelope_layout_factor_and_pair_solve_match_scipy():
+    mesh = hg.box_mesh((0.03, 0.02, 0.01), (4, 3, 2))
+    n = mesh.n_vertices
+    e = mesh.edges
+    w = np.random.default_rng(1).uniform(0.5, 2.0, len(e))
+    lap = sp.coo_matrix((np.r_[-w, -w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    a = (lap - sp.diags(np.asarray(lap.sum(axis=1)).ravel()) + sp.diags(np.full(n, 0.3))).tocsr()
+    layout = EnvelopeLayout.of(a)
+    values = np.zeros(layout.size)
+    rows, cols = a.nonzero()
+    lower = layout.positions(rows, cols, upper=-1)
+    keep = lower >= 0
+    np.add.at(values, lower[keep], np.asarray(a[rows[keep], cols[keep]]).ravel())
+    assert envelope_cholesky(layout.first, layout.ptr, values) == -1
+    b0, b1 = np.random.default_rng(2).standard_normal((2, n))
+    perm = np.empty(n, dtype=np.int64)
+    perm[layout.inverse] = np.arange(n)
+    y0, y1, y_single = np.empty(n), np.empty(n), np.empty(n)
+    envelope_solve_pair(layout.first, layout.ptr, values, b0[perm], b1[perm], y0, y1)
+    envelope_solve(layout.first, layout.ptr, values, b1[perm], y_single)
+    exact0, exact1 = sla.solve(a.toarray(), b0), sla.solve(a.toarray(), b1)
+    np.testing.assert_allclose(y0[layout.inverse], exact0, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(y1[layout.inverse], exact1, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(y1, y_single, rtol=1e-13, atol=1e-15)
+    # mirror positions: (i, j) and (j, i) are one stored entry
+    np.testing.assert_array_equal(layout.positions(e[:, 0], e[:, 1]), layout.positions(e[:, 1], e[:, 0]))
+
+
+def test_initial_hessian_laplacian_is_the_hessian_of_the_i1_energy():
+    """The solver's edge weights make ``x^T L x = sum V0 |F|^2`` on each axis: the Hessian
+    of Neo-Hookean's ``I1`` term at ``mu = 1`` (checked on a random linear map, where
+    ``F`` is that map, and on random positions against finite differences of the
+    Neo-Hookean forces with the volume term removed)."""
+    mesh = hg.box_mesh((0.03, 0.02, 0.01), (3, 2, 2))
+    solver = hg.QuasiNewtonSolver(model(M.NeoHookean(E=5e3, nu=0.3), mesh=mesh, fixed=None))
+    n = mesh.n_vertices
+    e = np.column_stack([solver._edge_i, solver._edge_j])
+    lap = sp.coo_matrix((np.r_[solver._edge_w, solver._edge_w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                        shape=(n, n)).tocsr()
+    lap = sp.diags(solver._lap_diag) - lap
+    f_map = np.random.default_rng(3).standard_normal((3, 3))
+    x = mesh.vertices @ f_map.T
+    quadratic = sum(x[:, a] @ (lap @ x[:, a]) for a in range(3))
+    assert quadratic == pytest.approx(mesh.volumes.sum() * np.sum(f_map ** 2), rel=1e-12)
+    assert np.abs(lap @ np.ones(n)).max() < 1e-12 * solver._lap_diag.max()  # rigid translation: no force
+
+
+@pytest.mark.parametrize("supports", [(), (hg.PlaneSupport(height=-0.004),)])
+def test_stale_contact_factors_do_not_change_the_solution(supports):
+    """Refreshing the initial Hessian on every contact change or never: the same steps
+    when solved tightly (the factor only steers L-BFGS)."""
+    materials = [M.NeoHookean(E=E, nu=0.45) for E in (2e3, 4e3)]
+    results = []
+    for refresh in (0, 10 ** 6):
+        m = model(materials, supports=supports)
+        solver = hg.QuasiNewtonSolver(m, newton_tol=1e-9, max_iter=2000, contact_refresh=refresh)
+        state, control = m.state(), m.control()
+        for s in range(2):
+            control.attach(s, HELD, state.x[s])
+        xs = []
+        for k in range(6):
+            for s in range(2):
+                control.drive(s, HELD, MESH.vertices[HELD] + [0.0, 0.0, -0.002 * (k + 1) * (s + 1)])
+            stats = solver.step(state, state, control, 0.05)
+            assert stats.converged.all() and not stats.diverged.any()
+            xs.append(state.x.copy())
+        results.append(np.array(xs))
+    assert np.abs(results[0] - results[1]).max() < 1e-7
+
+
+def test_hanging_body_reaction_balances_its_weight():
+    """A body hanging from its fixed and held ends comes to rest: the constraint forces on
+    them carry its weight (the step-mean reaction at rest is the static one)."""
+    m = model(M.NeoHookean(E=3e3, nu=0.4))
+    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-8, max_iter=1000)
+    state, control = m.state(), m.control()
+    control.attach(0, HELD, state.x[0])
+    for _ in range(60):
+        stats = solver.step(state, state, control, 0.1)
+        assert stats.converged.all()
+    assert np.abs(state.v).max() < 1e-6
+    weight = m.mass.sum() * np.asarray(GRAVITY)
+    np.testing.assert_allclose(stats.reaction[0].sum(axis=0), -weight, rtol=1e-6, atol=1e-9)
+    assert np.abs(stats.reaction[0][~(m.fixed | control.kinematic[0])]).max() == 0.0
+
+
+def test_slab_dropped_on_a_support_comes_to_rest_on_it():
+    """A free slab falls 1 mm onto a plane and comes to rest: its bottom on the plane (the
+    penalty's few micrometres projected away), nothing inside, nothing moving."""
+    mesh = hg.box_mesh((0.02, 0.02, 0.004), (2, 2, 1))
+    plane = hg.PlaneSupport(height=0.0)
+    m = hg.Model(mesh, M.NeoHookean(E=5e3, nu=0.3), density=DENSITY, gravity=GRAVITY, damping=5.0,
+                 supports=[plane])
+    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-6, max_iter=2000)
+    state, control = m.state(), m.control()
+    state.x[0, :, 2] += 0.001
+    for _ in range(80):
+        stats = solver.step(state, state, control, 0.1)
+        assert stats.converged.all() and not stats.diverged.any()
+    assert np.abs(state.v).max() < 1e-6
+    bottom = np.isclose(mesh.vertices[:, 2], 0.0)
+    np.testing.assert_allclose(state.x[0, bottom, 2], 0.0, atol=1e-12)  # projected onto the plane
+    assert np.all(state.x[0, ~bottom, 2] > 0.003)
+
+
+def test_grasp_jump_that_inverts_the_predictor_still_starts():
+    """Driving the top layer 1 cm down in one step inverts the plain predictor; the linear
+    response of the free vertices gives a valid start and the step converges."""
+    mesh = hg.box_mesh((0.02, 0.02, 0.02), 4)
+    bottom = np.flatnonzero(np.isclose(mesh.vertices[:, 2], 0.0))
+    top = np.flatnonzero(np.isclose(mesh.vertices[:, 2], 0.02))
+    m = hg.Model(mesh, M.NeoHookean(E=5e3, nu=0.45), density=DENSITY, fixed=bottom)
+    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-6, max_iter=500)
+    state, control = m.state(), m.control()
+    control.attach(0, top, state.x[0])
+    control.drive(0, top, mesh.vertices[top] - [0.0, 0.0, 0.01])
+    stats = solver.step(state, state, control, 0.1)
+    assert stats.converged.all() and not stats.diverged.any()
+    assert hg.kinematics.volume_ratios(mesh, state.x[0]).min() > 0
+    np.testing.assert_allclose(state.x[0, top, 2], 0.01, atol=1e-12)
+
+
+def test_unconverged_step_is_reported_not_hidden():
+    m = model(M.NeoHookean(E=3e3, nu=0.45))
+    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-10, max_iter=1)
+    state, control = m.state(), m.control()
+    stats = solver.step(state, state, control, 0.1)
+    assert not stats.converged[0] and not stats.diverged[0]
+    assert stats.newton_iterations[0] == 1 and stats.residual[0] > stats.tolerance[0]
+    assert "L-BFGS stopped" in stats.messages[0]
+
+
+def test_factors_are_refreshed_only_when_their_content_changes():
+    m = model([M.NeoHookean(E=3e3, nu=0.45)] * 2)
+    solver = hg.QuasiNewtonSolver(m)
+    state, control = m.state(), m.control()
+    solver.step(state, state, control, 0.05)
+    first = solver.factorizations
+    assert first == 2  # one factor per scene: no contact, the three axes share it
+    solver.step(state, state, control, 0.05)
+    assert solver.factorizations == first  # nothing changed
+    control.attach(1, HELD, state.x[1])
+    solver.step(state, state, control, 0.05)
+    assert solver.factorizations == first + 1  # scene 1's held set changed
+    m.set_material(0, M.NeoHookean(E=6e3, nu=0.45))
+    solver.step(state, state, control, 0.05)
+    assert solver.factorizations == first + 2  # scene 0's material changed
+
+
+def test_rejects_bad_arguments_naming_them():
+    m = model(M.NeoHookean(E=3e3, nu=0.45))
+    for kwargs, match in (({"newton_tol": 0.0}, "newton_tol"), ({"max_iter": 0}, "max_iter"),
+                          ({"history": 1.5}, "history"), ({"contact_refresh": -1}, "contact_refresh"),
+                          ({"contact_stiffness": float("nan")}, "contact_stiffness")):
+        with pytest.raises(ValueError, match=match):
+            hg.QuasiNewtonSolver(m, **kwargs)
+    with pytest.raises(ValueError, match="HEML"):
+        hg.QuasiNewtonSolver(hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), field="fem"))
