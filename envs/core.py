@@ -207,6 +207,7 @@ class BatchedRetraction:
             self.held_steps[i] = 0
             self.grasp_force[i] = 0.0
         idx = np.atleast_1d(scenes)
+        self.solver.forget(idx)  # the same seed gives the same episode, whatever came before
         self.exposure[idx] = self._exposure(idx)
         self.lift[idx] = self._lift(idx)
         self.max_strain[idx] = self._max_strain(idx)

@@ -76,8 +76,8 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> Scene:
         tissue=TissueSpec(kind="organ", organ="liver_lobe", mesh_size=mesh_size,
                           organ_options={"lines": [list(map(list, GRASP_LINE))], "base_x": BASE_X}),
         physics=PhysicsSpec(material="NeoHookean", young_modulus=(4e3, 8e3), poisson=0.45, density=1060.0,
-                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="explicit",
-                            safety=0.75),
+                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
+                            max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.5),
         attachment=RegionSpec(low=(BASE_X, None, 0.0), high=(BASE_X, None, 0.0)),
         grasp=RegionSpec(segment=GRASP_LINE),
         tracked=RegionSpec(points=[(TIP_X, -0.05, 0.02), (TIP_X, 0.0, 0.02), (TIP_X, 0.05, 0.02),
@@ -98,7 +98,7 @@ class OrganRetractionEnv(RetractionEnv):
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, mesh_size=None,
-                 scene=None, physics=None, camera=None, difficulty=0):
+                 scene=None, physics=None, camera=None, difficulty=1):
         super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
                          difficulty=difficulty, mesh_size=mesh_size)
 
@@ -109,6 +109,6 @@ class OrganRetractionVectorEnv(RetractionVectorEnv):
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
-                 render_mode=None, mesh_size=None, scene=None, physics=None, camera=None, difficulty=0):
+                 render_mode=None, mesh_size=None, scene=None, physics=None, camera=None, difficulty=1):
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
                          physics=physics, camera=camera, difficulty=difficulty, mesh_size=mesh_size)

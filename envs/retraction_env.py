@@ -239,7 +239,7 @@ class _Resolving:
         return resolve_scene(spec, None, physics)
 
     @classmethod
-    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, camera=None, difficulty=0,
+    def check_kwargs(cls, settings=None, weights=None, scene=None, physics=None, camera=None, difficulty=1,
                      **size) -> Scene:
         """Validate the data arguments of the constructor (as ``gym.make`` would pass
         them) without building the scene's mesh; returns the resolved scene."""
@@ -262,7 +262,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
     def __init__(self, obs_mode: str = "state", render_mode: str | None = None,
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
                  scene: Scene | dict | str | None = None, physics: dict | None = None, camera: dict | None = None,
-                 difficulty: int = 0, **size):
+                 difficulty: int = 1, **size):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
         if obs_mode not in OBS_MODES:
@@ -331,7 +331,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,
                  max_episode_steps: int | None = None, render_mode: str | None = None,
                  scene: Scene | dict | str | None = None, physics: dict | None = None, camera: dict | None = None,
-                 difficulty: int = 0, **size):
+                 difficulty: int = 1, **size):
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:

@@ -147,7 +147,7 @@ class TissueRetractionEnv(RetractionEnv):
     default_scene = staticmethod(tissue_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, cells=None,
-                 scene=None, physics=None, camera=None, difficulty=0):
+                 scene=None, physics=None, camera=None, difficulty=1):
         super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
                          difficulty=difficulty, cells=cells)
 
@@ -158,6 +158,6 @@ class TissueRetractionVectorEnv(RetractionVectorEnv):
     default_scene = staticmethod(tissue_scene)
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
-                 render_mode=None, cells=None, scene=None, physics=None, camera=None, difficulty=0):
+                 render_mode=None, cells=None, scene=None, physics=None, camera=None, difficulty=1):
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
                          physics=physics, camera=camera, difficulty=difficulty, cells=cells)

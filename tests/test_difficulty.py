@@ -28,8 +28,8 @@ def test_level_1_holds_the_success_condition_for_two_seconds():
     """The scripted fold holds the target exposed once it is: level 1 ends it 2 s / 0.1 s
     = 20 steps later than level 0, with success."""
     for seed in (0, 1):
-        n0, info0 = _scripted_length(TissueRetractionEnv(), seed)
-        n1, info1 = _scripted_length(TissueRetractionEnv(difficulty=1), seed)
+        n0, info0 = _scripted_length(TissueRetractionEnv(difficulty=0), seed)
+        n1, info1 = _scripted_length(TissueRetractionEnv(), seed)  # level 1 is the default
         assert info0["is_success"] and info1["is_success"]
         assert n1 == n0 + 20
         assert info1["hold_time"] == pytest.approx(2.0)
@@ -52,10 +52,10 @@ def test_bad_difficulty_is_refused_naming_it():
         gym.make("heml_gym/TissueRetraction-v0", difficulty=3)
     with pytest.raises(SpecError, match="env.kwargs.difficulty: must be one of"):
         check_env_kwargs("heml_gym/OrganRetraction-v0", {"difficulty": "hard"})
-    with pytest.raises(SpecError, match="difficulty: level 1 sets settings.hold_time"):
-        TissueRetractionEnv(difficulty=1, settings={"hold_time": 0.5})
-    # the level's own hold time given again is not a conflict
-    assert TissueRetractionEnv(difficulty=1, settings={"hold_time": 2.0}).task.settings.hold_time == 2.0
+    # a hold time the settings give replaces the level's; without one the level's applies
+    assert TissueRetractionEnv(difficulty=1, settings={"hold_time": 0.5}).task.settings.hold_time == 0.5
+    assert TissueRetractionEnv(difficulty=2, settings={"max_steps": 50}).task.settings.hold_time == 2.0
+    assert TissueRetractionEnv(difficulty=0).task.settings.hold_time == 0.0
 
 
 @pytest.mark.parametrize("env_id", ["heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"])

@@ -79,7 +79,7 @@ def test_success_needs_the_strain_below_damage():
     fold needs, exposure alone does not end the episode and pays no success bonus."""
     strict = TaskSettings(damage_strain=1e-4, tear_strain=10.0, max_steps=40)
     for settings, should_succeed in ((TaskSettings(max_steps=40), True), (strict, False)):
-        env = TissueRetractionEnv(settings=settings, weights=W)
+        env = TissueRetractionEnv(settings=settings, weights=W, difficulty=0)  # success at once
         obs, _ = env.reset(seed=7)
         policy = scripted_policy(env.scene)
         exposed, succeeded = False, False
@@ -116,7 +116,7 @@ def test_exposure_and_lift_rewards_telescope_to_the_changes_of_the_measurements(
 def _scripted_episode(settings, seed, release_at=None):
     """The scripted fold; ``release_at``: (steps after the condition is first met, steps)
     to open the gripper for, to break the hold."""
-    env = TissueRetractionEnv(settings=settings, weights=W)
+    env = TissueRetractionEnv(settings=settings, weights=W, difficulty=0)  # the settings' own hold time
     obs, _ = env.reset(seed=seed)
     policy = scripted_policy(env.scene)
     steps, met_at = [], None

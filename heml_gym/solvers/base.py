@@ -121,6 +121,12 @@ class Solver:
         self.model = model
         self.max_speed = max_speed
 
+    def forget(self, scenes) -> None:
+        """Drop what the solver carries from step to step for ``scenes`` (indices): lagged
+        factorisations, quasi-Newton curvature pairs. A scene started afresh (an episode
+        reset) is then stepped exactly as by a new solver: same seed, same trajectory.
+        Solvers that carry nothing keep this no-op."""
+
     def _check(self, state_in: State, state_out: State, control: Control, dt: float, active) -> tuple:
         m = self.model
         shape = (m.n_scenes, m.n_vertices, 3)

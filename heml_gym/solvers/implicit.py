@@ -100,6 +100,11 @@ class ImplicitSolver(Solver):
         self._add_diagonal = DiagonalAdd()
         self._add_blocks = DiagonalBlockAdd()
 
+    def forget(self, scenes) -> None:
+        """Drop the lagged factorisations of ``scenes`` (see :meth:`Solver.forget`)."""
+        for s in np.atleast_1d(scenes):
+            self.pcg[int(s)].reset()
+
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal

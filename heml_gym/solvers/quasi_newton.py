@@ -126,6 +126,15 @@ class QuasiNewtonSolver(Solver):
         self._memory[:, 1] = -1
         self.factorizations = 0
 
+    def forget(self, scenes) -> None:
+        """Drop the initial Hessians and curvature pairs of ``scenes`` (see
+        :meth:`Solver.forget`): their next step factorises afresh."""
+        for s in np.atleast_1d(scenes):
+            s = int(s)
+            self._factor_key[s] = None
+            self._factor_contact[s] = False
+            self._memory[s] = (0, -1)
+
     # ------------------------------------------------------------ initial Hessians
     def stiffness(self, scene: int) -> float:
         """``lambda + mu`` (Pa) of ``scene``'s material at small strain: the weight of the
