@@ -9,9 +9,12 @@ about which it can turn. Beneath it, behind its thin edge, lies a structure to e
 sphere of radius 8 mm, e.g. a gallbladder neck), hidden from a laparoscope placed in
 front of and above the thin edge (at (-170, 0, 120) mm, looking under the edge). The
 agent grasps the lobe near its thin edge and lifts it. Neo-Hookean HEML tissue (E drawn
-in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, explicit integration at 0.75 of the
-critical step. The mesh (7 mm elements, about 1,300 vertices and 5,200 tets) is the
-coarsest whose grasp force and exposure stay within 5 % of a fine one
+in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, integrated by backward Euler in
+0.05 s steps, each solved by L-BFGS to 3e-3 of the lobe's weight
+(:class:`heml_gym.QuasiNewtonSolver`): several times faster than explicit sub-steps
+(``physics={"integrator": "explicit"}``, at 0.5 of the critical step), for the same
+accuracy. The mesh (7 mm elements, about 1,300 vertices and 5,200 tets) is the coarsest
+whose grasp force and exposure stay within 5 % of a fine one
 (docs/scene_convergence.md): lifting the lobe peels it off its support, and how far it
 peels depends on its bending stiffness, which coarse linear tets overestimate.
 
@@ -48,9 +51,8 @@ TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
 
 v0: initial version; the scene as described here since the convergence redesign (base
 hinge, line grasp, gravity on a support plane, 7 mm mesh; it was a 16 mm lobe clamped
-over its thick third, without gravity); explicit sub-steps at 0.75 of the critical step
-instead of 0.5 since 2026-11-24 (1.5x fewer; the same errors against the fine model and
-no failure over E 1-100 kPa, nu 0.3-0.49: docs/scene_convergence.md).
+over its thick third, without gravity). Since 2026-11-24: difficulty 1 (hold 2 s) is the
+default, and the lobe is stepped by the quasi-Newton solver (was explicit sub-steps).
 """
 
 from __future__ import annotations

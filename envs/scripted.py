@@ -1,9 +1,12 @@
-"""Scripted baseline for the retraction tasks: grasp the free edge, fold the tissue back.
+"""Scripted baseline for the retraction tasks: grasp the free edge, fold the tissue back,
+hold it there.
 
-The policy reads only the state observation (gripper position, grasp flag). It closes
-the gripper where it starts (next to the free edge); once holding tissue it moves the
-gripper along a circular arc about the attached edge (the hinge), keeping its distance
-to the hinge so the tissue is folded rather than stretched, up to ``max_angle``.
+The policy reads only the state observation (gripper position, grasp flag, exposure). It
+closes the gripper where it starts (next to the free edge); once holding tissue it moves
+the gripper along a circular arc about the attached edge (the hinge), keeping its
+distance to the hinge so the tissue is folded rather than stretched, until the target is
+exposed (``hold_exposure``) or the arc reaches ``max_angle``, and holds the gripper still
+there (folding on if the exposure drops again).
 """
 
 from __future__ import annotations
@@ -12,22 +15,29 @@ import math
 
 import numpy as np
 
+from .core import STATE_FIELDS
+
+EXPOSURE = STATE_FIELDS.index("exposure")  # its entry in the state observation
+
 
 class FoldBackPolicy:
     """Grasp, then fold the tissue about the hinge line ``x = hinge[0], z = hinge[1]``.
 
     ``direction`` is +1 when the tissue extends from the hinge towards +x, -1 towards -x.
-    ``step_angle``: radians added to the arc angle per step; ``max_angle``: where to stop
-    (past vertical, so the tissue lies back over its attachment); ``max_speed`` and
-    ``control_dt`` convert a displacement (m) into a velocity command.
+    ``step_angle``: radians added to the arc angle per step; ``max_angle``: where to stop at
+    the latest (past vertical, so the tissue lies back over its attachment);
+    ``hold_exposure``: the exposure (0..1) at which to stop folding and hold (None: fold
+    to ``max_angle``); ``max_speed`` and ``control_dt`` convert a displacement (m) into a
+    velocity command.
     """
 
     def __init__(self, hinge=(0.0, 0.008), step_angle=0.06, max_angle=1.9, max_speed=0.05,
-                 control_dt=0.1, direction=1.0):
+                 control_dt=0.1, direction=1.0, hold_exposure: float | None = 0.95):
         self.hinge = np.asarray(hinge, dtype=np.float64)
         self.direction = 1.0 if direction >= 0 else -1.0  # -1: the tissue extends towards -x
         self.step_angle = float(step_angle)
         self.max_angle = float(max_angle)
+        self.hold_exposure = None if hold_exposure is None else float(hold_exposure)
         self.scale = 1.0 / (max_speed * control_dt)
         self.radius = None
 
@@ -44,7 +54,8 @@ class FoldBackPolicy:
         rel = np.array([sign * (gripper[0] - self.hinge[0]), gripper[2] - self.hinge[1]])
         if self.radius is None:
             self.radius = float(np.hypot(*rel))
-        angle = min(math.atan2(rel[1], rel[0]) + self.step_angle, self.max_angle)
+        exposed = self.hold_exposure is not None and state[EXPOSURE] >= self.hold_exposure
+        angle = min(math.atan2(rel[1], rel[0]) + (0.0 if exposed else self.step_angle), self.max_angle)
         target = self.radius * np.array([math.cos(angle), math.sin(angle)])
         move = np.array([self.hinge[0] + sign * target[0] - gripper[0], 0.0,
                          self.hinge[1] + target[1] - gripper[2]]) * self.scale

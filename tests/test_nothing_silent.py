@@ -232,7 +232,7 @@ def test_the_critical_step_bound_is_safe_when_lanczos_is_not_used():
 
 # ----------------------------------------------------------------- the envs
 def test_a_diverging_scene_in_a_vector_env_reports_no_nan():
-    vec = TissueRetractionVectorEnv(num_envs=2)
+    vec = TissueRetractionVectorEnv(num_envs=2, physics={"integrator": "explicit"})
     vec.task.substeps = 1  # a 0.1 s explicit step: far past the critical step, in every scene
     vec.reset(seed=0)
     for _ in range(5):
@@ -255,16 +255,18 @@ def test_human_render_without_a_display_returns_quickly_with_advice(monkeypatch)
     assert time.perf_counter() - t < 5
 
 
-def test_pushing_the_grasped_edge_to_the_hinge_and_releasing_does_not_diverge():
+@pytest.mark.parametrize("integrator", ["explicit", "quasi_newton"])
+def test_pushing_the_grasped_edge_to_the_hinge_and_releasing_does_not_diverge(integrator):
     """The pattern that diverged in 28 of 60 episodes before the explicit solver re-stepped
-    bad scenes finer: grasp, push towards the attachment 7 steps, release."""
-    env = TissueRetractionEnv()
+    bad scenes finer, and left L-BFGS unconverged before it did too (the flap buckles):
+    grasp, push towards the attachment 7 steps, release."""
+    env = TissueRetractionEnv(physics={"integrator": integrator})
     refined = 0
     for seed in range(12):
         env.reset(seed=seed)
         for action in [[-1.0, 0, 0, 1.0]] * 7 + [[0, 0, 0, -1.0]] * 4:
             obs, reward, terminated, truncated, info = env.step(np.array(action, dtype=np.float32))
-            assert not info["simulation_diverged"] and np.all(np.isfinite(obs))
+            assert not info["simulation_diverged"] and info["solver_converged"] and np.all(np.isfinite(obs))
             refined += info["substep_refinement"] > 1
     assert refined > 0  # the steps that needed finer sub-steps were there, and got them
 

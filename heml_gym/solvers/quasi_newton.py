@@ -65,12 +65,16 @@ class QuasiNewtonSolver(Solver):
         The initial Hessian is factorised again when the vertices in contact differ from
         those it holds by more than this many (a stale contact set costs iterations, a
         factorisation about as much as ten of them).
+    refinements : sequence of int
+        A sub-step that does not converge in ``max_iter`` iterations is taken again in
+        this many shorter steps, then the next number of them (``()``: never).
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
     """
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_iter: int = 50, history: int = 8,
-                 contact_stiffness: float = 1000.0, contact_refresh: int = 50, max_speed: float = 1e3):
+                 contact_stiffness: float = 1000.0, contact_refresh: int = 50, refinements=(4, 16),
+                 max_speed: float = 1e3):
         super().__init__(model, max_speed)
         for f in model.fields:
             if not isinstance(f, HemlForce):
@@ -91,6 +95,11 @@ class QuasiNewtonSolver(Solver):
         self.history = int(history)
         self.contact_stiffness = contact_stiffness
         self.contact_refresh = int(contact_refresh)
+        refinements = tuple(refinements)
+        if not all(isinstance(r, (int, np.integer)) and not isinstance(r, bool) and r > 1 for r in refinements):
+            raise ValueError(f"refinements must be integers > 1 (sub-steps to split an unconverged one into), "
+                             f"got {refinements!r}")
+        self.refinements = tuple(int(r) for r in refinements)
         mesh = model.mesh
         n = mesh.n_vertices
         # the P1 Laplacian: per tet the Hessian of V0 (I1 - 3) / 2 on one axis, edge weights V0 a_k
@@ -203,9 +212,12 @@ class QuasiNewtonSolver(Solver):
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
-        backward Euler steps. A scene that goes non-finite, explodes or cannot start is
-        flagged ``diverged`` (its state kept); one whose solve stops above tolerance
-        ``converged = False``."""
+        backward Euler steps. A sub-step whose L-BFGS stops above its tolerance is taken
+        again in ``refinements[0]`` shorter steps, then ``refinements[1]``, ... (more inertia
+        per step: a better conditioned, more convex potential, e.g. when the tissue
+        buckles); ``StepStats.refinement`` says by how much. A scene that goes
+        non-finite, explodes or cannot start is flagged ``diverged`` (its state kept); one
+        whose solve still stops above tolerance ``converged = False``."""
         dt, active = self._check(state_in, state_out, control, dt, active)
         substeps = int(substeps)
         if substeps < 1:
@@ -215,43 +227,44 @@ class QuasiNewtonSolver(Solver):
         stats = StepStats.empty(N, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
-        c = np.full(N, 1.0 / h ** 2 + m.damping.alpha / h)
-        fields = m.fields
-        rest = fields[0].rest
-        split = all(f.split for f in fields)
-        use_q = any(f.use_q for f in fields)
-        weights = (np.stack([f.spring_weights for f in fields]) if split else np.zeros((N, 6, 1)))
-        laws = np.array([f.law_id for f in fields], dtype=np.int64)
-        psi1 = np.array([f.psi1 if f.split else 0.0 for f in fields])
-        params = stack_law_params(fields)
         held = control.kinematic | m.fixed[None, :]
         tol = np.array([self.newton_tol * self.force_scale(s, control) for s in range(N)])
         stats.tolerance[:] = tol
-        planes, grids, values = m.supports.kernel_args()
         x, v = state_out.x, state_out.v
         x0, v0 = x.copy(), v.copy()
-        stiffness = np.array([self.stiffness(s) for s in range(N)])
-        out = np.zeros((N, 4))
         r_prev = np.zeros_like(x)
         stats.reaction[:] = 0.0
-        kernel = kq.lbfgs_steps_parallel if N > 1 and numba.get_num_threads() > 1 else kq.lbfgs_steps_serial
         feasible = np.ones(N, dtype=bool)
+        args = self._kernel_args(state_out, control, held, tol)
         with np.errstate(all="ignore"):
             for k in range(1, substeps + 1):
                 run = active & feasible
-                self._refresh_factors(np.flatnonzero(run), held, x, c)
-                kernel(x, v, control.targets, control.kinematic, m.fixed, m.mass,
-                       m.gravity, control.external_forces,
-                       m.damping.alpha, h, 1.0 / (substeps - k + 1), rest.tets, rest.coef_t,
-                       rest.q_t if use_q else fields[0].q_t, use_q, laws, params, split, weights, psi1, rest.inv_det,
-                       planes, grids, values, self.contact_stiffness, self.layout.inverse, self.layout.first,
-                       self.layout.ptr, self._values, self._axis_slot, self._edge_i, self._edge_j, self._edge_w,
-                       stiffness, self._vt_ptr, self._vt_tets, tol, self.max_iter, self._s_hist, self._y_hist,
-                       self._rho, self._memory, k == 1, run, r_prev, stats.reaction, out)
-                stats.newton_iterations += np.where(run, out[:, 0], 0).astype(np.int64)
-                stats.residual = np.maximum(stats.residual, np.where(run, out[:, 1], 0.0))
-                stats.converged &= ~run | (out[:, 2] > 0.5)
-                feasible &= ~run | (out[:, 3] > 0.5)
+                saved = x[run], v[run], r_prev[run]
+                residual_before = stats.residual.copy()
+                contribution = np.zeros_like(x)
+                out = self._advance(args, run, h, 1.0 / (substeps - k + 1), k == 1, r_prev, contribution)
+                self._count(stats, run, out, feasible)
+                retry = run & feasible & (out[:, 2] < 0.5)
+                for factor in self.refinements:
+                    if not retry.any():
+                        break
+                    # take the sub-step again in ``factor`` shorter ones, from its start
+                    sub = retry[run]
+                    x[retry], v[retry], r_prev[retry] = saved[0][sub], saved[1][sub], saved[2][sub]
+                    finer = np.zeros_like(x)
+                    stats.converged[retry] = True
+                    stats.residual[retry] = residual_before[retry]
+                    for j in range(1, factor + 1):
+                        go = retry & feasible
+                        remaining = (substeps - k) * factor + factor - j + 1
+                        part = np.zeros_like(x)
+                        out = self._advance(args, go, h / factor, 1.0 / remaining, k == 1 and j == 1, r_prev, part)
+                        finer += part
+                        self._count(stats, go, out, feasible)
+                    contribution[retry] = finer[retry] / factor
+                    stats.refinement[retry] = factor
+                    retry &= feasible & ~stats.converged
+                stats.reaction += contribution
         stats.reaction /= substeps
         for s in np.flatnonzero(active):
             reason, elements = self.divergence(x[s], v[s])
@@ -267,6 +280,53 @@ class QuasiNewtonSolver(Solver):
                 stats.elements[s] = elements
             elif not stats.converged[s]:
                 stats.messages[s] = (f"L-BFGS stopped at a force residual of {stats.residual[s]:.3g} N, above its "
-                                     f"tolerance of {tol[s]:.3g} N, after {stats.newton_iterations[s]} iterations")
+                                     f"tolerance of {tol[s]:.3g} N, after {stats.newton_iterations[s]} iterations "
+                                     f"(sub-steps refined {stats.refinement[s]}x)")
         stats.reaction[~active] = 0.0
         return stats
+
+    def _kernel_args(self, state: State, control: Control, held: np.ndarray, tol: np.ndarray) -> dict:
+        """What every call of the L-BFGS kernel in one step shares."""
+        m = self.model
+        fields = m.fields
+        split = all(f.split for f in fields)
+        use_q = any(f.use_q for f in fields)
+        return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, split=split, use_q=use_q,
+                    weights=np.stack([f.spring_weights for f in fields]) if split else np.zeros((m.n_scenes, 6, 1)),
+                    laws=np.array([f.law_id for f in fields], dtype=np.int64),
+                    psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
+                    params=stack_law_params(fields), stiffness=np.array([self.stiffness(s) for s in range(m.n_scenes)]))
+
+    def _advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
+                 r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
+        """One backward Euler step of length ``h`` (s) of the ``run`` scenes, their held
+        vertices moved a ``fraction`` of the way to their targets; the step-mean reaction
+        added into ``contribution``. Returns the kernel's ``(N, 4)`` report."""
+        m = self.model
+        N = m.n_scenes
+        out = np.zeros((N, 4))
+        if not run.any():
+            return out
+        x, v = a["x"], a["v"]
+        c = np.full(N, 1.0 / h ** 2 + m.damping.alpha / h)
+        self._refresh_factors(np.flatnonzero(run), a["held"], x, c)
+        rest = m.fields[0].rest
+        planes, grids, values = m.supports.kernel_args()
+        control = a["control"]
+        kernel = kq.lbfgs_steps_parallel if N > 1 and numba.get_num_threads() > 1 else kq.lbfgs_steps_serial
+        kernel(x, v, control.targets, control.kinematic, m.fixed, m.mass, m.gravity, control.external_forces,
+               m.damping.alpha, h, fraction, rest.tets, rest.coef_t, rest.q_t if a["use_q"] else m.fields[0].q_t,
+               a["use_q"], a["laws"], a["params"], a["split"], a["weights"], a["psi1"], rest.inv_det, planes, grids,
+               values, self.contact_stiffness, self.layout.inverse, self.layout.first, self.layout.ptr,
+               self._values, self._axis_slot, self._edge_i, self._edge_j, self._edge_w, a["stiffness"],
+               self._vt_ptr, self._vt_tets, a["tol"], self.max_iter, self._s_hist, self._y_hist, self._rho,
+               self._memory, first_substep, run, r_prev, contribution, out)
+        return out
+
+    @staticmethod
+    def _count(stats: StepStats, run: np.ndarray, out: np.ndarray, feasible: np.ndarray) -> None:
+        """Add one kernel call's report of the ``run`` scenes to ``stats`` (and ``feasible``)."""
+        stats.newton_iterations += np.where(run, out[:, 0], 0).astype(np.int64)
+        stats.residual = np.maximum(stats.residual, np.where(run, out[:, 1], 0.0))
+        stats.converged &= ~run | (out[:, 2] > 0.5)
+        feasible &= ~run | (out[:, 3] > 0.5)
