@@ -55,8 +55,11 @@ from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # 
 
 ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
 VECTOR_SIZES = (1, 4, 16, 64)
-BAR_SINGLE = 300.0  # env steps/s, single env, one core
-BAR_VECTOR = 1500.0  # env steps/s in total, vectorised, this 2-core machine
+BAR_SINGLE = 400.0  # env steps/s, TissueRetraction single env, one core (issue 13; 300 before)
+BAR_VECTOR = 1500.0  # env steps/s in total, TissueRetraction vectorised, this 2-core machine
+BAR_ORGAN_SINGLE = 150.0  # env steps/s, OrganRetraction's default physics, single env, one core
+BAR_ORGAN_RATIO = 5.0  # ... against its explicit path, single env, one core, in the same run
+BAR_ORGAN_VECTOR = 400.0  # env steps/s in total, OrganRetraction vectorised on 2 cores
 
 
 def _policy_for(env):
@@ -115,8 +118,14 @@ def _rates(times, steps_per_block, threads):
     return out
 
 
+#: Physics each env is also timed with, single env on one thread, in the same rounds as its
+#: default (the ratio of issue 13: the organ's default against its explicit path)
+ALTERNATIVE_PHYSICS = {"heml_gym/OrganRetraction-v0": {"explicit": {"integrator": "explicit"}}}
+
+
 def _single_configs(env_id: str, threads_all: int) -> list[dict]:
-    """Single-env configurations: (actions, wrapped, threads) with their runners."""
+    """Single-env configurations: (actions, wrapped, threads) with their runners, and the
+    env's alternative physics (one thread, unwrapped)."""
     configs = []
     for mode, wrapped in (("random", False), ("scripted", False), ("random", True)):
         make = (lambda: gym.make(env_id)) if wrapped else (lambda: gym.make(env_id).unwrapped)
@@ -126,6 +135,11 @@ def _single_configs(env_id: str, threads_all: int) -> list[dict]:
             configs.append({"env_id": env_id, "env": "gym.make (wrapped)" if wrapped else "single",
                             "actions": mode, "num_envs": 1, "threads": t,
                             "runner": _SingleRunner(make(), mode, seed=1)})
+    for name, physics in ALTERNATIVE_PHYSICS.get(env_id, {}).items():
+        for mode in ("random", "scripted"):
+            configs.append({"env_id": env_id, "env": f"single, {name}", "actions": mode, "num_envs": 1,
+                            "threads": 1, "runner": _SingleRunner(gym.make(env_id, physics=physics).unwrapped,
+                                                                  mode, seed=1)})
     return configs
 
 
@@ -331,8 +345,12 @@ def _markdown(results: dict) -> str:
     for env_id, res in results["envs"].items():
         md += f"## {env_id}\n\n"
         b0 = res["breakdown"][0]
+        physics = gym.make(env_id).unwrapped.scene.physics
         md += (f"Mesh {b0['n_vertices']} vertices / {b0['n_tets']} tets / {b0['n_surface_triangles']} "
-               f"surface triangles; {b0['substeps_per_env_step']} explicit sub-steps per env step.\n\n")
+               f"surface triangles; default physics: {physics.integrator}, {b0['substeps_per_env_step']} "
+               f"{'explicit sub-steps' if physics.integrator == 'explicit' else 'backward Euler steps'} per env "
+               "step" + "".join(f"; *single, {name}*: the same env with physics={p}" for name, p in
+                                ALTERNATIVE_PHYSICS.get(env_id, {}).items()) + ".\n\n")
         rows = []
         for r in res["throughput"]:
             rows.append([r["env"], r["actions"], r["num_envs"], r["threads"], r["omp_wait_policy"],
@@ -403,10 +421,14 @@ def _notes(results: dict) -> str:
         "`OMP_WAIT_POLICY=PASSIVE` unless it is already set; set it yourself (before Python starts) "
         "when you import heml_gym from your own scripts.\n"
         f"- **Where the time goes.** Physics is {100 * bd1['share']['physics']:.0f}% of a single env step "
-        f"({100 * bdn['share']['physics']:.0f}% at N = {bdn['num_envs']}): {bd1['substeps_per_env_step']} explicit "
-        f"sub-steps x {bd1['n_tets']} tets = {tet_sub / 1e3:.0f}k tet-sub-steps per env step at "
-        f"{bd1.get('physics_M_tet_substeps_per_s', float('nan')):.0f}-"
-        f"{bdn.get('physics_M_tet_substeps_per_s', float('nan')):.0f} M/s. Exposure ray casting costs "
+        f"({100 * bdn['share']['physics']:.0f}% at N = {bdn['num_envs']}): "
+        + (f"{bd1['substeps_per_env_step']} explicit sub-steps x {bd1['n_tets']} tets = {tet_sub / 1e3:.0f}k "
+           f"tet-sub-steps per env step at {bd1.get('physics_M_tet_substeps_per_s', float('nan')):.0f}-"
+           f"{bdn.get('physics_M_tet_substeps_per_s', float('nan')):.0f} M/s. "
+           if flap.physics.integrator == "explicit" else
+           f"{bd1['substeps_per_env_step']} backward Euler steps of {bd1['n_tets']} tets per env step, each solved "
+           f"by L-BFGS ({1e3 * bd1['ms_per_env_step']['physics']:.0f} us in all). ")
+        + f"Exposure ray casting costs "
         f"{1e3 * bd1['ms_per_env_step']['exposure']:.0f} us per step, the gauge strain "
         f"{1e3 * bd1['ms_per_env_step']['strain']:.0f} us, everything else (grasp logic, observation, reward, "
         f"gymnasium) {1e3 * bd1['ms_per_env_step']['rest']:.0f} us (single env) and "
@@ -414,22 +436,22 @@ def _notes(results: dict) -> str:
         f"- **The bars.** Single env: {rate('single', 1, 1):.0f} (random) and "
         f"{rate('single', 1, 1, actions='scripted'):.0f} (scripted) env steps/s on one core against "
         f"{BAR_SINGLE:.0f}. Vectorised: {best:.0f} env steps/s in total at best, against {BAR_VECTOR:.0f} "
-        f"({per_core:.0f} on one thread). The batched kernel runs the scenes in lockstep, vectorised across "
-        "scenes (`lane_substeps` in heml_gym/solvers/kernels_explicit.py), which is why a batch beats the single "
-        "env per core; what is left is the sub-step count, set by the stiffest E the flap can draw "
-        f"({flap.physics.young_modulus[1] / 1e3:g} kPa) at safety {flap.physics.safety:g} (why that safety: "
-        "docs/scene_convergence.md).\n"
+        f"({per_core:.0f} on one thread; the {BAR_VECTOR:.0f}/s bar is from the explicit 8 x 8 x 1 flap of "
+        "earlier versions, whose batch ran vectorised across scenes in one kernel; the quasi-Newton solver "
+        "runs each scene's solve on its own, scenes over threads).\n"
     )
 
 
 def _verdict(rows, env_id: str = "heml_gym/TissueRetraction-v0") -> str:
-    """The rates against the bars (which are TissueRetraction's; other envs get the rates only)."""
+    """The rates against the bars: TissueRetraction's, OrganRetraction's (issue 13)."""
+    if "OrganRetraction" in env_id:
+        return _organ_verdict(rows)
     if "TissueRetraction" not in env_id:
         return "\n".join(
             [f"- {r['env']} env, {r['actions']} actions, 1 thread: {r['median_steps_per_s']:.0f} env steps/s"
              for r in rows if r["env"] == "single" and r["threads"] == 1]
             + [f"- best vectorised: {max(r['median_steps_per_s'] for r in rows if r['env'] == 'vector'):.0f} env "
-               "steps/s (the bars are TissueRetraction's)."])
+               "steps/s."])
     single = [r for r in rows if r["env"] == "single" and r["threads"] == 1]
     vec = [r for r in rows if r["env"] == "vector"]
     vec_main = [r for r in vec if r["omp_wait_policy"] == MAIN_POLICY]
@@ -497,13 +519,16 @@ def main():
     load_before = os.getloadavg()
     stat_before = _cpu_stat()
     results = {"machine": machine_info(), "threads_all": threads_all, "control_dt_s": 0.1,
-               "bars": {"single_env_steps_per_s_one_core": BAR_SINGLE, "vector_env_steps_per_s_total": BAR_VECTOR},
+               "bars": {"single_env_steps_per_s_one_core": BAR_SINGLE, "vector_env_steps_per_s_total": BAR_VECTOR,
+                        "organ_single_env_steps_per_s_one_core": BAR_ORGAN_SINGLE,
+                        "organ_default_over_explicit": BAR_ORGAN_RATIO,
+                        "organ_vector_env_steps_per_s_total": BAR_ORGAN_VECTOR},
                "load_average_before": load_before, "envs": {}}
-    n_blocks = len(env_ids) * rounds * (5 + 2 * len(VECTOR_SIZES))
+    n_blocks = sum(rounds * (5 + 2 * len(ALTERNATIVE_PHYSICS.get(e, {})) + 2 * len(VECTOR_SIZES)) for e in env_ids)
     with tqdm(total=n_blocks, desc="blocks") as bar:
         for env_id in env_ids:
             configs = _single_configs(env_id, threads_all) + _vector_configs(env_id, threads_all)
-            # the 7 mm lobe is ~25x the flap's cost per step: shorter blocks
+            # the 7 mm lobe is ~10x the flap's cost per step (its explicit path ~40x): shorter blocks
             block = env_steps_per_block if "Tissue" in env_id else max(8, env_steps_per_block // 4)
             rows = run_interleaved(configs, rounds, block, bar)
             bd = [breakdown(gym.make(env_id).unwrapped, 100 if args.quick else 300, 1, 1)]
