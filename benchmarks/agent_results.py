@@ -1,106 +1,107 @@
-"""Learning results: PPO and SAC on both retraction tasks, success rate vs env steps.
+"""Learning results across seeds: PPO and SAC on both retraction tasks.
 
-Trains every run of ``RUNS`` with the shipped configs (``heml_gym.agents.train.train``,
-exactly what ``heml-gym train CONFIG --seed S`` does) into ``runs/results/``, skipping runs
-whose folder already holds a ``model.zip``; then evaluates each final policy on
-``--episodes`` fresh seeded episodes (seeds 20000+, unseen in training and in the
-periodic evaluations) and the scripted baseline on the same seeds. Writes
-docs/benchmarks/agent_results.{json,md} and docs/img/agent_results.png (success rate vs
-env steps and vs wall time, mean over seeds with each seed drawn thin).
+Collects the seed sweeps of the shipped configs (each run by ``benchmarks/quick_sweep.py``,
+i.e. ``heml-gym sweep CONFIG --seeds ...``, one CPU per trial; ``SWEEPS`` below names
+them and the command that made each) and writes, per env and algorithm: every seed's
+evaluation history (success rate vs env steps and vs wall time), its final success on 20
+fresh seeded episodes, its first evaluation at >= 90 %, and across seeds the
+interquartile mean (IQM) of the final success with a 95 % stratified-bootstrap interval
+(Agarwal et al. 2021, `heml_gym.agents.stats`), and the IQM of the success curves with
+their intervals. The scripted baseline's success on the same task comes from
+docs/benchmarks/task_difficulty.json. A sweep that has not been run is listed as such.
 
-    python benchmarks/agent_results.py [--episodes 100] [--only tissue_ppo] [--summarise]
+Writes docs/benchmarks/agent_results.{json,md} and docs/img/agent_results.png.
 
-Budget on the shared 2-core machine: about an hour for all runs.
+    python benchmarks/agent_results.py
 """
 
 from __future__ import annotations
 
-import argparse
-import os
+import json
+import math
 import sys
-import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before Numba / PyTorch start OpenMP
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json  # noqa: E402
+from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 
-#: (config name, seeds)
-RUNS = [("tissue_ppo", (0, 1, 2)), ("organ_ppo", (0,)), ("tissue_sac", (0,)), ("organ_sac", (0,))]
-RUN_ROOT = ROOT / "runs" / "results"
-EVAL_SEED = 20_000
-BAR_SUCCESS, BAR_STEPS = 0.9, 1_000_000
-LAPGYM_STEPS = 10_000_000  # LapGym's PPO budget for tissue retraction (8 processes)
-
-
-def run_folder(config: str, seed: int) -> Path:
-    return RUN_ROOT / f"{config}-seed{seed}"
+#: (results name of the sweep, config, algorithm, env, seeds the command runs)
+SWEEPS = [
+    ("quick_sweep", "configs/quick.yaml", "PPO", "heml_gym/TissueRetraction-v0", "0,1,2,3,4,5,6,7,8,9"),
+    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v0", "0,1,2,3,4"),
+    ("tissue_sac_sweep", "configs/tissue_sac.yaml", "SAC", "heml_gym/TissueRetraction-v0", "0,1,2"),
+    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v0", "0,1,2"),
+]
+BAR_SUCCESS = 0.9
 
 
-def train_all(only) -> None:
-    from heml_gym.agents.config import load_config
-    from heml_gym.agents.train import train
+def command(name: str, config: str, seeds: str) -> str:
+    if name == "quick_sweep":
+        return "python benchmarks/quick_sweep.py"
+    return f"python benchmarks/quick_sweep.py --config {config} --name {name} --seeds {seeds}"
 
-    for config, seeds in RUNS:
-        if only and config not in only:
+
+def curve_iqm(seeds: list[dict], key: str, grid: np.ndarray) -> dict:
+    """IQM across seeds of the success curves, each read at ``grid`` (linear between
+    evaluations, not beyond a seed's last one), with 95 % bootstrap intervals."""
+    from heml_gym.agents.stats import iqm, iqm_interval
+
+    rows = []
+    for s in seeds:
+        xs = np.array([e[key] for e in s["evaluations"]], dtype=float)
+        ys = np.array([e["success_rate"] for e in s["evaluations"]], dtype=float)
+        rows.append(np.interp(grid, xs, ys, right=math.nan))
+    values = np.array(rows)
+    centre, lo, hi = [], [], []
+    for col in values.T:
+        col = col[np.isfinite(col)]
+        if len(col) < 2:
+            centre.append(math.nan)
+            lo.append(math.nan)
+            hi.append(math.nan)
             continue
-        for seed in seeds:
-            folder = run_folder(config, seed)
-            if (folder / "model.zip").is_file():
-                print(f"{folder}: done already, skipped")
-                continue
-            cfg = load_config(ROOT / "configs" / f"{config}.yaml", {"seed": seed})
-            print(f"== training {config} seed {seed} -> {folder}", flush=True)
-            start = time.perf_counter()
-            train(cfg, run_dir=folder, progress_bar=False)
-            print(f"   {time.perf_counter() - start:.0f} s", flush=True)
+        centre.append(iqm(col))
+        a, b = iqm_interval(col, reps=1000)
+        lo.append(a)
+        hi.append(b)
+    return {"x": grid.tolist(), "iqm": centre, "low": lo, "high": hi}
 
 
-def first_crossing(history: list[dict], level: float):
-    """(env steps, wall s) of the first evaluation at or above ``level``, or (None, None)."""
-    for h in history:
-        if h["success_rate"] >= level:
-            return h["timesteps"], h.get("wall_s")
-    return None, None
+def collect() -> dict:
+    from heml_gym.agents.stats import iqm, iqm_interval
 
-
-def evaluate_all(episodes: int, only) -> dict:
-    import json
-
-    from heml_gym.agents.train import evaluate_policy, load_policy
-    from heml_gym.envs.scripted import scripted_policy
-
-    out = {"runs": [], "scripted": {}}
-    for config, seeds in RUNS:
-        if only and config not in only:
+    scripted = {}
+    difficulty = RESULTS / "task_difficulty.json"
+    if difficulty.is_file():
+        for r in json.loads(difficulty.read_text())["rows"]:
+            if r["difficulty"] == 1:  # the default task
+                scripted[r["env"]] = {"success_rate": r["success_rate"], "episodes": r["episodes"]}
+    groups, missing = [], []
+    for name, config, algo, env, seeds in SWEEPS:
+        path = RESULTS / f"{name}.json"
+        if not path.is_file():
+            missing.append({"name": name, "config": config, "algorithm": algo, "env": env,
+                            "command": command(name, config, seeds)})
             continue
-        for seed in seeds:
-            folder = run_folder(config, seed)
-            if not (folder / "model.zip").is_file():
-                continue
-            policy, model, cfg = load_policy(folder)
-            history = json.loads((folder / "evaluations.json").read_text())
-            final = evaluate_policy(policy, cfg.env.id, episodes, seed=EVAL_SEED, obs_mode=cfg.env.obs_mode,
-                                    env_kwargs=cfg.env.kwargs)
-            steps90, wall90 = first_crossing(history, BAR_SUCCESS)
-            out["runs"].append({
-                "config": config, "seed": seed, "env": cfg.env.id, "algorithm": cfg.algorithm.name,
-                "num_envs": cfg.env.num_envs, "total_timesteps": int(model.num_timesteps),
-                "wall_s": history[-1].get("wall_s"), "history": history, "final": final,
-                "first_eval_at_90pct_steps": steps90, "first_eval_at_90pct_wall_s": wall90,
-            })
-            print(f"{config} seed {seed}: success {final['success_rate']:.0%} over {episodes} episodes; "
-                  f"first >= 90 % evaluation at {steps90} steps", flush=True)
-            if cfg.env.id not in out["scripted"]:
-                import gymnasium as gym
-
-                scene = gym.make(cfg.env.id, **cfg.env.kwargs).unwrapped.scene
-                out["scripted"][cfg.env.id] = evaluate_policy(
-                    scripted_policy(scene), cfg.env.id, episodes, seed=EVAL_SEED, env_kwargs=cfg.env.kwargs)
-    return out
+        sweep = json.loads(path.read_text())
+        done = [s for s in sweep["seeds"] if s["status"] == "finished"]
+        finals = [s["success_rate"] for s in done]
+        group = {"name": name, "config": config, "algorithm": algo, "env": env, "machine": sweep["machine"],
+                 "trials_at_once": sweep.get("trials_at_once"), "command": sweep.get("command"),
+                 "seeds": done, "failed_seeds": [s for s in sweep["seeds"] if s["status"] != "finished"],
+                 "seeds_at_90_percent": sum(f >= BAR_SUCCESS for f in finals)}
+        if finals:
+            group["iqm"] = iqm(finals)
+            group["iqm_ci95"] = list(iqm_interval(finals))
+            steps = np.unique([e["env_steps"] for s in done for e in s["evaluations"]])
+            group["curve_steps"] = curve_iqm(done, "env_steps", steps.astype(float))
+            if all("wall_s" in e for s in done for e in s["evaluations"]):
+                top = max(e["wall_s"] for s in done for e in s["evaluations"])
+                group["curve_wall"] = curve_iqm(done, "wall_s", np.linspace(0.0, top, 40))
+        groups.append(group)
+    return {"machine": machine_info(), "groups": groups, "missing": missing, "scripted": scripted}
 
 
 def chart(results: dict, path: Path) -> None:
@@ -109,87 +110,88 @@ def chart(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    envs = sorted({r["env"] for r in results["runs"]}, reverse=True)
-    fig, axes = plt.subplots(2, len(envs), figsize=(6.2 * len(envs), 8.2), squeeze=False)
+    envs = sorted({g["env"] for g in results["groups"]}, reverse=True)
+    if not envs:
+        return
+    fig, axes = plt.subplots(2, len(envs), figsize=(6.4 * len(envs), 8.4), squeeze=False)
     colours = {"PPO": "tab:blue", "SAC": "tab:orange"}
     for col, env in enumerate(envs):
-        for row, (key, label, scale) in enumerate([("timesteps", "env steps", 1e3), ("wall_s", "wall time (min)", 60.0)]):
+        for row, (key, curve, label, scale) in enumerate([("env_steps", "curve_steps", "env steps (thousands)", 1e3),
+                                                         ("wall_s", "curve_wall", "wall time (min, one CPU per "
+                                                          "trial)", 60.0)]):
             ax = axes[row, col]
-            for algo in ("PPO", "SAC"):
-                runs = [r for r in results["runs"] if r["env"] == env and r["algorithm"] == algo]
-                if not runs:
-                    continue
-                for r in runs:
-                    xs = [h[key] / scale for h in r["history"]]
-                    ax.plot(xs, [h["success_rate"] for h in r["history"]], color=colours[algo], alpha=0.35, lw=1)
-                n = min(len(r["history"]) for r in runs)
-                xs = np.mean([[h[key] / scale for h in r["history"][:n]] for r in runs], axis=0)
-                ys = np.mean([[h["success_rate"] for h in r["history"][:n]] for r in runs], axis=0)
-                ax.plot(xs, ys, color=colours[algo], lw=2.2, marker="o", ms=3,
-                        label=f"{algo} ({len(runs)} seed{'s' if len(runs) > 1 else ''}"
-                              f"{', mean' if len(runs) > 1 else ''})")
+            for g in [g for g in results["groups"] if g["env"] == env]:
+                c = colours.get(g["algorithm"], "tab:green")
+                for s in g["seeds"]:
+                    if all(key in e for e in s["evaluations"]):
+                        ax.plot([e[key] / scale for e in s["evaluations"]],
+                                [e["success_rate"] for e in s["evaluations"]], color=c, alpha=0.3, lw=0.9)
+                if curve in g:
+                    x = np.array(g[curve]["x"]) / scale
+                    ax.plot(x, g[curve]["iqm"], color=c, lw=2.4,
+                            label=f"{g['algorithm']}: IQM of {len(g['seeds'])} seeds (thin: each seed)")
+                    ax.fill_between(x, g[curve]["low"], g[curve]["high"], color=c, alpha=0.15)
             scripted = results["scripted"].get(env)
             if scripted:
                 ax.axhline(scripted["success_rate"], color="k", ls=":", lw=1.2,
                            label=f"scripted baseline ({scripted['success_rate']:.0%})")
-            ax.axhline(BAR_SUCCESS, color="tab:red", ls="--", lw=1, label="bar: 90 %")
+            ax.axhline(BAR_SUCCESS, color="tab:red", ls="--", lw=1, label="90 %")
             ax.set_ylim(-0.03, 1.03)
-            ax.set_xlabel(label + (" (thousands)" if key == "timesteps" else ""))
+            ax.set_xlabel(label)
             ax.set_ylabel("evaluated success rate (20 episodes)")
-            ax.set_title(f"{env.split('/')[-1]}: success vs {label}")
+            ax.set_title(f"{env.split('/')[-1]} (difficulty 1): success vs {label.split(' (')[0]}", fontsize=10)
             ax.grid(alpha=0.3)
-            ax.legend(fontsize=8, loc="lower right")
-    fig.suptitle("Training on the shared 2-core machine (periodic deterministic evaluations)", fontsize=11)
+            ax.legend(fontsize=7.5, loc="lower right")
+    fig.suptitle("Learning across seeds: IQM with 95 % stratified-bootstrap band, every seed drawn", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def markdown(results: dict) -> str:
+    md = ("Written by `benchmarks/agent_results.py` from the seed sweeps of the shipped configs (each "
+          "`heml-gym sweep CONFIG --seeds ...` on Ray Tune, one CPU per trial). The default task of each env "
+          "(difficulty 1: expose the target and hold it exposed, below damage strain, for 2 s). Final "
+          "success: 20 fresh seeded episodes, deterministic policy. IQM: interquartile mean across seeds with "
+          "a 95 % stratified-bootstrap interval (Agarwal et al. 2021).\n\n")
     rows = []
-    for r in results["runs"]:
-        f = r["final"]
-        lo, hi = f["success_ci95"]
-        rows.append([r["env"].split("/")[-1], r["algorithm"], r["seed"], r["num_envs"], f"{r['total_timesteps']:,}",
-                     f"{r['wall_s'] / 60:.1f}" if r["wall_s"] else "-",
-                     f"{r['first_eval_at_90pct_steps']:,}" if r["first_eval_at_90pct_steps"] else "never",
-                     f"{r['first_eval_at_90pct_wall_s'] / 60:.1f}" if r["first_eval_at_90pct_wall_s"] else "-",
-                     f"{f['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{f['mean_final_exposure']:.2f}",
-                     f"{f['mean_max_strain']:.2f}", f"{f['mean_episode_length']:.1f}"])
+    for g in results["groups"]:
+        firsts = [s["first_eval_at_90_percent"] for s in g["seeds"]]
+        reached = [f for f in firsts if f is not None]
+        walls = [s["wall_s"] / 60 for s in g["seeds"]]
+        rows.append([g["env"].split("/")[-1], g["algorithm"], f"`{g['config']}`", len(g["seeds"]),
+                     f"{g['seeds_at_90_percent']} of {len(g['seeds'])}",
+                     " / ".join(f"{s['success_rate']:.0%}" for s in g["seeds"]),
+                     f"{g['iqm']:.0%} ({g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})" if "iqm" in g else "-",
+                     (f"{min(reached) // 1000}-{max(reached) // 1000} k" if reached else "never")
+                     + (f" ({len(firsts) - len(reached)} never)" if reached and len(reached) < len(firsts) else ""),
+                     f"{max(s['env_steps'] for s in g['seeds']) // 1000} k",
+                     f"{min(walls):.1f}-{max(walls):.1f}",
+                     f"{g['machine']['cpu']}, {g['machine']['date']}, {g['trials_at_once']} at a time"])
+    if rows:
+        md += markdown_table(["env", "algorithm", "config", "seeds", ">= 90 %", "final success per seed",
+                              "IQM (95 % interval)", "first eval >= 90 % at", "budget (env steps)",
+                              "wall min per seed", "measured on"], rows)
     for env, s in results["scripted"].items():
-        lo, hi = s["success_ci95"]
-        rows.append([env.split("/")[-1], "scripted", "-", "-", "-", "-", "-", "-",
-                     f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['mean_final_exposure']:.2f}",
-                     f"{s['mean_max_strain']:.2f}", f"{s['mean_episode_length']:.1f}"])
-    n = results["episodes"]
-    return (
-        "# Learning results\n\n"
-        f"Written by `benchmarks/agent_results.py`. Final success over {n} fresh seeded episodes "
-        f"(seeds {EVAL_SEED}+, 95 % Wilson interval), deterministic policies. LapGym's PPO budget for "
-        f"its retraction task: {LAPGYM_STEPS:,} env steps on 8 processes.\n\n"
-        + markdown_table(["env", "agent", "seed", "scenes", "env steps", "wall min", "first eval >= 90 % at (steps)",
-                          "(wall min)", f"final success ({n} episodes)", "final exposure", "max strain",
-                          "episode length"], rows)
-        + "\nChart: `docs/img/agent_results.png`.\n"
-    )
+        md += f"\nScripted baseline on {env.split('/')[-1]} (difficulty 1): {s['success_rate']:.0%} of {s['episodes']} episodes."
+    for m in results["missing"]:
+        md += (f"\n\nNot run yet: {m['algorithm']} on {m['env'].split('/')[-1]} (`{m['config']}`): "
+               f"`{m['command']}`.")
+    md += "\n\nPer seed: " + ", ".join(f"[{g['name']}.md]({g['name']}.md)" for g in results["groups"]) + "."
+    md += "\n\n![success vs env steps and wall time, every seed and the IQM](../img/agent_results.png)\n"
+    return md
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--episodes", type=int, default=100, help="final evaluation episodes per run")
-    ap.add_argument("--only", nargs="*", help="config names to train / evaluate (default: all)")
-    ap.add_argument("--summarise", action="store_true", help="do not train; evaluate and chart what exists")
-    args = ap.parse_args(argv)
-    if not args.summarise:
-        train_all(args.only)
-    results = {"machine": machine_info(), "episodes": args.episodes, "eval_seed": EVAL_SEED,
-               **evaluate_all(args.episodes, args.only)}
+def main() -> int:
+    results = collect()
     write_json("agent_results.json", results)
-    (RESULTS / "agent_results.md").write_text(markdown(results))
+    text = markdown(results)
+    (RESULTS / "agent_results.md").write_text(text)
     IMAGES.mkdir(parents=True, exist_ok=True)
     chart(results, IMAGES / "agent_results.png")
-    print(f"wrote {RESULTS / 'agent_results.md'} and {IMAGES / 'agent_results.png'}")
+    print(text)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -32,7 +32,8 @@ def collect(trials, summary: dict, config_path: Path, concurrent: int, command: 
             seeds.append({"seed": t.seed, "status": record["status"], "error": record.get("error")})
             continue
         history = json.loads((t.run_dir / "evaluations.json").read_text())
-        evaluations = [{"env_steps": e["timesteps"], "success_rate": e["success_rate"]} for e in history]
+        evaluations = [{"env_steps": e["timesteps"], "success_rate": e["success_rate"],
+                        **({"wall_s": e["wall_s"]} if "wall_s" in e else {})} for e in history]
         first = next((e["env_steps"] for e in evaluations if e["success_rate"] >= 0.9), None)
         seeds.append({"seed": t.seed, "status": "finished", "env_steps": record["env_steps"],
                       "wall_s": record["wall_s"], "success_rate": record["success_rate"],

@@ -57,7 +57,7 @@ class RewardWeights:
     every weight a finite number >= 0."""
 
     exposure: float = 10.0  # times the change of exposure (0..1) this step
-    lift: float = 5.0  # times the change of lift progress (0..1) this step (shaping)
+    lift: float = 20.0  # times the change of lift progress (0..1) this step (shaping; 5 left PPO stalled short of exposure)
     grasp: float = 0.5  # once per episode, when a grasp first holds tissue
     strain: float = 5.0  # times the strain above the damage threshold
     stretch: float = 0.0  # times the rise of the largest gauge strain this step, as a cost (shaping: fold, don't stretch)
