@@ -1,7 +1,7 @@
 """The README's "Results" and its quick-start sentence, written from the stored results.
 
 Reads docs/benchmarks/{quick_sweep,env_throughput,force_throughput,simulation_speed,
-scene_convergence,rllib_learning,pixel_learning}.json and writes docs/benchmarks/readme_results.md, one
+scene_convergence,agent_results,rllib_learning,pixel_learning}.json and writes docs/benchmarks/readme_results.md, one
 sentence per result with the CPU and date it was measured on (a result that is missing is
 left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
 gives across seeds). ``python benchmarks/update_docs.py`` then copies them into README.md.
@@ -83,20 +83,29 @@ def rllib(data: dict) -> str:
 
 
 def throughput(data: dict) -> str:
-    def rate(env_id, env, n, threads):
+    def rate(env_id, env, n, threads, actions="random"):
         rows = data["envs"][env_id]["throughput"]
-        match = [r for r in rows if r["env"] == env and r["actions"] == "random" and r["num_envs"] == n
-                 and r["threads"] == threads]
+        match = [r for r in rows if r["env"] == env and r["actions"] == actions and r["num_envs"] == n
+                 and r["threads"] == threads and r.get("omp_wait_policy", "PASSIVE") == "PASSIVE"]
         return match[0]["median_steps_per_s"] if match else None
 
+    def best_vector(env_id):
+        rows = [r for r in data["envs"][env_id]["throughput"] if r["env"] == "vector"
+                and r.get("omp_wait_policy", "PASSIVE") == "PASSIVE"]
+        return max(rows, key=lambda r: r["median_steps_per_s"])
+
     tissue, organ = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
-    vec_n = max(r["num_envs"] for r in data["envs"][tissue]["throughput"])
-    threads = max(r["threads"] for r in data["envs"][tissue]["throughput"])
-    return (f"**Env speed** (random actions, 0.1 s of tissue per step): TissueRetraction {rate(tissue, 'single', 1, 1):,.0f} "
-            f"env steps/s as a single env on one core, {rate(tissue, 'vector', vec_n, threads):,.0f}/s as a {vec_n}-scene "
-            f"vector env on {threads} cores; OrganRetraction (5,206 tets, explicit) {rate(organ, 'single', 1, 1):,.0f}/s "
-            f"single and {rate(organ, 'vector', vec_n, threads):,.0f}/s vectorised ({where(data)}; "
-            "[envs.md](../envs.md#measured)).")
+    tv, ov = best_vector(tissue), best_vector(organ)
+    text = (f"**Env speed** (0.1 s of tissue per step, both envs' default physics: backward Euler by L-BFGS): "
+            f"TissueRetraction {rate(tissue, 'single', 1, 1):,.0f} env steps/s as a single env on one core (random "
+            f"actions), {tv['median_steps_per_s']:,.0f}/s as a {tv['num_envs']}-scene vector env on {tv['threads']} "
+            f"cores; OrganRetraction (5,206 tets) {rate(organ, 'single', 1, 1):,.0f}/s single with random actions and "
+            f"{rate(organ, 'single', 1, 1, 'scripted'):,.0f}/s on the scripted retraction")
+    explicit = [rate(organ, "single, explicit", 1, 1, a) for a in ("random", "scripted")]
+    if all(explicit):
+        text += (f", {rate(organ, 'single', 1, 1) / explicit[0]:.1f}x and "
+                 f"{rate(organ, 'single', 1, 1, 'scripted') / explicit[1]:.1f}x its explicit path in the same run")
+    return text + (f", {ov['median_steps_per_s']:,.0f}/s vectorised ({where(data)}; [envs.md](../envs.md#measured)).")
 
 
 def forces(data: dict) -> str:
@@ -122,6 +131,24 @@ def implicit(data: dict) -> str:
             f"({where(data)}; [dynamics.md](../dynamics.md#measured-speed-one-thread)).")
 
 
+def agents(data: dict) -> str:
+    """Every learning result but the main job's (which has its own sentence)."""
+    parts = []
+    for g in data["groups"]:
+        if g["name"] == "quick_sweep":
+            continue
+        parts.append(f"{g['algorithm']} on {g['env'].split('/')[-1].replace('-v0', '')}: "
+                     f"{g['seeds_at_90_percent']} of {len(g['seeds'])} seeds >= 90 % at "
+                     f"{max(s['env_steps'] for s in g['seeds']) // 1000} k steps (IQM {g['iqm']:.0%}, "
+                     f"{g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})")
+    for m in data["missing"]:
+        parts.append(f"{m['algorithm']} on {m['env'].split('/')[-1].replace('-v0', '')}: not run yet")
+    if not parts:
+        return ""
+    return (f"**Other agents** (default task, difficulty 1): {'; '.join(parts)} "
+            "([agents.md](../agents.md#results)).")
+
+
 def convergence(data: dict) -> str:
     parts = []
     for scene, res in data["results"].items():
@@ -137,8 +164,8 @@ def convergence(data: dict) -> str:
 
 def main() -> int:
     sections = [("quick_sweep", learning), ("env_throughput", throughput), ("force_throughput", forces),
-                ("simulation_speed", implicit), ("scene_convergence", convergence), ("rllib_learning", rllib),
-                ("pixel_learning", pixels)]
+                ("simulation_speed", implicit), ("scene_convergence", convergence), ("agent_results", agents),
+                ("rllib_learning", rllib), ("pixel_learning", pixels)]
     lines, missing = [], []
     for name, write in sections:
         data = load(name)
