@@ -28,9 +28,10 @@ the vector configurations run a second time in a child process with OpenMP's spi
 ``OMP_WAIT_POLICY=ACTIVE``, with its own 1-thread control. The
 machine-wide CPU use during the run (/proc/stat) is stored beside the results.
 
-Writes docs/benchmarks/env_throughput.{json,md} and docs/img/env_throughput.png.
+Writes docs/benchmarks/env_throughput.{json,md} and docs/img/env_throughput.png (with
+``--avx2``, every kernel compiled for an AVX2-only CPU: env_throughput_avx2.*).
 
-    python benchmarks/env_throughput.py [--quick]
+    python benchmarks/env_throughput.py [--quick] [--no-active] [--avx2]
 """
 
 from __future__ import annotations
@@ -341,7 +342,11 @@ def _markdown(results: dict) -> str:
           "the machine was shared, so these are medians of noisy blocks, and the blocks of all "
           "configurations were interleaved (one of each per round) so that they saw the same load. "
           "0.1 s simulated per env step (the default `control_dt`); rates include the resets of "
-          "episodes that end during the run. Chart: [env_throughput.png](../img/env_throughput.png).\n\n")
+          "episodes that end during the run. "
+          + ("**Every kernel compiled for an AVX2-only CPU** (`NUMBA_CPU_NAME=haswell`, `--avx2`): what most "
+             "laptops and cloud VMs run, on this machine. " if results.get("compiled_for") == "haswell" else "")
+          + f"Chart: [{'env_throughput_avx2' if results.get('compiled_for') == 'haswell' else 'env_throughput'}.png]"
+          f"(../img/{'env_throughput_avx2' if results.get('compiled_for') == 'haswell' else 'env_throughput'}.png).\n\n")
     for env_id, res in results["envs"].items():
         md += f"## {env_id}\n\n"
         b0 = res["breakdown"][0]
@@ -496,12 +501,21 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer and shorter blocks (smoke test)")
     ap.add_argument("--no-active", action="store_true", help="skip the OMP_WAIT_POLICY=ACTIVE pass")
+    ap.add_argument("--avx2", action="store_true",
+                    help="compile every kernel for an AVX2-only CPU (NUMBA_CPU_NAME=haswell, its own Numba cache): "
+                         "what most laptops and cloud VMs get; writes env_throughput_avx2.{json,md,png}")
     ap.add_argument("--vector-only", metavar="JSON", help="internal: time the vector configurations only, "
                     "write their rows to JSON (used for the OMP_WAIT_POLICY=ACTIVE pass)")
     args = ap.parse_args()
-    if not args.vector_only and WAIT_POLICY != MAIN_POLICY:  # restart with it set before OpenMP starts
-        os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]],
-                  {**os.environ, "OMP_WAIT_POLICY": MAIN_POLICY})
+    restart = {}
+    if not args.vector_only and WAIT_POLICY != MAIN_POLICY:  # set before OpenMP starts
+        restart["OMP_WAIT_POLICY"] = MAIN_POLICY
+    if args.avx2 and os.environ.get("NUMBA_CPU_NAME") != "haswell":  # set before Numba compiles anything
+        restart["NUMBA_CPU_NAME"] = "haswell"
+        restart["NUMBA_CACHE_DIR"] = str(Path(tempfile.gettempdir()) / "heml-gym-numba-avx2")
+    if restart:
+        os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]], {**os.environ, **restart})
+    name = "env_throughput_avx2" if args.avx2 else "env_throughput"
     rounds = 3 if args.quick else 9
     env_steps_per_block = 40 if args.quick else 128
     threads_all = numba.config.NUMBA_NUM_THREADS
@@ -519,6 +533,7 @@ def main():
     load_before = os.getloadavg()
     stat_before = _cpu_stat()
     results = {"machine": machine_info(), "threads_all": threads_all, "control_dt_s": 0.1,
+               "compiled_for": os.environ.get("NUMBA_CPU_NAME", "host"),
                "bars": {"single_env_steps_per_s_one_core": BAR_SINGLE, "vector_env_steps_per_s_total": BAR_VECTOR,
                         "organ_single_env_steps_per_s_one_core": BAR_ORGAN_SINGLE,
                         "organ_default_over_explicit": BAR_ORGAN_RATIO,
@@ -551,11 +566,11 @@ def main():
     results["wall_s"] = time.perf_counter() - start
     numba.set_num_threads(threads_all)
     if not args.quick:
-        write_json("env_throughput.json", results)
+        write_json(f"{name}.json", results)
         md = _markdown(results)
-        (RESULTS / "env_throughput.md").write_text(md)
+        (RESULTS / f"{name}.md").write_text(md)
         IMAGES.mkdir(parents=True, exist_ok=True)
-        _chart(results, IMAGES / "env_throughput.png")
+        _chart(results, IMAGES / f"{name}.png")
     else:
         md = _markdown(results)
         _chart(results, Path("/tmp/env_throughput_quick.png"))
