@@ -135,6 +135,16 @@ class QuasiNewtonSolver(Solver):
         self._memory[:, 1] = -1
         self.factorizations = 0
 
+    def laplacian(self) -> sp.csr_matrix:
+        """The mesh's P1 Laplacian ``L`` (m), ``n x n``: the initial Hessian per axis is
+        ``c M + (lambda + mu) L`` (plus the supports' penalty); ``x^T L x = sum V0 |F|^2``
+        summed over the axes of ``x``."""
+        n = self.model.n_vertices
+        w = self._edge_w
+        off = sp.coo_matrix((np.r_[w, w], (np.r_[self._edge_i, self._edge_j], np.r_[self._edge_j, self._edge_i])),
+                            shape=(n, n))
+        return (sp.diags(self._lap_diag) - off).tocsr()
+
     def forget(self, scenes) -> None:
         """Drop the initial Hessians and curvature pairs of ``scenes`` (see
         :meth:`Solver.forget`): their next step factorises afresh."""
