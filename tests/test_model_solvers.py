@@ -37,7 +37,8 @@ def single_run(material, path, dt, integrator, substeps=None, supports=(), mesh=
 def batch_run(materials, scene_paths, dt, integrator, substeps=None, supports=()):
     model = hg.Model(MESH, materials, density=DENSITY, gravity=GRAVITY, fixed=FIXED, damping=DAMPING,
                      supports=supports)
-    solver = hg.ExplicitSolver(model) if integrator == "explicit" else hg.ImplicitSolver(model)
+    solver = {"explicit": hg.ExplicitSolver, "implicit": hg.ImplicitSolver,
+              "quasi_newton": hg.QuasiNewtonSolver}[integrator](model)
     state, control = model.state(), model.control()
     for s in range(model.n_scenes):
         control.attach(s, HELD, state.x[s])
@@ -53,10 +54,11 @@ def batch_run(materials, scene_paths, dt, integrator, substeps=None, supports=()
     return np.array(xs), np.array(forces)
 
 
-@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+@pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
 def test_four_stiffnesses_in_one_batch_equal_four_simulations(integrator):
     """N = 4 scenes with four E (the explicit path vectorised across scenes, the implicit
-    one scene by scene) against four single Simulations, to 1e-10 m over 20 steps."""
+    ones scene by scene, each with its own factorisations) against four single
+    Simulations, to 1e-10 m over 20 steps."""
     dt = 0.05 if integrator == "explicit" else 1 / 30
     substeps = 40 if integrator == "explicit" else 1
     materials = [M.NeoHookean(E=E, nu=0.45) for E in STIFFNESS]
@@ -70,7 +72,7 @@ def test_four_stiffnesses_in_one_batch_equal_four_simulations(integrator):
     assert np.abs(xs[-1, 0] - xs[-1, 2]).max() > 1e-4  # and differently
 
 
-@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+@pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
 def test_mixed_laws_in_one_batch_equal_single_simulations(integrator):
     """Every law of ALL_MATERIALS in one batch (the explicit path is then the general
     HEML kernel, scenes over threads) equals each law simulated alone."""

@@ -133,6 +133,8 @@ class QuasiNewtonSolver(Solver):
         self._rho = np.zeros((N, self.history))
         self._memory = np.zeros((N, 2), dtype=np.int64)
         self._memory[:, 1] = -1
+        self._weights = None  # (N, 6, m) spring weights of the scenes' fields, see _spring_weights
+        self._weights_of: list = []
         self.factorizations = 0
 
     def laplacian(self) -> sp.csr_matrix:
@@ -302,10 +304,23 @@ class QuasiNewtonSolver(Solver):
         split = all(f.split for f in fields)
         use_q = any(f.use_q for f in fields)
         return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, split=split, use_q=use_q,
-                    weights=np.stack([f.spring_weights for f in fields]) if split else np.zeros((m.n_scenes, 6, 1)),
+                    weights=self._spring_weights() if split else np.zeros((m.n_scenes, 6, 1)),
                     laws=np.array([f.law_id for f in fields], dtype=np.int64),
                     psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
                     params=stack_law_params(fields), stiffness=np.array([self.stiffness(s) for s in range(m.n_scenes)]))
+
+    def _spring_weights(self) -> np.ndarray:
+        """``(N, 6, m)`` the scenes' constant spring weights (Neo-Hookean), kept from step to
+        step: a scene's row is copied again only when its field changed (a reset)."""
+        fields = self.model.fields
+        if self._weights is None:
+            self._weights = np.stack([f.spring_weights for f in fields])
+            self._weights_of = list(fields)  # the fields themselves (kept alive: ids could be reused)
+        for s, f in enumerate(fields):
+            if self._weights_of[s] is not f:
+                self._weights[s] = f.spring_weights
+                self._weights_of[s] = f
+        return self._weights
 
     def _advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
                  r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
