@@ -60,7 +60,7 @@ class RewardWeights:
     lift: float = 20.0  # times the change of lift progress (0..1) this step (shaping; 5 left PPO stalled short of exposure)
     grasp: float = 0.5  # once per episode, when a grasp first holds tissue
     strain: float = 5.0  # times the strain above the damage threshold
-    stretch: float = 0.0  # times the rise of the largest gauge strain this step, as a cost (shaping: fold, don't stretch)
+    stretch: float = 5.0  # times the rise of the largest gauge strain this step, as a cost (shaping: fold, don't stretch)
     effort: float = 0.01  # times |gripper velocity command|^2
     success: float = 5.0  # once, on success
     hold: float = 1.0  # per second of simulated time the success condition is held before success (hold_time > 0)

@@ -46,12 +46,14 @@ tissue surface vertices (m).
 ## Rewards
 
 The sum of (each reported in ``info`` under its name, weights in ``RewardWeights``):
-``reward_exposure`` = 10 x (change of exposure this step); ``reward_lift`` = 5 x (change
+``reward_exposure`` = 10 x (change of exposure this step); ``reward_lift`` = 20 x (change
 of lift progress this step), a potential-based shaping term (Ng et al. 1999) that pays
 for folding the free edge (x = 120 mm) back about the attached edge's top line, 1 at
 90 degrees (``info["lift"]``); ``reward_grasp`` = 0.5 the
 first time a grasp holds tissue; ``reward_strain`` = -5 x (largest gauge strain - 0.5, if
-positive); ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
+positive); ``reward_stretch`` = -5 x (change of the largest gauge strain this step), a
+potential-based shaping term that charges stretching the tissue (and pays it back as the
+strain falls), so that folding beats pulling; ``reward_effort`` = -0.01 x |velocity command|^2; ``reward_success`` = 5 on
 success; with a hold time, ``reward_hold`` = 1 per second the success condition has held
 before success. Exposure is the fraction of the tumour's camera-facing surface samples (256
 points) that the deformed tissue surface does not hide, by ray casting. Tissue strain is
