@@ -233,3 +233,31 @@ def test_rejects_bad_arguments_naming_them():
             hg.QuasiNewtonSolver(m, **kwargs)
     with pytest.raises(ValueError, match="HEML"):
         hg.QuasiNewtonSolver(hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), field="fem"))
+
+
+def test_step_mean_reaction_matches_the_explicit_solvers():
+    """A slab pulled slowly at its end: the quasi-Newton solver's step-mean reaction (the
+    trapezoidal rule over its steps) equals the explicit solver's (the impulse of its
+    sub-steps over the step) to 0.1 % of the peak once the start transient is over;
+    backward Euler's own end-of-step force is half a step of the ramp later (> 1 %)."""
+    mesh = hg.box_mesh((0.06, 0.03, 0.008), (6, 3, 1))
+    fixed = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.0))
+    held = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.06))
+    forces, end_forces = {}, []
+    for name in ("explicit", "quasi_newton"):
+        m = hg.Model(mesh, M.NeoHookean(E=3e3, nu=0.4), density=1000.0, gravity=(0, 0, 0), fixed=fixed, damping=20.0)
+        solver = hg.ExplicitSolver(m) if name == "explicit" else hg.QuasiNewtonSolver(m, newton_tol=1e-8, max_iter=500)
+        state, control = m.state(), m.control()
+        control.attach(0, held, state.x[0])
+        series = []
+        for k in range(1, 21):
+            control.drive(0, held, mesh.vertices[held] + [0.0005 * k, 0.0, 0.0])
+            kw = {"substeps": solver.substeps(0.05, m.critical_dt())} if name == "explicit" else {}
+            stats = solver.step(state, state, control, 0.05, **kw)
+            series.append(stats.reaction[0, held, 0].sum())
+            if name == "quasi_newton":  # the held tissue's pull at the end of the step
+                end_forces.append(-m.field.forces(state.x[0])[held, 0].sum())
+        forces[name] = np.array(series)
+    peak = np.abs(forces["explicit"]).max()
+    assert np.abs(forces["quasi_newton"] - forces["explicit"])[4:].max() < 1e-3 * peak
+    assert np.abs(np.array(end_forces) - forces["explicit"])[4:].min() > 1e-2 * peak
