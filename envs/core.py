@@ -83,6 +83,7 @@ class TaskSettings:
     tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
     hold_time: float = 0.0  # s the success condition must hold, continuously, before success (0: at once)
+    release_command: float = -0.5  # grasp command below which closed jaws open (> 0 closes), in [-1, 0]
     max_steps: int = 100  # steps before truncation
     exposure_samples: int = 256  # points on the target sphere for exposure
 
@@ -97,6 +98,9 @@ class TaskSettings:
         if not (isinstance(self.success_exposure, (int, float)) and 0 < self.success_exposure <= 1):
             raise SpecError(f"TaskSettings.success_exposure: must lie in (0, 1], got {self.success_exposure!r}")
         _positive(self, "hold_time", self.hold_time, allow_zero=True)
+        r = self.release_command
+        if not (isinstance(r, (int, float)) and not isinstance(r, bool) and -1.0 <= r <= 0.0):
+            raise SpecError(f"TaskSettings.release_command: must be a number in [-1, 0], got {r!r}")
         for name in ("max_steps", "exposure_samples"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -227,6 +231,7 @@ class BatchedRetraction:
         # grasp / release
         for i in range(self.n):
             close = a[i, 3] > 0.0
+            release = a[i, 3] < st.release_command  # between it and 0 the jaws stay as they are
             if close and not self.grasping[i]:
                 picked = self._jaw_vertices(i)
                 if picked.size:
@@ -237,7 +242,7 @@ class BatchedRetraction:
                     if not self.grasped_once[i]:
                         self.grasped_once[i] = True
                         grasp_bonus[i] = w.grasp
-            elif not close and self.grasping[i]:
+            elif release and self.grasping[i]:
                 self.grasping[i] = False
                 self.held[i] = False
                 self.control.detach(i)

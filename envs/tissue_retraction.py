@@ -19,7 +19,8 @@ explicit 8 x 8 x 1 mesh of earlier versions, which is 6 % off while the flap is 
 ## Action Space
 
 ``Box(-1, 1, (4,), float32)``: gripper velocity along x, y, z in units of
-``max_speed`` (0.05 m/s), and a grasp command (> 0 close, <= 0 open). The jaws clamp the
+``max_speed`` (0.05 m/s), and a grasp command (> 0 closes, < -0.5 opens, in between the
+jaws stay as they are: ``settings.release_command``). The jaws clamp the
 free edge along its top line (``Scene.grasp``: the vertices at x = 120 mm,
 z = 8 mm, the same line of tissue on every mesh, free to rotate about it): closing with
 that line within ``grasp_reach`` (12 mm) holds all of it, opening releases it. Held tissue

@@ -11,6 +11,7 @@ import heml_gym.envs  # noqa: F401  (registers the environments)
 from heml_gym.envs.organ_retraction import OrganRetractionEnv, OrganRetractionVectorEnv
 from heml_gym.envs.scripted import FoldBackPolicy, run_episodes, scripted_policy
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
+from heml_gym.envs.spec import SpecError
 
 ENV_ID = "heml_gym/TissueRetraction-v0"
 
@@ -236,3 +237,22 @@ def test_vector_autoreset_step_reports_the_new_episode_not_the_old():
     assert reward[0] == 0.0 and not terminated[0]
     assert not info["is_success"][0] and info["reward_success"][0] == 0.0
     assert info["exposure"][0] == obs[0][23]
+
+
+def test_grasp_command_closes_above_zero_and_opens_below_the_release_command():
+    """A closed gripper stays closed for commands in [release_command, 0] (exploration
+    noise around a holding policy does not drop the tissue) and opens below it; the
+    setting is checked."""
+    env = TissueRetractionEnv()
+    env.reset(seed=0)
+    held = lambda a: env.step(np.array([0.0, 0.0, 0.2, a], dtype=np.float32))[4]["grasping"]  # noqa: E731
+    assert held(1.0)  # closes next to the grasp line
+    assert held(0.0) and held(-0.3) and held(-0.5)  # in between: stays closed
+    assert not held(-0.51)  # below the release command: opens
+    assert not held(-0.2)  # and stays open until a command above 0
+    wide = TissueRetractionEnv(settings={"release_command": 0.0})
+    wide.reset(seed=0)
+    wide.step(np.array([0, 0, 0, 1.0], dtype=np.float32))
+    assert not wide.step(np.array([0, 0, 0, -0.01], dtype=np.float32))[4]["grasping"]
+    with pytest.raises(SpecError, match="release_command"):
+        TissueRetractionEnv(settings={"release_command": 0.5})
