@@ -9,6 +9,7 @@ gmsh is an optional dependency: ``pip install 'heml-gym[mesh]'``.
 
 from __future__ import annotations
 
+import threading
 from typing import Callable
 
 import numpy as np
@@ -48,7 +49,10 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float) -> Tet
     if not np.isfinite(mesh_size) or mesh_size <= 0:
         raise ValueError(f"mesh_size must be a positive length in metres, got {mesh_size}")
     gmsh = _import_gmsh()
-    gmsh.initialize(readConfigFiles=False)
+    # gmsh installs a SIGINT handler when interruptible, which Python allows only on the
+    # main thread: a Ray trial or any worker thread meshing an organ would fail.
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    gmsh.initialize(readConfigFiles=False, interruptible=on_main_thread)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.Verbosity", 0)

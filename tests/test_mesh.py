@@ -518,6 +518,28 @@ def test_gmsh_solid_mesh_helper():
     np.testing.assert_allclose(radii, 0.05, rtol=1e-6)
 
 
+def test_meshing_works_off_the_main_thread():
+    # Ray trials run the trainable in a worker thread; gmsh's SIGINT handler may only be
+    # installed on the main thread, so meshing there used to fail before any mesh was made
+    import threading
+
+    results = {}
+
+    def mesh_in_thread():
+        try:
+            results["mesh"] = organs.irregular_cube_mesh()
+        except Exception as error:  # noqa: BLE001 - reported by the assertion below
+            results["error"] = error
+
+    worker = threading.Thread(target=mesh_in_thread)
+    worker.start()
+    worker.join()
+    assert "error" not in results, results.get("error")
+    reference = organs.irregular_cube_mesh()
+    assert np.array_equal(results["mesh"].tets, reference.tets)
+    np.testing.assert_array_equal(results["mesh"].vertices, reference.vertices)
+
+
 @pytest.mark.parametrize("bad", [0.0, -0.01, np.nan, np.inf])
 def test_gmsh_solid_mesh_rejects_bad_size(bad):
     with pytest.raises(ValueError):
