@@ -41,8 +41,8 @@ TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
 
 | difficulty | task | scripted success | scripted episode, median steps |
 |---|---|---|---|
-| 0 (default) | success as soon as the target is exposed below damage strain | 100 % | 6 |
-| 1 | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 26 |
+| 0 | success as soon as the target is exposed below damage strain | 100 % | 6 |
+| 1 (default) | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 26 |
 | 2 | as 1, with E drawn in 2-12 kPa, and the target under the lobe's body, halfway towards the base (x 15-27.5 mm): its thin edge must be turned up by 22-28 degrees about the base, against 13-16 at level 0 | 100 % | 30 |
 
 (20 seeded episodes each, ``python benchmarks/task_difficulty.py``.)
