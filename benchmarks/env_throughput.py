@@ -447,6 +447,35 @@ def _notes(results: dict) -> str:
     )
 
 
+def _organ_verdict(rows) -> str:
+    """OrganRetraction against issue 13's bars: its default single env on one core, the
+    ratio to its explicit path timed in the same rounds, and the best vectorised rate."""
+    main = [r for r in rows if r.get("omp_wait_policy", MAIN_POLICY) == MAIN_POLICY]
+    lines = []
+    for actions in ("random", "scripted"):
+        default = [r for r in main if r["env"] == "single" and r["threads"] == 1 and r["actions"] == actions]
+        explicit = [r for r in main if r["env"] == "single, explicit" and r["threads"] == 1
+                    and r["actions"] == actions]
+        if not default:
+            continue
+        rate = default[0]["median_steps_per_s"]
+        line = (f"- single env, {actions} actions, 1 thread: {rate:.0f} env steps/s by wall time "
+                f"({'meets' if rate >= BAR_ORGAN_SINGLE else 'misses'} the {BAR_ORGAN_SINGLE:.0f}/s bar)")
+        if explicit:
+            ratio = rate / explicit[0]["median_steps_per_s"]
+            line += (f"; its explicit path {explicit[0]['median_steps_per_s']:.0f} env steps/s in the same rounds: "
+                     f"{ratio:.1f}x ({'meets' if ratio >= BAR_ORGAN_RATIO else 'misses'} the "
+                     f"{BAR_ORGAN_RATIO:.0f}x bar)")
+        lines.append(line + ".")
+    vec = [r for r in main if r["env"] == "vector"]
+    if vec:
+        best = max(vec, key=lambda r: r["median_steps_per_s"])
+        lines.append(f"- best vectorised: {best['median_steps_per_s']:.0f} env steps/s at N = {best['num_envs']}, "
+                     f"{best['threads']} thread(s) ({'meets' if best['median_steps_per_s'] >= BAR_ORGAN_VECTOR else 'misses'} "
+                     f"the {BAR_ORGAN_VECTOR:.0f}/s bar).")
+    return "\n".join(lines)
+
+
 def _verdict(rows, env_id: str = "heml_gym/TissueRetraction-v0") -> str:
     """The rates against the bars: TissueRetraction's, OrganRetraction's (issue 13)."""
     if "OrganRetraction" in env_id:
