@@ -156,6 +156,8 @@ def convergence(data: dict) -> str:
         force = max(s["force"] for s in default["per_seed"]) * 100
         exposure = max(s["exposure"] for s in default["per_seed"])
         verdict = "meets the 5 % rule" if default["within_5pct"] else "**misses the 5 % rule**"
+        if "check" in res and not res["check"]["within_5pct"]:
+            verdict += " against a reference that is itself not converged"
         parts.append(f"{scene} ({default['model']}, {default['n_tets']:,} tets): force error {force:.1f} %, "
                      f"exposure error {exposure:.3f}: {verdict}")
     return (f"**Accuracy of the env scenes.** The default models against fine models of the same scene, on the "

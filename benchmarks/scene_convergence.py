@@ -147,7 +147,7 @@ SCENES = {
                 organ(0.005, **{**ORGAN_QN, "max_dt": 0.0125}),
                 organ(0.007, integrator="implicit", max_dt=0.1),
                 organ(0.010, integrator="implicit", max_dt=0.1)],
-        reference=organ(0.005), check=(organ(0.004), (0, 1)),
+        reference=organ(0.005), check=(organ(0.004), (2, 3)),  # seeds whose hold sits at the visibility margin
         seeds=(0, 1, 2, 3, 4), steps=30),
 }
 
@@ -166,15 +166,20 @@ def record(scene: str, model: Model, seed: int, steps: int) -> tuple[np.ndarray,
     return np.array(actions), episode or steps
 
 
-def replay(scene: str, model: Model, seed: int, actions: np.ndarray) -> dict:
-    """Per-step grasp force (N), exposure, gauge strain, outcomes and CPU time of ``model``."""
+def replay(scene: str, model: Model, seed: int, actions: np.ndarray, probes=None) -> dict:
+    """Per-step grasp force (N), exposure, gauge strain, outcomes and CPU time of ``model``;
+    ``probes``: ``{name: fn(env) -> float}`` also recorded after every step."""
     env = model.env(scene)
     _, info0 = env.reset(seed=seed)
-    rec = {k: [] for k in ("grasp_force", "exposure", "max_strain", "success", "diverged", "unconverged", "cpu_s")}
+    probes = probes or {}
+    rec = {k: [] for k in ("grasp_force", "exposure", "max_strain", "success", "diverged", "unconverged", "cpu_s",
+                           *probes)}
     for a in actions:
         c0 = time.thread_time()
         _, _, _, _, info = env.step(a)
         rec["cpu_s"].append(time.thread_time() - c0)
+        for name, fn in probes.items():
+            rec[name].append(float(fn(env)))
         for k in ("grasp_force", "exposure", "max_strain"):
             rec[k].append(float(info[k]))
         rec["success"].append(bool(info["is_success"]))
@@ -312,6 +317,9 @@ def verdict(res: dict) -> str:
         c = res["check"]
         text += (f" Reference check: {c['model']} differs from the reference {res['reference']} by "
                  f"{100 * c['force']:.1f} % in force and {c['exposure']:.3f} in exposure (seeds {c['seeds']}).")
+        if not c["within_5pct"]:
+            text += (" **The reference is not converged** (its check is not within 5 %), so these errors "
+                     "understate the real ones.")
     return text
 
 

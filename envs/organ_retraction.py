@@ -37,7 +37,10 @@ z 24-27 mm (above the grasp line); E uniform in 4-8 kPa.
 
 ``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics``, ``difficulty`` as for
 TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
-``mesh_size`` (m, gmsh element size; default 7 mm). Difficulty levels:
+``mesh_size`` (m, gmsh element size; default 7 mm). ``scene=organ_scene(grasp="patch")``
+holds the jaws' 6 x 40 mm footprint instead of the grasp line: a line held in 3-D
+elasticity has no fine-mesh limit (the edge in front of it droops further on every finer
+mesh), a patch does (docs/scene_convergence.md, "Line and patch grasps"). Difficulty levels:
 
 | difficulty | task | scripted success | scripted episode, median steps |
 |---|---|---|---|
@@ -71,17 +74,49 @@ TIP_X = -0.08  # m: the lobe's thin edge (the tip of its half-ellipsoid), on eve
 EDGE_BAND = 0.012  # m: surface vertices this close to the thin edge (in x) measure the lift
 
 
-def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> Scene:
-    """The liver-lobe scene meshed at ``mesh_size`` metres."""
+def _top_z(x: float) -> float:
+    """Height (m) of the lobe's flat top face (the cut plane) at ``x`` (m)."""
+    return 0.035 + 0.25 * x
+
+
+#: m: the jaws' footprint for ``grasp="patch"``: 6 mm along x, centred on the grasp line
+JAW_WIDTH = 0.006
+
+
+def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "line") -> Scene:
+    """The liver-lobe scene meshed at ``mesh_size`` metres.
+
+    ``edge_size`` (m): finer elements near the thin edge (see
+    :func:`heml_gym.organs.liver_lobe_mesh`). ``grasp``: ``"line"`` (the default) holds the
+    40 mm grasp line; ``"patch"`` holds the jaws' footprint, a ``JAW_WIDTH`` x 40 mm
+    rectangle of the top face centred on that line (its edges imprinted on the mesh), so
+    that the held tissue cannot turn about the line. A line held in 3-D elasticity has no
+    fine-mesh limit (the tissue next to it grows ever more compliant as the mesh refines);
+    a patch does (docs/scene_convergence.md, "Line and patch grasps").
+    """
+    if grasp not in ("line", "patch"):
+        raise ValueError(f"grasp must be 'line' or 'patch', got {grasp!r}")
+    (gx, y0, _), (_, y1, _) = GRASP_LINE
+    lines = [GRASP_LINE]
+    grasp_region = RegionSpec(segment=GRASP_LINE)
+    if grasp == "patch":
+        x0, x1 = gx - JAW_WIDTH / 2, gx + JAW_WIDTH / 2
+        corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+        lines = [((xa, ya, _top_z(xa)), (xb, yb, _top_z(xb)))
+                 for (xa, ya), (xb, yb) in zip(corners, corners[1:] + corners[:1])]
+        grasp_region = RegionSpec(low=(x0, y0, _top_z(x0) - 0.002), high=(x1, y1, None), surface=True,
+                                  tolerance=1e-6)
+    options = {"lines": [list(map(list, line)) for line in lines], "base_x": BASE_X}
+    if edge_size is not None:
+        options["edge_size"] = edge_size
     return Scene(
         name="OrganRetraction",
-        tissue=TissueSpec(kind="organ", organ="liver_lobe", mesh_size=mesh_size,
-                          organ_options={"lines": [list(map(list, GRASP_LINE))], "base_x": BASE_X}),
+        tissue=TissueSpec(kind="organ", organ="liver_lobe", mesh_size=mesh_size, organ_options=options),
         physics=PhysicsSpec(material="NeoHookean", young_modulus=(4e3, 8e3), poisson=0.45, density=1060.0,
                             damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
                             max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.5),
         attachment=RegionSpec(low=(BASE_X, None, 0.0), high=(BASE_X, None, 0.0)),
-        grasp=RegionSpec(segment=GRASP_LINE),
+        grasp=grasp_region,
         tracked=RegionSpec(points=[(TIP_X, -0.05, 0.02), (TIP_X, 0.0, 0.02), (TIP_X, 0.05, 0.02),
                                    (0.0, 0.0, 0.0443)], surface=True),
         fold=FoldSpec(hinge=HINGE, direction=-1.0, angle=0.6,

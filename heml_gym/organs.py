@@ -36,18 +36,22 @@ def _import_gmsh():
     return gmsh
 
 
-def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float) -> TetMesh:
+def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float, refine=()) -> TetMesh:
     """Tetrahedralise the OCC solid(s) that ``build_fn(gmsh)`` adds to a fresh model.
 
     ``build_fn`` receives the ``gmsh`` module and adds entities through
     ``gmsh.model.occ`` (it need not synchronise). All 3D entities are meshed with
-    linear tets of target edge length ``mesh_size`` (metres; used as both the minimum
-    and maximum mesh size). Node tags are remapped to ``0..n-1`` and nodes used by no
-    tet are dropped.
+    linear tets of target edge length ``mesh_size`` (metres) except inside the boxes of
+    ``refine``: each ``(low, high, size, transition)`` asks for edges of ``size`` (m)
+    inside the axis-aligned box ``low``-``high`` (m; ``None`` coordinates are unbounded),
+    growing linearly to ``mesh_size`` over ``transition`` (m) outside it. Node tags are
+    remapped to ``0..n-1`` and nodes used by no tet are dropped.
     """
     mesh_size = float(mesh_size)
     if not np.isfinite(mesh_size) or mesh_size <= 0:
         raise ValueError(f"mesh_size must be a positive length in metres, got {mesh_size}")
+    boxes = [_refinement_box(k, box) for k, box in enumerate(refine)]
+    smallest = min([mesh_size] + [b[2] for b in boxes])
     gmsh = _import_gmsh()
     # gmsh installs a SIGINT handler when interruptible, which Python allows only on the
     # main thread: a Ray trial or any worker thread meshing an organ would fail.
@@ -64,11 +68,13 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float) -> Tet
         gmsh.option.setNumber("Mesh.ElementOrder", 1)
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
-        gmsh.option.setNumber("Mesh.MeshSizeMin", mesh_size)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", smallest)
         gmsh.option.setNumber("Mesh.MeshSizeMax", mesh_size)
         gmsh.model.add("heml_gym_solid")
         build_fn(gmsh)
         gmsh.model.occ.synchronize()
+        if boxes:
+            _size_field(gmsh, boxes, mesh_size)
         if not gmsh.model.getEntities(3):
             raise ValueError("build_fn created no 3D entity to mesh")
         gmsh.model.mesh.generate(3)
@@ -91,6 +97,43 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float) -> Tet
     index = np.full(node_tags.max() + 1, -1, dtype=np.int64)
     index[used] = np.arange(len(used))
     return TetMesh(coords[rows], index[tet_tags], reorient=True)
+
+
+def _refinement_box(k: int, box) -> tuple:
+    """Validate ``refine[k]`` = ``(low, high, size, transition)`` (metres)."""
+    try:
+        low, high, size, transition = box
+        low, high = [[None if c is None else float(c) for c in corner] for corner in (low, high)]
+        size, transition = float(size), float(transition)
+    except (TypeError, ValueError):
+        raise ValueError(f"refine[{k}] must be (low, high, size, transition) in metres, got {box!r}") from None
+    if len(low) != 3 or len(high) != 3:
+        raise ValueError(f"refine[{k}]: low and high must have 3 coordinates, got {low}, {high}")
+    if not (np.isfinite(size) and size > 0 and np.isfinite(transition) and transition >= 0):
+        raise ValueError(f"refine[{k}]: size must be > 0 and transition >= 0 metres, got {size}, {transition}")
+    for a, b in zip(low, high):
+        if a is not None and b is not None and not a <= b:
+            raise ValueError(f"refine[{k}]: low must not exceed high, got {low}, {high}")
+    return low, high, size, transition
+
+
+def _size_field(gmsh, boxes, mesh_size: float) -> None:
+    """The smallest of one gmsh Box size field per refinement box, as the background mesh."""
+    field = gmsh.model.mesh.field
+    tags = []
+    for low, high, size, transition in boxes:
+        tag = field.add("Box")
+        field.setNumber(tag, "VIn", size)
+        field.setNumber(tag, "VOut", mesh_size)
+        for axis, lo, hi in zip("XYZ", low, high):
+            field.setNumber(tag, f"{axis}Min", -1e3 if lo is None else lo)
+            field.setNumber(tag, f"{axis}Max", 1e3 if hi is None else hi)
+        field.setNumber(tag, "Thickness", transition)
+        tags.append(tag)
+    smallest = field.add("Min")
+    field.setNumbers(smallest, "FieldsList", tags)
+    field.setAsBackgroundMesh(smallest)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
 
 
 def _ellipsoid(gmsh, centre, semi_axes) -> int:
@@ -147,7 +190,8 @@ def uterus_mesh(mesh_size: float = 0.0035) -> TetMesh:
     return gmsh_solid_mesh(build, mesh_size)
 
 
-def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = None) -> TetMesh:
+def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = None, edge_size: float | None = None,
+                    edge_band: float = 0.03, refine=()) -> TetMesh:
     """Flattened, wedge-like liver lobe (metres).
 
     A half-ellipsoid of semi-axes (0.08, 0.05, 0.05) m (0.16 x 0.10 x 0.05 m overall)
@@ -160,7 +204,14 @@ def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = 
     a segment are the same line of tissue at any ``mesh_size`` (an attachment or a grasp,
     say). Parts of a segment outside the lobe are ignored. ``base_x`` (m): cut the lobe
     off at the plane x = ``base_x`` (its base, where it would join the rest of the liver).
+    ``edge_size`` (m): finer elements within ``edge_band`` (m) of the thin edge (x <=
+    -0.08 + ``edge_band``), growing to ``mesh_size`` over the next ``edge_band``: the thin
+    part bends most, and coarse linear tets there are too stiff in bending. ``refine``: more
+    refinement boxes, as for :func:`gmsh_solid_mesh`.
     """
+    refine = tuple(refine)
+    if edge_size is not None:
+        refine += (((None, None, None), (-0.08 + float(edge_band), None, None), edge_size, float(edge_band)),)
 
     def build(gmsh):
         occ = gmsh.model.occ
@@ -179,7 +230,7 @@ def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = 
         if segments:
             occ.fragment(body, segments)
 
-    return gmsh_solid_mesh(build, mesh_size)
+    return gmsh_solid_mesh(build, mesh_size, refine)
 
 
 def fat_flap_mesh(

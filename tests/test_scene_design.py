@@ -192,3 +192,55 @@ def test_a_scene_without_a_grasp_line_holds_the_vertices_near_the_jaws():
     expected = surface[np.linalg.norm(scene.mesh.vertices[surface] - gripper, axis=1) <= 0.009]
     assert task.grasping[0] and d.max() <= 0.009
     np.testing.assert_array_equal(np.sort(held), np.sort(expected))
+
+
+def _edge_lengths(mesh, region):
+    """Mean edge length (m) of the tets whose centroid lies in ``region(x) -> bool``."""
+    t = mesh.vertices[mesh.tets]
+    inside = region(t.mean(axis=1)[:, 0])
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    return np.mean([np.linalg.norm(t[inside, i] - t[inside, j], axis=1).mean() for i, j in pairs])
+
+
+def test_lobe_edge_refinement_is_fine_at_the_thin_edge_and_unchanged_far_from_it():
+    uniform = liver_lobe_mesh(0.008, base_x=BASE_X)
+    graded = liver_lobe_mesh(0.008, base_x=BASE_X, edge_size=0.004, edge_band=0.02)
+    assert graded.total_volume == pytest.approx(uniform.total_volume, rel=1e-3)
+    at_edge = lambda x: x < -0.065  # noqa: E731
+    far = lambda x: x > 0.0  # noqa: E731  (more than one band past the refined zone)
+    assert _edge_lengths(graded, at_edge) < 0.65 * _edge_lengths(uniform, at_edge)
+    assert _edge_lengths(graded, far) == pytest.approx(_edge_lengths(uniform, far), rel=0.1)
+
+
+@pytest.mark.parametrize("refine, match", [
+    ([((None, None, None), (0.0, None, None), 0.0, 0.01)], "size must be > 0"),
+    ([((0.01, None, None), (0.0, None, None), 0.002, 0.01)], "low must not exceed high"),
+    ([(None, None, 0.002)], r"refine\[0\] must be"),
+])
+def test_bad_mesh_refinement_boxes_are_refused(refine, match):
+    from heml_gym.organs import gmsh_solid_mesh
+
+    with pytest.raises(ValueError, match=match):
+        gmsh_solid_mesh(lambda gmsh: gmsh.model.occ.addBox(0, 0, 0, 0.01, 0.01, 0.01), 0.005, refine)
+
+
+def test_organ_patch_grasp_holds_the_jaws_footprint_on_every_mesh():
+    from heml_gym.envs.organ_retraction import JAW_WIDTH
+
+    (gx, y0, _), (_, y1, _) = GRASP_LINE
+    for size in (0.012, 0.007):
+        scene = build_scene(organ_scene(size, grasp="patch"))
+        v = scene.mesh.vertices
+        held = v[scene.grasp_patch]
+        line = v[build_scene(organ_scene(size)).grasp_patch]
+        # the footprint: within the jaws' width and the line's length, on the top face only
+        assert np.all(np.abs(held[:, 0] - gx) <= JAW_WIDTH / 2 + 1e-6)
+        assert np.all((held[:, 1] >= y0 - 1e-6) & (held[:, 1] <= y1 + 1e-6))
+        np.testing.assert_allclose(held[:, 2], 0.035 + 0.25 * held[:, 0], atol=1e-6)
+        # its four imprinted corners are held on every mesh, and it holds more than the line
+        for cx in (gx - JAW_WIDTH / 2, gx + JAW_WIDTH / 2):
+            for cy in (y0, y1):
+                assert np.linalg.norm(held[:, :2] - (cx, cy), axis=1).min() < 1e-7
+        assert len(held) > len(line)
+    with pytest.raises(ValueError, match="grasp must be 'line' or 'patch'"):
+        organ_scene(grasp="jaws")
