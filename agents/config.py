@@ -20,6 +20,15 @@ evaluation / checkpoint schedule::
     checkpoint: {every_steps: 50000}
     seed: 0
 
+A config may start from another: ``base: quick.yaml`` (a path relative to the config's own
+folder) reads that config first and lays this one's keys over it (nested mappings merge,
+anything else replaces), so an ablation names only what it changes::
+
+    base: quick.yaml
+    env:
+      kwargs:
+        weights: {lift: 5.0}
+
 Unknown keys, wrong types and missing files raise :class:`ConfigError` naming the key;
 ``env.kwargs`` is checked against the environment's arguments and its scene, physics,
 settings and weights against their fields, and ``algorithm.hyperparameters`` against the
@@ -171,6 +180,35 @@ def _check_hyperparameters(cfg: RunConfig) -> None:
 def load_config(path: str | Path, overrides: dict | None = None) -> RunConfig:
     """Read, type-check and validate a YAML run config; ``overrides`` (nested dict) win."""
     path = Path(path)
+    data = _read_with_bases(path, ())
+    if overrides:
+        data = _merge(data, overrides)
+    data.setdefault("name", path.stem)
+    return validate(_build(RunConfig, data, ""))
+
+
+def _read_with_bases(path: Path, chain: tuple) -> dict:
+    """The mapping in ``path`` laid over its ``base`` (and that one's, ...); ``chain``: the
+    configs that include this one, to refuse a cycle."""
+    data = _read_mapping(path)
+    if "base" not in data:
+        return data
+    base = data.pop("base")
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"config key 'base' in {path}: must be the path of another run config (relative to "
+                          f"{path.parent}), got {base!r}")
+    base_path = (path.parent / base).resolve()
+    if not base_path.is_file():
+        raise ConfigError(f"config key 'base' in {path}: config file not found: {base_path}")
+    if base_path in chain or base_path == path.resolve():
+        raise ConfigError(f"config key 'base' in {path}: {base_path} includes itself "
+                          f"({' -> '.join(str(p) for p in (*chain, path.resolve(), base_path))})")
+    parent = _read_with_bases(base_path, (*chain, path.resolve()))
+    parent.pop("name", None)  # a config's name is its own (by default its file name)
+    return _merge(parent, data)
+
+
+def _read_mapping(path: Path) -> dict:
     if path.is_dir():
         raise ConfigError(f"config file {path} is a directory, not a YAML file")
     if not path.is_file():
@@ -188,10 +226,7 @@ def load_config(path: str | Path, overrides: dict | None = None) -> RunConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must hold a mapping of keys (env, algorithm, evaluation, "
                           f"checkpoint, seed), got a {type(data).__name__}")
-    if overrides:
-        data = _merge(data, overrides)
-    data.setdefault("name", path.stem)
-    return validate(_build(RunConfig, data, ""))
+    return data
 
 
 def config_from_dict(data: dict) -> RunConfig:

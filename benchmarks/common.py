@@ -67,3 +67,21 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"
+
+
+def throughput_rows(rows: list[dict], **match) -> list[dict]:
+    """The rows of an ``env_throughput`` result whose fields equal ``match`` (``env``,
+    ``actions``, ``num_envs``, ``threads``, ...). ``omp_wait_policy`` defaults to
+    ``"PASSIVE"`` (the main rows); ``None`` keeps every policy."""
+    policy = match.pop("omp_wait_policy", "PASSIVE")
+    found = [r for r in rows if all(r.get(k) == v for k, v in match.items())]
+    if policy is not None:
+        found = [r for r in found if r.get("omp_wait_policy", "PASSIVE").upper() == policy.upper()]
+    return found
+
+
+def throughput_rate(rows: list[dict], **match) -> float | None:
+    """The median env steps/s of the first row :func:`throughput_rows` finds, else None."""
+    found = throughput_rows(rows, **match)
+    return found[0]["median_steps_per_s"] if found else None
+

@@ -52,7 +52,8 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import heml_gym.envs  # noqa: E402,F401  (registers the envs)
-from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
+from common import (IMAGES, RESULTS, machine_info, markdown_table, throughput_rate,  # noqa: E402
+                    throughput_rows, write_json)
 
 ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
 VECTOR_SIZES = (1, 4, 16, 64)
@@ -388,11 +389,8 @@ def _notes(results: dict) -> str:
     rows = res["throughput"]
 
     def rate(env, n, t, policy=MAIN_POLICY, actions="random"):
-        for r in rows:
-            if (r["env"], r["num_envs"], r["threads"], r["omp_wait_policy"].lower(),
-                    r["actions"]) == (env, n, t, policy.lower(), actions):
-                return r["median_steps_per_s"]
-        return float("nan")
+        found = throughput_rate(rows, env=env, num_envs=n, threads=t, omp_wait_policy=policy, actions=actions)
+        return float("nan") if found is None else found
 
     t2 = results["threads_all"]
     busy2 = max(r["busy_cores"] for r in rows if r["threads"] == t2)
@@ -450,12 +448,11 @@ def _notes(results: dict) -> str:
 def _organ_verdict(rows) -> str:
     """OrganRetraction against issue 13's bars: its default single env on one core, the
     ratio to its explicit path timed in the same rounds, and the best vectorised rate."""
-    main = [r for r in rows if r.get("omp_wait_policy", MAIN_POLICY) == MAIN_POLICY]
     lines = []
     for actions in ("random", "scripted"):
-        default = [r for r in main if r["env"] == "single" and r["threads"] == 1 and r["actions"] == actions]
-        explicit = [r for r in main if r["env"] == "single, explicit" and r["threads"] == 1
-                    and r["actions"] == actions]
+        default = throughput_rows(rows, env="single", threads=1, actions=actions, omp_wait_policy=MAIN_POLICY)
+        explicit = throughput_rows(rows, env="single, explicit", threads=1, actions=actions,
+                                   omp_wait_policy=MAIN_POLICY)
         if not default:
             continue
         rate = default[0]["median_steps_per_s"]
@@ -467,7 +464,7 @@ def _organ_verdict(rows) -> str:
                      f"{ratio:.1f}x ({'meets' if ratio >= BAR_ORGAN_RATIO else 'misses'} the "
                      f"{BAR_ORGAN_RATIO:.0f}x bar)")
         lines.append(line + ".")
-    vec = [r for r in main if r["env"] == "vector"]
+    vec = throughput_rows(rows, env="vector", omp_wait_policy=MAIN_POLICY)
     if vec:
         best = max(vec, key=lambda r: r["median_steps_per_s"])
         lines.append(f"- best vectorised: {best['median_steps_per_s']:.0f} env steps/s at N = {best['num_envs']}, "
@@ -480,16 +477,15 @@ def _verdict(rows, env_id: str = "heml_gym/TissueRetraction-v0") -> str:
     """The rates against the bars: TissueRetraction's, OrganRetraction's (issue 13)."""
     if "OrganRetraction" in env_id:
         return _organ_verdict(rows)
+    single = throughput_rows(rows, env="single", threads=1, omp_wait_policy=None)
+    vec = throughput_rows(rows, env="vector", omp_wait_policy=None)
     if "TissueRetraction" not in env_id:
         return "\n".join(
             [f"- {r['env']} env, {r['actions']} actions, 1 thread: {r['median_steps_per_s']:.0f} env steps/s"
-             for r in rows if r["env"] == "single" and r["threads"] == 1]
-            + [f"- best vectorised: {max(r['median_steps_per_s'] for r in rows if r['env'] == 'vector'):.0f} env "
-               "steps/s."])
-    single = [r for r in rows if r["env"] == "single" and r["threads"] == 1]
-    vec = [r for r in rows if r["env"] == "vector"]
-    vec_main = [r for r in vec if r["omp_wait_policy"] == MAIN_POLICY]
-    vec_other = [r for r in vec if r["omp_wait_policy"] == OTHER_POLICY]
+             for r in single]
+            + [f"- best vectorised: {max(r['median_steps_per_s'] for r in vec):.0f} env steps/s."])
+    vec_main = throughput_rows(vec, omp_wait_policy=MAIN_POLICY)
+    vec_other = throughput_rows(vec, omp_wait_policy=OTHER_POLICY)
     best = max(vec, key=lambda r: r["median_steps_per_s"])
     lines = []
     for r in single:

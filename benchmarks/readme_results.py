@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS  # noqa: E402
+from common import RESULTS, throughput_rate, throughput_rows  # noqa: E402
 
 
 def load(name: str) -> dict | None:
@@ -84,22 +84,19 @@ def rllib(data: dict) -> str:
 
 def throughput(data: dict) -> str:
     def rate(env_id, env, n, threads, actions="random"):
-        rows = data["envs"][env_id]["throughput"]
-        match = [r for r in rows if r["env"] == env and r["actions"] == actions and r["num_envs"] == n
-                 and r["threads"] == threads and r.get("omp_wait_policy", "PASSIVE") == "PASSIVE"]
-        return match[0]["median_steps_per_s"] if match else None
+        return throughput_rate(data["envs"][env_id]["throughput"], env=env, actions=actions, num_envs=n,
+                               threads=threads)
 
     def best_vector(env_id):
-        rows = [r for r in data["envs"][env_id]["throughput"] if r["env"] == "vector"
-                and r.get("omp_wait_policy", "PASSIVE") == "PASSIVE"]
-        return max(rows, key=lambda r: r["median_steps_per_s"])
+        return max(throughput_rows(data["envs"][env_id]["throughput"], env="vector"),
+                   key=lambda r: r["median_steps_per_s"])
 
     tissue, organ = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
     tv, ov = best_vector(tissue), best_vector(organ)
     text = (f"**Env speed** (0.1 s of tissue per step, both envs' default physics: backward Euler by L-BFGS): "
             f"TissueRetraction {rate(tissue, 'single', 1, 1):,.0f} env steps/s as a single env on one core (random "
             f"actions), {tv['median_steps_per_s']:,.0f}/s as a {tv['num_envs']}-scene vector env on {tv['threads']} "
-            f"cores; OrganRetraction (5,206 tets) {rate(organ, 'single', 1, 1):,.0f}/s single with random actions and "
+            f"cores; OrganRetraction ({data['envs'][organ]['breakdown'][0]['n_tets']:,} tets) {rate(organ, 'single', 1, 1):,.0f}/s single with random actions and "
             f"{rate(organ, 'single', 1, 1, 'scripted'):,.0f}/s on the scripted retraction")
     explicit = [rate(organ, "single, explicit", 1, 1, a) for a in ("random", "scripted")]
     if all(explicit):

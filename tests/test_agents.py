@@ -33,10 +33,43 @@ def tiny_config(tmp_path, **changes) -> Path:
     return path
 
 
-@pytest.mark.parametrize("name", ["quick", "tissue_ppo", "tissue_sac", "organ_ppo", "organ_sac"])
+@pytest.mark.parametrize("name", ["quick", "tissue_ppo", "tissue_sac", "organ_ppo", "organ_sac", "quick_lift5",
+                                  "quick_stretch0", "quick_release0", "tissue_ppo_pixels"])
 def test_shipped_configs_are_valid(name):
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     assert cfg.algorithm.total_timesteps > 0
+    assert cfg.name == name
+
+
+def test_a_config_based_on_another_changes_only_what_it_names(tmp_path):
+    base = yaml.safe_load((ROOT / "configs" / "quick.yaml").read_text())
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "base.yaml").write_text(yaml.safe_dump({**base, "name": "the_base"}))
+    (tmp_path / "sub" / "mid.yaml").write_text(yaml.safe_dump(
+        {"base": "../base.yaml", "env": {"kwargs": {"weights": {"lift": 5.0}}}, "seed": 7}))
+    (tmp_path / "sub" / "leaf.yaml").write_text(yaml.safe_dump(
+        {"base": "mid.yaml", "env": {"num_envs": 4, "kwargs": {"settings": {"max_steps": 50}}}}))
+    leaf = load_config(tmp_path / "sub" / "leaf.yaml").to_dict()
+    expected = {**base, "seed": 7, "name": "leaf"}
+    expected["env"] = {**base["env"], "num_envs": 4,
+                       "kwargs": {"weights": {"lift": 5.0}, "settings": {"max_steps": 50}}}
+    direct = tmp_path / "direct.yaml"
+    direct.write_text(yaml.safe_dump(expected))
+    assert leaf == load_config(direct).to_dict()
+
+
+@pytest.mark.parametrize("text, match", [
+    ("base: missing.yaml", "config key 'base'.*not found"),
+    ("base: 3", "config key 'base'.*must be the path"),
+    ("base: loop.yaml", "includes itself"),
+])
+def test_bad_config_bases_are_clear_errors(tmp_path, text, match):
+    (tmp_path / "loop.yaml").write_text("base: other.yaml\n")
+    (tmp_path / "other.yaml").write_text("base: loop.yaml\n")
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError, match=match):
+        load_config(path)
 
 
 @pytest.mark.parametrize("data, key", [
