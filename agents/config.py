@@ -197,7 +197,7 @@ def _read_with_bases(path: Path, chain: tuple) -> dict:
     if not isinstance(base, str) or not base.strip():
         raise ConfigError(f"config key 'base' in {path}: must be the path of another run config (relative to "
                           f"{path.parent}), got {base!r}")
-    base_path = (path.parent / base).resolve()
+    base_path = (path.parent / Path(base.strip()).expanduser()).resolve()
     if not base_path.is_file():
         raise ConfigError(f"config key 'base' in {path}: config file not found: {base_path}")
     if base_path in chain or base_path == path.resolve():

@@ -84,4 +84,3 @@ def throughput_rate(rows: list[dict], **match) -> float | None:
     """The median env steps/s of the first row :func:`throughput_rows` finds, else None."""
     found = throughput_rows(rows, **match)
     return found[0]["median_steps_per_s"] if found else None
-

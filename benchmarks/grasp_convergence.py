@@ -47,15 +47,18 @@ TIP_BAND = 0.006  # m: vertices this close (at rest, in x) to the lobe's tip mea
 #: explicit sequence, coarsest first; the last is the reference: (mesh size, edge size) in m
 MESHES = [(0.007, None), (0.006, None), (0.005, None), (0.004, None), (0.005, 0.003), (0.004, 0.0025),
           (0.004, 0.002)]
-#: quasi-Newton candidates for a default (the default's own step and tolerance)
-CANDIDATES = [(0.007, None), (0.007, 0.004), (0.006, 0.004), (0.007, 0.003), (0.005, 0.003)]
+#: quasi-Newton candidates for a default (the default's own step and tolerance): (mesh size,
+#: edge size, jaw size) in m, the last refining the mesh only around the jaws
+CANDIDATES = [(0.007, None, None), (0.007, 0.004, None), (0.006, 0.004, None), (0.007, 0.003, None),
+              (0.005, 0.003, None), (0.008, None, 0.0025), (0.007, None, 0.003)]
 
 
-def model(grasp: str, size: float, edge: float | None, quasi_newton: bool) -> Model:
-    label = f"{1e3 * size:g} mm" + (f" / {1e3 * edge:g} mm edge" if edge else "")
+def model(grasp: str, size: float, edge: float | None, quasi_newton: bool, jaw: float | None = None) -> Model:
+    label = f"{1e3 * size:g} mm" + (f" / {1e3 * edge:g} mm edge" if edge else "") + (
+        f" / {1e3 * jaw:g} mm at the jaws" if jaw else "")
     physics = QN if quasi_newton else {"integrator": "explicit"}
     label += " quasi_newton dt=0.05" if quasi_newton else " s=0.5"
-    return Model(f"{grasp}: {label}", (size, edge, grasp), 0.5, tuple(sorted(physics.items())))
+    return Model(f"{grasp}: {label}", (size, edge, grasp, jaw), 0.5, tuple(sorted(physics.items())))
 
 
 def tip_height_mm(env) -> float:
@@ -66,7 +69,7 @@ def tip_height_mm(env) -> float:
 
 def run(grasp: str) -> dict:
     explicit = [model(grasp, s, e, False) for s, e in MESHES]
-    candidates = [model(grasp, s, e, True) for s, e in CANDIDATES]
+    candidates = [model(grasp, s, e, True, j) for s, e, j in CANDIDATES]
     default = candidates[0]
     runs, actions, meta = {}, {}, {}
     for seed in tqdm(SEEDS, desc=f"{grasp} grasp"):
@@ -75,7 +78,8 @@ def run(grasp: str) -> dict:
             runs.setdefault(m.label, {})[seed] = replay(SCENE, m, seed, actions[seed], {"tip_height_mm": tip_height_mm})
             meta[m.label] = {"size_mm": 1e3 * m.scene_args[0],
                              "edge_mm": None if m.scene_args[1] is None else 1e3 * m.scene_args[1],
-                             "finest_mm": 1e3 * (m.scene_args[1] or m.scene_args[0]),
+                             "jaw_mm": None if m.scene_args[3] is None else 1e3 * m.scene_args[3],
+                             "finest_mm": 1e3 * min(v for v in m.scene_args[:2] + m.scene_args[3:] if v),
                              "integrator": dict(m.physics)["integrator"]}
     return {"grasp": grasp, "seeds": list(SEEDS), "steps": STEPS, "reference": explicit[-1].label,
             "default": default.label, "explicit": [m.label for m in explicit],

@@ -318,8 +318,8 @@ def verdict(res: dict) -> str:
         text += (f" Reference check: {c['model']} differs from the reference {res['reference']} by "
                  f"{100 * c['force']:.1f} % in force and {c['exposure']:.3f} in exposure (seeds {c['seeds']}).")
         if not c["within_5pct"]:
-            text += (" **The reference is not converged** (its check is not within 5 %), so these errors "
-                     "understate the real ones.")
+            text += (" **The reference is not converged** (its check is not within 5 %): these errors are "
+                     "not measured against a converged model.")
     return text
 
 

@@ -83,11 +83,14 @@ def _top_z(x: float) -> float:
 JAW_WIDTH = 0.006
 
 
-def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "line") -> Scene:
+def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "line",
+                jaw_size: float | None = None) -> Scene:
     """The liver-lobe scene meshed at ``mesh_size`` metres.
 
     ``edge_size`` (m): finer elements near the thin edge (see
-    :func:`heml_gym.organs.liver_lobe_mesh`). ``grasp``: ``"line"`` (the default) holds the
+    :func:`heml_gym.organs.liver_lobe_mesh`); ``jaw_size`` (m): finer elements only around
+    the jaws (the box within 5 mm of the grasp line in x, 25 mm of the lobe's midline in y,
+    above z = 10 mm; growing to ``mesh_size`` over 6 mm). ``grasp``: ``"line"`` (the default) holds the
     40 mm grasp line; ``"patch"`` holds the jaws' footprint, a ``JAW_WIDTH`` x 40 mm
     rectangle of the top face centred on that line (its edges imprinted on the mesh), so
     that the held tissue cannot turn about the line. A line held in 3-D elasticity has no
@@ -96,6 +99,9 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
     """
     if grasp not in ("line", "patch"):
         raise ValueError(f"grasp must be 'line' or 'patch', got {grasp!r}")
+    if jaw_size is not None and not (isinstance(jaw_size, (int, float)) and 0 < jaw_size < mesh_size):
+        raise ValueError(f"jaw_size must be a length in metres between 0 and mesh_size ({mesh_size}), "
+                         f"got {jaw_size!r}")
     (gx, y0, _), (_, y1, _) = GRASP_LINE
     lines = [GRASP_LINE]
     grasp_region = RegionSpec(segment=GRASP_LINE)
@@ -109,6 +115,8 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
     options = {"lines": [list(map(list, line)) for line in lines], "base_x": BASE_X}
     if edge_size is not None:
         options["edge_size"] = edge_size
+    if jaw_size is not None:
+        options["refine"] = [[[gx - 0.005, y0 - 0.005, 0.01], [gx + 0.005, y1 + 0.005, None], jaw_size, 0.006]]
     return Scene(
         name="OrganRetraction",
         tissue=TissueSpec(kind="organ", organ="liver_lobe", mesh_size=mesh_size, organ_options=options),

@@ -442,6 +442,8 @@ def _tissue_mesh(spec: TissueSpec) -> TetMesh:
                 mesh = ORGANS[spec.organ](**kwargs)
             except TypeError as exc:
                 raise SpecError(f"scene.tissue.organ_options: {exc}") from None
+            except ValueError as exc:  # an organ option or the mesh size out of range; the message names it
+                raise SpecError(f"scene.tissue ({spec.organ}): {exc}") from None
             if any(spec.origin):
                 mesh = TetMesh(mesh.vertices + np.asarray(spec.origin), mesh.tets)
         else:

@@ -51,6 +51,10 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float, refine
     if not np.isfinite(mesh_size) or mesh_size <= 0:
         raise ValueError(f"mesh_size must be a positive length in metres, got {mesh_size}")
     boxes = [_refinement_box(k, box) for k, box in enumerate(refine)]
+    for k, box in enumerate(boxes):
+        if box[2] >= mesh_size:
+            raise ValueError(f"refine[{k}]: size {box[2]} m must be below mesh_size {mesh_size} m (a box "
+                             "refines the mesh; it cannot coarsen it)")
     smallest = min([mesh_size] + [b[2] for b in boxes])
     gmsh = _import_gmsh()
     # gmsh installs a SIGINT handler when interruptible, which Python allows only on the
@@ -97,6 +101,17 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float, refine
     index = np.full(node_tags.max() + 1, -1, dtype=np.int64)
     index[used] = np.arange(len(used))
     return TetMesh(coords[rows], index[tet_tags], reorient=True)
+
+
+def _positive_length(name: str, value) -> float:
+    """``value`` as a positive, finite length in metres, else a ValueError naming ``name``."""
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive length in metres, got {value!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive length in metres, got {value}")
+    return value
 
 
 def _refinement_box(k: int, box) -> tuple:
@@ -211,7 +226,10 @@ def liver_lobe_mesh(mesh_size: float = 0.0085, lines=(), base_x: float | None = 
     """
     refine = tuple(refine)
     if edge_size is not None:
-        refine += (((None, None, None), (-0.08 + float(edge_band), None, None), edge_size, float(edge_band)),)
+        edge_size, edge_band = _positive_length("edge_size", edge_size), _positive_length("edge_band", edge_band)
+        if edge_size >= float(mesh_size):
+            raise ValueError(f"edge_size must be below mesh_size ({mesh_size} m), got {edge_size} m")
+        refine += (((None, None, None), (-0.08 + edge_band, None, None), edge_size, edge_band),)
 
     def build(gmsh):
         occ = gmsh.model.occ

@@ -233,10 +233,13 @@ def test_organ_patch_grasp_holds_the_jaws_footprint_on_every_mesh():
         v = scene.mesh.vertices
         held = v[scene.grasp_patch]
         line = v[build_scene(organ_scene(size)).grasp_patch]
-        # the footprint: within the jaws' width and the line's length, on the top face only
-        assert np.all(np.abs(held[:, 0] - gx) <= JAW_WIDTH / 2 + 1e-6)
-        assert np.all((held[:, 1] >= y0 - 1e-6) & (held[:, 1] <= y1 + 1e-6))
-        np.testing.assert_allclose(held[:, 2], 0.035 + 0.25 * held[:, 0], atol=1e-6)
+        # exactly the footprint: the surface vertices on the top face's plane within the jaws'
+        # width of the line and along its length
+        surface = scene.mesh.surface_vertices
+        s = v[surface]
+        inside = ((np.abs(s[:, 0] - gx) <= JAW_WIDTH / 2 + 1e-9) & (s[:, 1] >= y0 - 1e-9) & (s[:, 1] <= y1 + 1e-9)
+                  & (np.abs(s[:, 2] - (0.035 + 0.25 * s[:, 0])) < 1e-6))
+        np.testing.assert_array_equal(np.sort(scene.grasp_patch), np.sort(surface[inside]))
         # its four imprinted corners are held on every mesh, and it holds more than the line
         for cx in (gx - JAW_WIDTH / 2, gx + JAW_WIDTH / 2):
             for cy in (y0, y1):
@@ -244,3 +247,33 @@ def test_organ_patch_grasp_holds_the_jaws_footprint_on_every_mesh():
         assert len(held) > len(line)
     with pytest.raises(ValueError, match="grasp must be 'line' or 'patch'"):
         organ_scene(grasp="jaws")
+
+
+def test_organ_jaw_refinement_is_fine_at_the_jaws_only():
+    coarse = build_scene(organ_scene(0.01, grasp="patch")).mesh
+    refined = build_scene(organ_scene(0.01, grasp="patch", jaw_size=0.004)).mesh
+    gx = GRASP_LINE[0][0]
+    at_jaws = lambda x: np.abs(x - gx) < 0.004  # noqa: E731
+    far = lambda x: x > 0.0  # noqa: E731
+    assert _edge_lengths(refined, at_jaws) < 0.7 * _edge_lengths(coarse, at_jaws)
+    assert _edge_lengths(refined, far) == pytest.approx(_edge_lengths(coarse, far), rel=0.1)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: liver_lobe_mesh(0.01, edge_size=-0.002), "edge_size must be a positive length"),
+    (lambda: liver_lobe_mesh(0.01, edge_size=0.004, edge_band=0.0), "edge_band must be a positive length"),
+    (lambda: liver_lobe_mesh(0.01, edge_size=0.012), "edge_size must be below mesh_size"),
+    (lambda: liver_lobe_mesh(0.01, refine=[((None, None, None), (0.0, None, None), 0.02, 0.01)]),
+     r"refine\[0\]: size 0.02 m must be below mesh_size"),
+    (lambda: organ_scene(0.01, grasp="patch", jaw_size=0.0), "jaw_size must be a length"),
+    (lambda: organ_scene(0.01, grasp="patch", jaw_size=0.02), "jaw_size must be a length"),
+])
+def test_bad_lobe_refinement_names_its_argument(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_a_bad_organ_option_in_a_scene_is_a_spec_error_naming_it():
+    scene = organ_scene(0.016).updated({"tissue": {"organ_options": {"edge_size": -1.0}}})
+    with pytest.raises(SpecError, match="scene.tissue .liver_lobe.: edge_size must be a positive length"):
+        build_scene(scene)
