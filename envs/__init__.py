@@ -12,12 +12,12 @@ vectorization_mode="vector_entry_point")``.
 import gymnasium as gym
 
 from .core import STATE_FIELDS, STATE_SPEC, RewardWeights, TaskSettings
-from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
-                    TissueSpec, build_scene)
+from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec,
+                    TargetSpec, TissueSpec, build_scene)
 from .spec import SpecError
 
-__all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "TargetSpec", "GripperSpec", "CameraSpec",
-           "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC"]
+__all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec", "GripperSpec",
+           "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC"]
 
 #: Arguments set by other means than ``env.kwargs`` (the run config's own keys, gym.make's).
 RESERVED_KWARGS = ("obs_mode", "num_envs", "render_mode", "max_episode_steps")

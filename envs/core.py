@@ -79,6 +79,7 @@ class TaskSettings:
     max_speed: float = 0.05  # m/s of the gripper at action 1
     grasp_reach: float = 0.012  # m: closing grasps tissue only if the grasp patch (or a surface vertex) is this close
     jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
+    jaw_length: float | None = None  # m: hold only the grasp patch within half of this of the jaws, along it (None: all)
     damage_strain: float = 0.5  # gauge strain above which the strain penalty applies
     tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
@@ -90,6 +91,8 @@ class TaskSettings:
     def __post_init__(self):
         for name in ("control_dt", "max_speed", "grasp_reach", "jaw_radius", "damage_strain", "tear_strain"):
             _positive(self, name, getattr(self, name))
+        if self.jaw_length is not None:
+            _positive(self, "jaw_length", self.jaw_length)
         if self.control_dt > 10.0:
             raise SpecError(f"TaskSettings.control_dt: must be at most 10 s, got {self.control_dt}")
         if not self.tear_strain > self.damage_strain:
@@ -160,6 +163,9 @@ class BatchedRetraction:
                 e = self._edges[np.isin(self._edges, s.grasp_patch).all(axis=1)]
                 faces = np.column_stack([e, e[:, 1]])
             self._patch_faces = faces
+            rest = s.mesh.vertices[s.grasp_patch]
+            # the patch's long axis (unit): ``jaw_length`` is measured along it
+            self._patch_axis = np.linalg.svd(rest - rest.mean(axis=0))[2][0] if len(rest) > 1 else np.zeros(3)
         self._sphere = fibonacci_sphere(self.settings.exposure_samples)
         self._edge = np.asarray(s.edge_vertices, dtype=np.int64)
         self._rest_angle = self._fold_angles(s.mesh.vertices[None, self._edge])[0]
@@ -167,6 +173,8 @@ class BatchedRetraction:
         self.gripper = np.zeros((n, 3))
         self.grasping = np.zeros(n, dtype=bool)
         self.held = np.zeros((n, s.mesh.n_vertices), dtype=bool)
+        self.adhered = np.zeros((n, s.mesh.n_vertices), dtype=bool)
+        self.adhesion_width = np.zeros(n)
         self.offsets = np.zeros((n, s.mesh.n_vertices, 3))
         self.target = np.zeros((n, 3))
         self.exposure = np.zeros(n)
@@ -210,6 +218,12 @@ class BatchedRetraction:
             self.grasped_once[i] = False
             self.held_steps[i] = 0
             self.grasp_force[i] = 0.0
+            self.adhered[i] = False
+            if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
+                self.adhesion_width[i] = rng.uniform(*s.spec.adhesion.width)
+                stuck = s.adhesion_vertices[s.adhesion_distance <= self.adhesion_width[i] + 1e-9]
+                self.adhered[i, stuck] = True
+                self.control.attach(i, stuck, rest)
         idx = np.atleast_1d(scenes)
         self.solver.forget(idx)  # the same seed gives the same episode, whatever came before
         self.exposure[idx] = self._exposure(idx)
@@ -244,8 +258,8 @@ class BatchedRetraction:
                         grasp_bonus[i] = w.grasp
             elif release and self.grasping[i]:
                 self.grasping[i] = False
+                self.control.detach(i, np.flatnonzero(self.held[i]))  # adhered tissue stays stuck
                 self.held[i] = False
-                self.control.detach(i)
         # move the gripper, drive the held tissue
         self.gripper = np.clip(self.gripper + a[:, :3] * st.max_speed * st.control_dt,
                                self.scene.workspace_low, self.scene.workspace_high)
@@ -311,12 +325,23 @@ class BatchedRetraction:
 
     def _jaw_vertices(self, i: int) -> np.ndarray:
         """The tissue vertices that closing the gripper of scene ``i`` holds (maybe none)."""
+        picked = self._reached_vertices(i)
+        return picked[~self.adhered[i, picked]]
+
+    def _reached_vertices(self, i: int) -> np.ndarray:
         st, patch = self.settings, self.scene.grasp_patch
         x = self.state.x[i]
         if patch is not None:  # within reach of the patch's surface (or of its vertices)
             nearest = min(np.linalg.norm(x[patch] - self.gripper[i], axis=1).min(),
                           nearest_triangle_distance(self.gripper[i], x, self._patch_faces))
-            return patch if nearest <= st.grasp_reach else patch[:0]
+            if nearest > st.grasp_reach:
+                return patch[:0]
+            if st.jaw_length is None:
+                return patch
+            # the part of the patch between the jaws: within jaw_length / 2 of them along
+            # the patch's long axis (at least the nearest such vertex)
+            along = np.abs((x[patch] - self.gripper[i]) @ self._patch_axis)
+            return patch[(along <= st.jaw_length / 2) | (along == along.min())]
         d = np.linalg.norm(x[self._graspable] - self.gripper[i], axis=1)
         held = (d <= st.jaw_radius) | (d == d.min())
         return self._graspable[held & (d <= st.grasp_reach)]

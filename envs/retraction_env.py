@@ -292,8 +292,11 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
 
     def _info_at_reset(self) -> dict[str, Any]:
         t = self.task
-        return {"exposure": float(t.exposure[0]), "lift": float(t.lift[0]), "max_strain": float(t.max_strain[0]),
+        info = {"exposure": float(t.exposure[0]), "lift": float(t.lift[0]), "max_strain": float(t.max_strain[0]),
                 "grasp_force": 0.0, "is_success": False, "hold_time": 0.0, "young_modulus": float(t.young_modulus[0])}
+        if t.scene.adhesion_vertices is not None:
+            info["adhesion_width"] = float(t.adhesion_width[0])
+        return info
 
     def step(self, action):
         a = check_actions(action, (4,))

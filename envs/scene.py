@@ -31,8 +31,8 @@ from heml_gym.solvers import INTEGRATORS
 
 from .spec import SpecError, from_mapping, invalid, merge, to_mapping
 
-__all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "TargetSpec", "GripperSpec",
-           "CameraSpec", "SupportSpec", "BuiltScene", "build_scene", "LAWS", "ORGANS"]
+__all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec",
+           "GripperSpec", "CameraSpec", "SupportSpec", "BuiltScene", "build_scene", "LAWS", "ORGANS"]
 
 #: Material laws by class name (``physics.material``).
 LAWS = {cls.__name__: cls for cls in materials.ALL_MATERIALS}
@@ -230,6 +230,24 @@ class FoldSpec:
 
 
 @dataclass
+class AdhesionSpec:
+    """Tissue stuck to what lies beneath it, over a width drawn per episode: the vertices of
+    ``region`` (e.g. the underside) within ``d`` of the fold hinge, measured along the fold
+    direction, are held where they rest for the whole episode, ``d`` drawn uniformly in
+    ``width`` = [low, high] (m). The tissue then folds about a line ``d`` further out. A
+    width is resolved to the mesh's vertices: on a mesh of cell ``h`` it moves the held
+    set in steps of about ``h``."""
+
+    region: RegionSpec
+    width: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        lo, hi = self.width
+        if not (_finite(self.width) and 0.0 <= lo <= hi):
+            raise invalid(self, "width", f"must be [low, high] in metres with 0 <= low <= high, got {[lo, hi]}")
+
+
+@dataclass
 class TargetSpec:
     """The structure to expose: a sphere of ``radius`` (m) whose centre is drawn
     uniformly in the box ``low``..``high`` (m) per episode."""
@@ -308,10 +326,12 @@ class SupportSpec:
 class Scene:
     """A retraction scene (see the module docstring and the env docstrings).
 
-    ``attachment``: the vertices that never move; ``grasp``: the tissue the jaws hold
-    (closing within ``grasp_reach`` of it holds all of it; null: the nearest surface
-    vertex and those within ``jaw_radius``); ``tracked``: the 4 points reported in the
-    observation; ``strain_gauge``: the length (m) tissue strain is measured over.
+    ``attachment``: the vertices that never move; ``adhesion``: more of them, held for an
+    episode over a width drawn per episode (null: none); ``grasp``: the tissue the jaws
+    hold (closing within ``grasp_reach`` of it holds all of it, or the part of it within
+    ``jaw_length`` of the jaws; null: the nearest surface vertex and those within
+    ``jaw_radius``); ``tracked``: the 4 points reported in the observation;
+    ``strain_gauge``: the length (m) tissue strain is measured over.
     """
 
     name: str
@@ -326,6 +346,7 @@ class Scene:
     grasp: RegionSpec | None = None
     support: SupportSpec = field(default_factory=lambda: SupportSpec(kind="none"))
     strain_gauge: float = 0.015
+    adhesion: AdhesionSpec | None = None
 
     def __post_init__(self):
         if not self.name:
@@ -375,7 +396,8 @@ class BuiltScene:
     """A :class:`Scene` made concrete: the mesh and the vertex sets (arrays).
 
     Attributes: ``spec`` (the Scene), ``name``, ``mesh``, ``fixed``, ``tracked``,
-    ``grasp_patch`` (or None), ``edge_vertices``, ``surface_faces``, ``supports``
+    ``grasp_patch`` (or None), ``adhesion_vertices`` and their ``adhesion_distance`` (m)
+    from the hinge (or None), ``edge_vertices``, ``surface_faces``, ``supports``
     (:mod:`heml_gym.contact` objects), and as arrays ``camera`` (eye), ``look_at``,
     ``target_low``, ``target_high``, ``gripper_low``, ``gripper_high``,
     ``workspace_low``, ``workspace_high``; ``target_radius``, ``hinge``,
@@ -401,6 +423,14 @@ class BuiltScene:
             if patch.size == 0:
                 raise SpecError(f"scene {spec.name!r}: scene.grasp holds no free vertex")
             self.grasp_patch = patch
+        self.adhesion_vertices = self.adhesion_distance = None
+        if spec.adhesion is not None:
+            candidates = np.setdiff1d(spec.adhesion.region.select(mesh), self.fixed)
+            if candidates.size == 0:
+                raise SpecError(f"scene {spec.name!r}: scene.adhesion.region selects no free vertex")
+            self.adhesion_vertices = candidates
+            # m from the hinge line, along the fold direction (where the free tissue lies)
+            self.adhesion_distance = spec.fold.direction * (mesh.vertices[candidates, 0] - spec.fold.hinge[0])
         self.surface_faces = mesh.boundary_faces
         self.supports = _supports(spec.support)
         cam = spec.camera

@@ -57,6 +57,8 @@ def _convert(tp, value, path: str):
                 return _convert(a, value, path)
             except SpecError as exc:
                 errors.append(str(exc))
+        if len(errors) == 1 and isinstance(value, dict):  # a mapping for the one non-null type: its own error
+            raise SpecError(errors[0])
         raise SpecError(f"{path}: must be {_type_name(tp)}, got {value!r}")
     if is_dataclass(tp):
         if isinstance(value, tp):
