@@ -34,7 +34,7 @@ def tiny_config(tmp_path, **changes) -> Path:
 
 
 @pytest.mark.parametrize("name", ["quick", "tissue_ppo", "tissue_sac", "organ_ppo", "organ_sac", "quick_lift5",
-                                  "quick_stretch0", "quick_release0", "tissue_ppo_pixels"])
+                                  "quick_stretch0", "quick_release0", "tissue_ppo_pixels", "quick_jaws_adhesion"])
 def test_shipped_configs_are_valid(name):
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     assert cfg.algorithm.total_timesteps > 0
