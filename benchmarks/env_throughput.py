@@ -125,6 +125,21 @@ def _rates(times, steps_per_block, threads):
 ALTERNATIVE_PHYSICS = {"heml_gym/OrganRetraction-v0": {"explicit": {"integrator": "explicit"}}}
 
 
+def _organ_patch_scene():
+    from heml_gym.envs.organ_retraction import organ_scene
+
+    return organ_scene(0.008, grasp="patch", jaw_size=0.0025)
+
+
+#: Scenes each env is also timed with, in the same rounds as its default: candidates for a
+#: new default (single env on one thread; vectorised on every thread at ALTERNATIVE_VECTOR_SIZES).
+#: The lobe held by the jaws' footprint on a mesh refined at the jaws: within 5 % of a
+#: converged lobe, where the default's line grasp has no converged reference
+#: (docs/scene_convergence.md, "Line and patch grasps").
+ALTERNATIVE_SCENES = {"heml_gym/OrganRetraction-v0": {"patch grasp, 8 mm / 2.5 mm at the jaws": _organ_patch_scene}}
+ALTERNATIVE_VECTOR_SIZES = (16, 64)
+
+
 def _single_configs(env_id: str, threads_all: int) -> list[dict]:
     """Single-env configurations: (actions, wrapped, threads) with their runners, and the
     env's alternative physics (one thread, unwrapped)."""
@@ -137,10 +152,12 @@ def _single_configs(env_id: str, threads_all: int) -> list[dict]:
             configs.append({"env_id": env_id, "env": "gym.make (wrapped)" if wrapped else "single",
                             "actions": mode, "num_envs": 1, "threads": t,
                             "runner": _SingleRunner(make(), mode, seed=1)})
-    for name, physics in ALTERNATIVE_PHYSICS.get(env_id, {}).items():
+    alternatives = [(name, {"physics": physics}) for name, physics in ALTERNATIVE_PHYSICS.get(env_id, {}).items()]
+    alternatives += [(name, {"scene": make()}) for name, make in ALTERNATIVE_SCENES.get(env_id, {}).items()]
+    for name, kwargs in alternatives:
         for mode in ("random", "scripted"):
             configs.append({"env_id": env_id, "env": f"single, {name}", "actions": mode, "num_envs": 1,
-                            "threads": 1, "runner": _SingleRunner(gym.make(env_id, physics=physics).unwrapped,
+                            "threads": 1, "runner": _SingleRunner(gym.make(env_id, **kwargs).unwrapped,
                                                                   mode, seed=1)})
     return configs
 
@@ -208,8 +225,8 @@ def breakdown(env, steps: int, num_envs: int, threads: int, seed: int = 3) -> di
 
 # ----------------------------------------------------------------- vector env
 class _VectorRunner:
-    def __init__(self, env_id: str, n: int, seed: int):
-        self.env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
+    def __init__(self, env_id: str, n: int, seed: int, **kwargs):
+        self.env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", **kwargs)
         self.n = n
         self.rng = np.random.default_rng(seed)
         self.env.reset(seed=seed)
@@ -226,9 +243,14 @@ class _VectorRunner:
 
 
 def _vector_configs(env_id: str, threads_all: int) -> list[dict]:
-    return [{"env_id": env_id, "env": "vector", "actions": "random", "num_envs": n, "threads": t,
-             "runner": _VectorRunner(env_id, n, seed=2)}
-            for n in VECTOR_SIZES for t in (1, threads_all)]
+    configs = [{"env_id": env_id, "env": "vector", "actions": "random", "num_envs": n, "threads": t,
+                "runner": _VectorRunner(env_id, n, seed=2)}
+               for n in VECTOR_SIZES for t in (1, threads_all)]
+    for name, make_scene in ALTERNATIVE_SCENES.get(env_id, {}).items():
+        configs += [{"env_id": env_id, "env": f"vector, {name}", "actions": "random", "num_envs": n,
+                     "threads": threads_all, "runner": _VectorRunner(env_id, n, seed=2, scene=make_scene())}
+                    for n in ALTERNATIVE_VECTOR_SIZES]
+    return configs
 
 
 def _cpu_stat() -> np.ndarray:
@@ -470,6 +492,18 @@ def _organ_verdict(rows) -> str:
         lines.append(f"- best vectorised: {best['median_steps_per_s']:.0f} env steps/s at N = {best['num_envs']}, "
                      f"{best['threads']} thread(s) ({'meets' if best['median_steps_per_s'] >= BAR_ORGAN_VECTOR else 'misses'} "
                      f"the {BAR_ORGAN_VECTOR:.0f}/s bar).")
+    for name in ALTERNATIVE_SCENES.get("heml_gym/OrganRetraction-v0", {}):
+        single = {a: throughput_rate(rows, env=f"single, {name}", threads=1, actions=a, omp_wait_policy=MAIN_POLICY)
+                  for a in ("random", "scripted")}
+        alt_vec = throughput_rows(rows, env=f"vector, {name}", omp_wait_policy=MAIN_POLICY)
+        if single["random"] is None or not alt_vec:
+            continue
+        best = max(alt_vec, key=lambda r: r["median_steps_per_s"])
+        lines.append(f"- candidate default ({name}): single env {single['random']:.0f} (random) / "
+                     f"{single['scripted']:.0f} (scripted) env steps/s on one thread, vectorised "
+                     f"{best['median_steps_per_s']:.0f} at N = {best['num_envs']} "
+                     f"({'meets' if best['median_steps_per_s'] >= BAR_ORGAN_VECTOR else 'misses'} the "
+                     f"{BAR_ORGAN_VECTOR:.0f}/s bar), in the same rounds as the default.")
     return "\n".join(lines)
 
 
@@ -564,7 +598,9 @@ def main():
                         "organ_default_over_explicit": BAR_ORGAN_RATIO,
                         "organ_vector_env_steps_per_s_total": BAR_ORGAN_VECTOR},
                "load_average_before": load_before, "envs": {}}
-    n_blocks = sum(rounds * (5 + 2 * len(ALTERNATIVE_PHYSICS.get(e, {})) + 2 * len(VECTOR_SIZES)) for e in env_ids)
+    n_blocks = sum(rounds * (5 + 2 * len(ALTERNATIVE_PHYSICS.get(e, {})) + 2 * len(VECTOR_SIZES)
+                             + len(ALTERNATIVE_SCENES.get(e, {})) * (2 + len(ALTERNATIVE_VECTOR_SIZES)))
+                   for e in env_ids)
     with tqdm(total=n_blocks, desc="blocks") as bar:
         for env_id in env_ids:
             configs = _single_configs(env_id, threads_all) + _vector_configs(env_id, threads_all)
