@@ -98,14 +98,20 @@ def tissue(cells, safety=0.75, mirrored=True, **physics) -> Model:
                  tuple(sorted(physics.items())))
 
 
-def organ(size, safety=0.5, **physics) -> Model:
-    """A model of the lobe: explicit unless ``physics`` names another integrator (the
-    scene's own default is the quasi-Newton one, so explicit models say so)."""
+def organ(size, safety=0.5, jaw=None, edge=None, **physics) -> Model:
+    """A model of the lobe held by the jaws' footprint (the scene's grasp): ``size`` (m)
+    away from the jaws, ``jaw`` (m) around them, ``edge`` (m) along the thin edge (None:
+    ``size``); explicit unless ``physics`` names another integrator (the scene's own
+    default is the quasi-Newton one, so explicit models say so)."""
     physics.setdefault("integrator", "explicit")
     step = "" if physics["integrator"] != "explicit" else f" s={safety:g}"
-    return Model(f"{1e3 * size:g} mm{step}{_tag(physics)}", (size,), safety, tuple(sorted(physics.items())))
+    mesh = f"{1e3 * size:g} mm" + (f" / {1e3 * jaw:g} mm at the jaws" if jaw else "") + (
+        f" / {1e3 * edge:g} mm edge" if edge else "")
+    return Model(f"{mesh}{step}{_tag(physics)}", (size, edge, "patch", jaw), safety, tuple(sorted(physics.items())))
 
 
+#: the lobe's element size around the jaws (m; configs/scenes/organ_retraction.yaml)
+J = 0.0025
 #: both scenes' default physics (configs/scenes/*.yaml)
 QN = dict(integrator="quasi_newton", max_dt=0.05, newton_tol=3e-3, max_newton=100)
 ORGAN_QN = QN
@@ -130,24 +136,23 @@ SCENES = {
         reference=tissue((32, 32, 4), 0.5), check=(tissue((40, 40, 5), 0.5), (1, 2)),
         seeds=(0, 1, 2, 3, 4), steps=50),
     "OrganRetraction": dict(
-        default=organ(0.007, **ORGAN_QN),
-        models=[organ(0.016), organ(0.012), organ(0.010), organ(0.008),
-                organ(0.007, 0.75), organ(0.007, 0.5), organ(0.007, 0.25),
-                organ(0.007, 0.5, material="StableNeoHookean"),
-                # backward Euler by L-BFGS (the default) and by Newton, on the default and coarser meshes
-                organ(0.007, **ORGAN_QN),
-                organ(0.007, **{**ORGAN_QN, "newton_tol": 1e-2}),
-                organ(0.007, **{**ORGAN_QN, "max_dt": 0.1, "newton_tol": 1e-2}),
-                organ(0.007, **{**ORGAN_QN, "max_dt": 0.1, "newton_tol": 1e-3}),
-                organ(0.007, **{**ORGAN_QN, "max_dt": 0.025}),
-                organ(0.008, **ORGAN_QN), organ(0.010, **ORGAN_QN),
-                # finer lobes by L-BFGS: where the force error passes, and whether exposure in
-                # the hold converges with the step on the reference mesh itself
-                organ(0.006, **ORGAN_QN), organ(0.005, **ORGAN_QN),
-                organ(0.005, **{**ORGAN_QN, "max_dt": 0.0125}),
-                organ(0.007, integrator="implicit", max_dt=0.1),
-                organ(0.010, integrator="implicit", max_dt=0.1)],
-        reference=organ(0.005), check=(organ(0.004), (2, 3)),  # seeds whose hold sits at the visibility margin
+        default=organ(0.008, jaw=J, **ORGAN_QN),
+        models=[organ(0.016), organ(0.012), organ(0.010), organ(0.008), organ(0.007),
+                organ(0.008, 0.75, jaw=J), organ(0.008, 0.5, jaw=J), organ(0.008, 0.25, jaw=J),
+                organ(0.008, 0.5, jaw=J, material="StableNeoHookean"),
+                # backward Euler by L-BFGS (the default) and by Newton, on the default and other meshes
+                organ(0.008, jaw=J, **ORGAN_QN),
+                organ(0.008, jaw=J, **{**ORGAN_QN, "newton_tol": 1e-2}),
+                organ(0.008, jaw=J, **{**ORGAN_QN, "max_dt": 0.1, "newton_tol": 1e-2}),
+                organ(0.008, jaw=J, **{**ORGAN_QN, "max_dt": 0.1, "newton_tol": 1e-3}),
+                organ(0.008, jaw=J, **{**ORGAN_QN, "max_dt": 0.025}),
+                organ(0.010, jaw=J, **ORGAN_QN), organ(0.007, jaw=0.003, **ORGAN_QN),
+                organ(0.008, **ORGAN_QN), organ(0.007, **ORGAN_QN), organ(0.006, edge=0.004, **ORGAN_QN),
+                organ(0.005, edge=0.003, **ORGAN_QN),
+                organ(0.008, jaw=J, integrator="implicit", max_dt=0.1),
+                organ(0.008, jaw=J, integrator="implicit", max_dt=0.05)],
+        # the finest meshes of benchmarks/grasp_convergence.py (0.9 % apart there)
+        reference=organ(0.004, edge=0.0025), check=(organ(0.004, edge=0.002), (2, 3)),
         seeds=(0, 1, 2, 3, 4), steps=30),
 }
 

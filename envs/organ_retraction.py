@@ -13,34 +13,38 @@ in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, integrated by backward Euler 
 0.05 s steps, each solved by L-BFGS to 3e-3 of the lobe's weight
 (:class:`heml_gym.QuasiNewtonSolver`): several times faster than explicit sub-steps
 (``physics={"integrator": "explicit"}``, at 0.5 of the critical step), for the same
-accuracy. The mesh (7 mm elements, about 1,300 vertices and 5,200 tets) is the coarsest
-whose grasp force and exposure stay within 5 % of a fine one
-(docs/scene_convergence.md): lifting the lobe peels it off its support, and how far it
-peels depends on its bending stiffness, which coarse linear tets overestimate.
+accuracy. The mesh (8 mm elements, refined to 2.5 mm around the jaws: about 1,400
+vertices and 6,300 tets) keeps grasp force and exposure within 5 % of a converged fine
+mesh (docs/scene_convergence.md): lifting the lobe peels it off its support, and how
+far it peels depends on its bending stiffness, which coarse linear tets overestimate,
+and on how compliant the tissue next to the jaws is, which only fine elements there
+resolve.
 
 ## Action Space, Observation Space, Rewards, Episode End
 
 As for ``TissueRetraction-v0`` (see :mod:`heml_gym.envs.tissue_retraction`): the same
 4-D action, 24-D state (the four tracked points are the lobe's thin-edge corners and
 middle, and its top centre), the same reward terms and thresholds, strain over the same
-15 mm gauge. The jaws hold the lobe along a 40 mm line across its top face 25 mm behind
-the thin edge (x = -55 mm, imprinted on the mesh so that it is the same tissue at any
-mesh size).
+15 mm gauge. Closed jaws hold the lobe's top face over their footprint, a 6 x 40 mm patch
+centred 25 mm behind the thin edge (x = -55 mm; its outline imprinted on the mesh, so
+that it is the same tissue at any mesh size).
 
 ## Starting State
 
 Tissue at rest on its support; target centre uniform in x -35..-10 mm, y -20..20 mm,
 23 mm below the lobe's flat face; gripper uniform in x -58..-52 mm, y -10..10 mm,
-z 24-27 mm (above the grasp line); E uniform in 4-8 kPa.
+z 24-27 mm (above the jaws' footprint); E uniform in 4-8 kPa.
 
 ## Arguments
 
 ``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics``, ``difficulty`` as for
 TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
-``mesh_size`` (m, gmsh element size; default 7 mm). ``scene=organ_scene(grasp="patch")``
-holds the jaws' 6 x 40 mm footprint instead of the grasp line: a line held in 3-D
-elasticity has no fine-mesh limit (the edge in front of it droops further on every finer
-mesh), a patch does (docs/scene_convergence.md, "Line and patch grasps"). Difficulty levels:
+``mesh_size`` (m, gmsh element size away from the jaws; default 8 mm, above the 2.5 mm at
+the jaws; ``scene=organ_scene(size, jaw_size=None)`` meshes uniformly).
+``scene=organ_scene(grasp="line")`` holds only the 40 mm line through the footprint's
+middle (the default until 2026-11-25): a line held in 3-D elasticity has no fine-mesh
+limit (the edge in front of it droops further on every finer mesh), a patch does
+(docs/scene_convergence.md, "Line and patch grasps"). Difficulty levels:
 
 | difficulty | task | scripted success | scripted episode, median steps |
 |---|---|---|---|
@@ -56,6 +60,9 @@ v0: initial version; the scene as described here since the convergence redesign 
 hinge, line grasp, gravity on a support plane, 7 mm mesh; it was a 16 mm lobe clamped
 over its thick third, without gravity). Since 2026-11-24: difficulty 1 (hold 2 s) is the
 default, and the lobe is stepped by the quasi-Newton solver (was explicit sub-steps).
+Since 2026-11-25: the jaws hold their 6 x 40 mm footprint (was the 40 mm line through
+it), on an 8 mm mesh refined to 2.5 mm at the jaws (was 7 mm throughout), the first
+default with a converged fine-mesh reference.
 """
 
 from __future__ import annotations
@@ -64,7 +71,8 @@ from .retraction_env import RetractionEnv, RetractionVectorEnv
 from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
                     TissueSpec)
 
-DEFAULT_MESH_SIZE = 0.007
+DEFAULT_MESH_SIZE = 0.008  # m: element size away from the jaws
+DEFAULT_JAW_SIZE = 0.0025  # m: element size around the jaws
 BASE_X = 0.065  # m: the lobe is cut off here (its base) and attached along the base's bottom edge
 #: m: the jaws hold the lobe along this segment across its top face near the thin edge,
 #: imprinted on the mesh, so that it is the same line of tissue at any mesh size
@@ -83,17 +91,18 @@ def _top_z(x: float) -> float:
 JAW_WIDTH = 0.006
 
 
-def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "line",
-                jaw_size: float | None = None) -> Scene:
+def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "patch",
+                jaw_size: float | None = DEFAULT_JAW_SIZE) -> Scene:
     """The liver-lobe scene meshed at ``mesh_size`` metres.
 
     ``edge_size`` (m): finer elements near the thin edge (see
     :func:`heml_gym.organs.liver_lobe_mesh`); ``jaw_size`` (m): finer elements only around
     the jaws (the box within 5 mm of the grasp line in x, 25 mm of the lobe's midline in y,
-    above z = 10 mm; growing to ``mesh_size`` over 6 mm). ``grasp``: ``"line"`` (the default) holds the
-    40 mm grasp line; ``"patch"`` holds the jaws' footprint, a ``JAW_WIDTH`` x 40 mm
-    rectangle of the top face centred on that line (its edges imprinted on the mesh), so
-    that the held tissue cannot turn about the line. A line held in 3-D elasticity has no
+    above z = 10 mm; growing to ``mesh_size`` over 6 mm; ``None``: a uniform mesh).
+    ``grasp``: ``"patch"`` (the default) holds the jaws' footprint, a ``JAW_WIDTH`` x 40 mm
+    rectangle of the top face centred on the grasp line (its edges imprinted on the mesh),
+    so that the held tissue cannot turn about the line; ``"line"`` holds only the 40 mm
+    grasp line. A line held in 3-D elasticity has no
     fine-mesh limit (the tissue next to it grows ever more compliant as the mesh refines);
     a patch does (docs/scene_convergence.md, "Line and patch grasps").
     """

@@ -137,7 +137,7 @@ def test_grasp_force_is_the_weight_it_holds_up_at_rest():
 
 def test_organ_lobe_is_hinged_along_its_base_edge_and_grasped_along_an_imprinted_line():
     for size in (0.016, 0.010):
-        scene = build_scene(organ_scene(size))
+        scene = build_scene(organ_scene(size, grasp="line", jaw_size=None))
         v = scene.mesh.vertices
         fixed = v[scene.fixed]
         np.testing.assert_allclose(fixed[:, [0, 2]], np.tile([BASE_X, 0.0], (len(fixed), 1)), atol=1e-7)
@@ -229,10 +229,10 @@ def test_organ_patch_grasp_holds_the_jaws_footprint_on_every_mesh():
 
     (gx, y0, _), (_, y1, _) = GRASP_LINE
     for size in (0.012, 0.007):
-        scene = build_scene(organ_scene(size, grasp="patch"))
+        scene = build_scene(organ_scene(size, grasp="patch", jaw_size=None))
         v = scene.mesh.vertices
         held = v[scene.grasp_patch]
-        line = v[build_scene(organ_scene(size)).grasp_patch]
+        line = v[build_scene(organ_scene(size, grasp="line", jaw_size=None)).grasp_patch]
         # exactly the footprint: the surface vertices on the top face's plane within the jaws'
         # width of the line and along its length
         surface = scene.mesh.surface_vertices
@@ -250,7 +250,7 @@ def test_organ_patch_grasp_holds_the_jaws_footprint_on_every_mesh():
 
 
 def test_organ_jaw_refinement_is_fine_at_the_jaws_only():
-    coarse = build_scene(organ_scene(0.01, grasp="patch")).mesh
+    coarse = build_scene(organ_scene(0.01, grasp="patch", jaw_size=None)).mesh
     refined = build_scene(organ_scene(0.01, grasp="patch", jaw_size=0.004)).mesh
     gx = GRASP_LINE[0][0]
     at_jaws = lambda x: np.abs(x - gx) < 0.004  # noqa: E731
