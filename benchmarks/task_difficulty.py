@@ -31,7 +31,7 @@ VARIANTS = [
     ("heml_gym/TissueRetraction-v0", "40 mm jaws: only the part of the edge between them held (settings.jaw_length)",
      {"settings": {"jaw_length": 0.04}}),
     ("heml_gym/TissueRetraction-v0", "30 mm jaws", {"settings": {"jaw_length": 0.03}}),
-    ("heml_gym/OrganRetraction-v0", "20 mm jaws on the 40 mm grasp line", {"settings": {"jaw_length": 0.02}}),
+    ("heml_gym/OrganRetraction-v0", "20 mm jaws: the middle 20 mm of the 40 mm footprint held", {"settings": {"jaw_length": 0.02}}),
 ]
 
 

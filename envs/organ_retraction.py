@@ -42,7 +42,7 @@ TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
 ``mesh_size`` (m, gmsh element size away from the jaws; default 8 mm, above the 2.5 mm at
 the jaws; ``scene=organ_scene(size, jaw_size=None)`` meshes uniformly).
 ``scene=organ_scene(grasp="line")`` holds only the 40 mm line through the footprint's
-middle (the default until 2026-11-25): a line held in 3-D elasticity has no fine-mesh
+middle (the former default): a line held in 3-D elasticity has no fine-mesh
 limit (the edge in front of it droops further on every finer mesh), a patch does
 (docs/scene_convergence.md, "Line and patch grasps"). Difficulty levels:
 
@@ -60,7 +60,7 @@ v0: initial version; the scene as described here since the convergence redesign 
 hinge, line grasp, gravity on a support plane, 7 mm mesh; it was a 16 mm lobe clamped
 over its thick third, without gravity). Since 2026-11-24: difficulty 1 (hold 2 s) is the
 default, and the lobe is stepped by the quasi-Newton solver (was explicit sub-steps).
-Since 2026-11-25: the jaws hold their 6 x 40 mm footprint (was the 40 mm line through
+Later the same day: the jaws hold their 6 x 40 mm footprint (was the 40 mm line through
 it), on an 8 mm mesh refined to 2.5 mm at the jaws (was 7 mm throughout), the first
 default with a converged fine-mesh reference.
 """

@@ -258,12 +258,16 @@ class ImplicitSolver(Solver):
             a = hessian(x_n, True).tocsr()
             d = (targets - x_n).reshape(-1)
             u = np.zeros_like(d)
-            with warnings.catch_warnings():  # a singular step matrix: no such start (reported below)
-                warnings.simplefilter("error", spla.MatrixRankWarning)
-                try:
-                    u[free] = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, kin] @ d[kin]))
-                except spla.MatrixRankWarning:
-                    u[free] = np.nan
+            # a singular or non-finite step matrix (x_n has inverted elements): no such start
+            # (reported below)
+            u[free] = np.nan
+            if np.all(np.isfinite(a.data)):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error", spla.MatrixRankWarning)
+                    try:
+                        u[free] = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, kin] @ d[kin]))
+                    except (spla.MatrixRankWarning, RuntimeError):  # RuntimeError: SuperLU failed
+                        u[free] = np.nan
             u[kin] = d[kin]
             x = x_n + u.reshape(x_n.shape)
             v = v_n.copy()
