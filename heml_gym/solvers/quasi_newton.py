@@ -224,12 +224,14 @@ class QuasiNewtonSolver(Solver):
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
-        backward Euler steps. A sub-step whose L-BFGS stops above its tolerance is taken
-        again in ``refinements[0]`` shorter steps, then ``refinements[1]``, ... (more inertia
-        per step: a better conditioned, more convex potential, e.g. when the tissue
-        buckles); ``StepStats.refinement`` says by how much. A scene that goes
-        non-finite, explodes or cannot start is flagged ``diverged`` (its state kept); one
-        whose solve still stops above tolerance ``converged = False``."""
+        backward Euler steps. A sub-step whose L-BFGS stops above its tolerance, or that
+        has no start without inverted elements (held vertices driven into the tissue faster
+        than it can give way), is taken again in ``refinements[0]`` shorter steps, then
+        ``refinements[1]``, ... (more inertia per step: a better conditioned, more convex
+        potential, e.g. when the tissue buckles; and a shorter move of the held vertices);
+        ``StepStats.refinement`` says by how much. A scene that goes non-finite, explodes
+        or still cannot start is flagged ``diverged`` (its state kept); one whose solve
+        still stops above tolerance ``converged = False``."""
         dt, active = self._check(state_in, state_out, control, dt, active)
         substeps = int(substeps)
         if substeps < 1:
@@ -256,14 +258,17 @@ class QuasiNewtonSolver(Solver):
                 contribution = np.zeros_like(x)
                 out = self._advance(args, run, h, 1.0 / (substeps - k + 1), k == 1, r_prev, contribution)
                 self._count(stats, run, out, feasible)
-                retry = run & feasible & (out[:, 2] < 0.5)
+                retry = run & (out[:, 2] < 0.5)  # unconverged, or no feasible start
                 for factor in self.refinements:
                     if not retry.any():
                         break
-                    # take the sub-step again in ``factor`` shorter ones, from its start
+                    # take the sub-step again in ``factor`` shorter ones, from its start (the
+                    # held vertices move a ``factor``-th as far per step, and the tissue in
+                    # front of them has time to give way)
                     sub = retry[run]
                     x[retry], v[retry], r_prev[retry] = saved[0][sub], saved[1][sub], saved[2][sub]
                     finer = np.zeros_like(x)
+                    feasible[retry] = True
                     stats.converged[retry] = True
                     stats.residual[retry] = residual_before[retry]
                     for j in range(1, factor + 1):
@@ -275,7 +280,7 @@ class QuasiNewtonSolver(Solver):
                         self._count(stats, go, out, feasible)
                     contribution[retry] = finer[retry] / factor
                     stats.refinement[retry] = factor
-                    retry &= feasible & ~stats.converged
+                    retry &= ~(feasible & stats.converged)
                 stats.reaction += contribution
         stats.reaction /= substeps
         for s in np.flatnonzero(active):
