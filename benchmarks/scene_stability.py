@@ -194,9 +194,9 @@ def write_markdown(data: dict) -> None:
              "and extreme actions per run, every scene with the run's E and nu. A failure is a diverged simulation "
              "or an unconverged implicit solve (the episode ends, reported in `info`); *re-taken finer*: steps "
              "that needed finer explicit sub-steps or shorter quasi-Newton steps (and got them)."]
-    for added in data.get("added", []):
+    for added in {a["setting"]: a for a in data.get("added", [])}.values():  # the last run of each
         am = added["machine"]
-        lines[0] += (f" `{added['setting']}` was added later (`--only`) on {am['cpu']} ({am['cores']} cores), "
+        lines[0] += (f" `{added['setting']}` was last re-run (`--only`) on {am['cpu']} ({am['cores']} cores), "
                      f"{am['date']}.")
     lines[0] += "\n"
     for env_id, spec in SCENES.items():
