@@ -39,8 +39,8 @@ z 24-27 mm (above the jaws' footprint); E uniform in 4-8 kPa.
 
 ``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics``, ``difficulty`` as for
 TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
-``mesh_size`` (m, gmsh element size away from the jaws; default 8 mm, above the 2.5 mm at
-the jaws; ``scene=organ_scene(size, jaw_size=None)`` meshes uniformly).
+``mesh_size`` (m, gmsh element size away from the jaws; default 8 mm; it must stay above
+the 2.5 mm at the jaws, and ``scene=organ_scene(size, jaw_size=None)`` meshes uniformly).
 ``scene=organ_scene(grasp="line")`` holds only the 40 mm line through the footprint's
 middle (the former default): a line held in 3-D elasticity has no fine-mesh
 limit (the edge in front of it droops further on every finer mesh), a patch does
@@ -68,6 +68,7 @@ default with a converged fine-mesh reference.
 from __future__ import annotations
 
 from .retraction_env import RetractionEnv, RetractionVectorEnv
+from .spec import SpecError
 from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
                     TissueSpec)
 
@@ -147,12 +148,22 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
     )
 
 
+def _check_mesh_size(mesh_size, scene) -> None:
+    """``mesh_size`` on the default scene must stay above its element size at the jaws."""
+    if (scene is None and isinstance(mesh_size, (int, float)) and not isinstance(mesh_size, bool)
+            and 0 < mesh_size <= DEFAULT_JAW_SIZE):
+        raise SpecError(f"mesh_size: the default lobe is refined to {DEFAULT_JAW_SIZE} m at the jaws, so mesh_size "
+                        f"must be above that, got {mesh_size}; for a finer lobe pass "
+                        f"scene=organ_scene({mesh_size}, jaw_size=None) (uniform) or a smaller jaw_size")
+
+
 class OrganRetractionEnv(RetractionEnv):
     __doc__ = __doc__
     default_scene = staticmethod(organ_scene)
 
     def __init__(self, obs_mode="state", render_mode=None, settings=None, weights=None, mesh_size=None,
                  scene=None, physics=None, camera=None, difficulty=1):
+        _check_mesh_size(mesh_size, scene)
         super().__init__(obs_mode, render_mode, settings, weights, scene=scene, physics=physics, camera=camera,
                          difficulty=difficulty, mesh_size=mesh_size)
 
@@ -164,5 +175,6 @@ class OrganRetractionVectorEnv(RetractionVectorEnv):
 
     def __init__(self, num_envs=4, obs_mode="state", settings=None, weights=None, max_episode_steps=None,
                  render_mode=None, mesh_size=None, scene=None, physics=None, camera=None, difficulty=1):
+        _check_mesh_size(mesh_size, scene)
         super().__init__(num_envs, obs_mode, settings, weights, max_episode_steps, render_mode, scene=scene,
                          physics=physics, camera=camera, difficulty=difficulty, mesh_size=mesh_size)

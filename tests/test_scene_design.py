@@ -277,3 +277,13 @@ def test_a_bad_organ_option_in_a_scene_is_a_spec_error_naming_it():
     scene = organ_scene(0.016).updated({"tissue": {"organ_options": {"edge_size": -1.0}}})
     with pytest.raises(SpecError, match="scene.tissue .liver_lobe.: edge_size must be a positive length"):
         build_scene(scene)
+
+
+@pytest.mark.parametrize("make", ["single", "vector"])
+def test_a_mesh_size_below_the_default_jaw_refinement_names_the_argument_and_the_way_out(make):
+    from heml_gym.envs.organ_retraction import OrganRetractionEnv, OrganRetractionVectorEnv
+    from heml_gym.envs.spec import SpecError
+
+    env_class = OrganRetractionEnv if make == "single" else OrganRetractionVectorEnv
+    with pytest.raises(SpecError, match=r"^mesh_size: .*0\.0025 m.*jaw_size=None"):
+        env_class(mesh_size=0.002)
