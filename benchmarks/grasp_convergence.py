@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
-from scene_convergence import QN, Model, errors, record, replay  # noqa: E402
+from scene_convergence import QN, Model, errors, lobe_mesh_label, record, replay  # noqa: E402
 
 SCENE = "OrganRetraction"
 SEEDS = (0, 1, 2, 3, 4)
@@ -55,8 +55,7 @@ CANDIDATES = [(0.007, None, None), (0.007, 0.004, None), (0.006, 0.004, None), (
 
 
 def model(grasp: str, size: float, edge: float | None, quasi_newton: bool, jaw: float | None = None) -> Model:
-    label = f"{1e3 * size:g} mm" + (f" / {1e3 * edge:g} mm edge" if edge else "") + (
-        f" / {1e3 * jaw:g} mm at the jaws" if jaw else "")
+    label = lobe_mesh_label(size, edge, jaw)
     physics = QN if quasi_newton else {"integrator": "explicit"}
     label += " quasi_newton dt=0.05" if quasi_newton else " s=0.5"
     return Model(f"{grasp}: {label}", (size, edge, grasp, jaw), 0.5, tuple(sorted(physics.items())))

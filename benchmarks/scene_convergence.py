@@ -49,7 +49,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs import scripted  # noqa: E402
-from heml_gym.envs.organ_retraction import OrganRetractionEnv, organ_scene  # noqa: E402
+from heml_gym.envs.organ_retraction import DEFAULT_JAW_SIZE, OrganRetractionEnv, organ_scene  # noqa: E402
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, tissue_scene  # noqa: E402
 
 TOLERANCE = 0.05
@@ -105,13 +105,19 @@ def organ(size, safety=0.5, jaw=None, edge=None, **physics) -> Model:
     default is the quasi-Newton one, so explicit models say so)."""
     physics.setdefault("integrator", "explicit")
     step = "" if physics["integrator"] != "explicit" else f" s={safety:g}"
-    mesh = f"{1e3 * size:g} mm" + (f" / {1e3 * jaw:g} mm at the jaws" if jaw else "") + (
-        f" / {1e3 * edge:g} mm edge" if edge else "")
-    return Model(f"{mesh}{step}{_tag(physics)}", (size, edge, "patch", jaw), safety, tuple(sorted(physics.items())))
+    return Model(f"{lobe_mesh_label(size, edge, jaw)}{step}{_tag(physics)}", (size, edge, "patch", jaw), safety,
+                 tuple(sorted(physics.items())))
+
+
+def lobe_mesh_label(size: float, edge: float | None = None, jaw: float | None = None) -> str:
+    """How a lobe mesh is named in the tables: its size (m), and its edge and jaw
+    refinements (m) where it has them."""
+    return (f"{1e3 * size:g} mm" + (f" / {1e3 * edge:g} mm edge" if edge else "")
+            + (f" / {1e3 * jaw:g} mm at the jaws" if jaw else ""))
 
 
 #: the lobe's element size around the jaws (m; configs/scenes/organ_retraction.yaml)
-J = 0.0025
+J = DEFAULT_JAW_SIZE
 #: both scenes' default physics (configs/scenes/*.yaml)
 QN = dict(integrator="quasi_newton", max_dt=0.05, newton_tol=3e-3, max_newton=100)
 ORGAN_QN = QN

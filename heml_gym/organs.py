@@ -47,9 +47,7 @@ def gmsh_solid_mesh(build_fn: Callable[[object], None], mesh_size: float, refine
     growing linearly to ``mesh_size`` over ``transition`` (m) outside it. Node tags are
     remapped to ``0..n-1`` and nodes used by no tet are dropped.
     """
-    mesh_size = float(mesh_size)
-    if not np.isfinite(mesh_size) or mesh_size <= 0:
-        raise ValueError(f"mesh_size must be a positive length in metres, got {mesh_size}")
+    mesh_size = _positive_length("mesh_size", mesh_size)
     boxes = [_refinement_box(k, box) for k, box in enumerate(refine)]
     for k, box in enumerate(boxes):
         if box[2] >= mesh_size:
