@@ -13,7 +13,10 @@ registered), with the default ``control_dt`` = 0.1 s simulated per env step:
 3. Vector env (``gym.make_vec(..., vectorization_mode="vector_entry_point")``, i.e.
    ``TissueRetractionVectorEnv``) with N = 1, 4, 16, 64 scenes, random actions, numba
    threads = 1 and = all: total env steps per second (N x vector steps per second), and
-   the same time breakdown at the largest N.
+   the same time breakdown at the largest N. The scenes' episodes are spread over their
+   length before timing (a warm-up restarts scene ``s`` at step ``s max_steps / N``), as
+   training finds them: episodes started together run to truncation together under
+   random actions, and a block would time one phase of them only.
 
 Every rate includes the resets of episodes that end during the run (autoreset in the
 vector env), as in a training loop. Timings are taken in blocks of steps; the table gives
@@ -188,6 +191,24 @@ def _instrument(task):
     return parts
 
 
+def stagger_episodes(venv, rng) -> None:
+    """Spread the episodes of a vector env's scenes over their length, as training finds
+    them once the first episodes have ended: started together, under random actions they
+    would all run to truncation together, and a block of a few steps would time only one
+    part of the episode (the first steps, grasping and lifting off the support, cost up to
+    twice the later ones on the lobe). Scene ``s`` restarts at step ``s max_steps / N`` of
+    a warm-up of ``max_steps`` random steps (not timed)."""
+    env = venv.unwrapped
+    n = env.num_envs
+    max_steps = env.task.settings.max_steps
+    offsets = np.arange(n) * max_steps // n
+    for k in range(max_steps):
+        restart = np.flatnonzero(offsets == k)
+        if k and restart.size:
+            env.reset_scenes(restart)
+        venv.step(rng.uniform(-1.0, 1.0, (n, 4)).astype(np.float32))
+
+
 def breakdown(env, steps: int, num_envs: int, threads: int, seed: int = 3) -> dict:
     """Mean time per env step split into physics / exposure / strain / rest (ms)."""
     numba.set_num_threads(threads)
@@ -196,6 +217,8 @@ def breakdown(env, steps: int, num_envs: int, threads: int, seed: int = 3) -> di
     vector = num_envs > 1 or hasattr(env, "num_envs")
     shape = (num_envs, 4) if vector else (4,)
     env.reset(seed=seed)
+    if vector:
+        stagger_episodes(env, rng)
     for _ in range(3):  # warm-up
         env.step(rng.uniform(-1, 1, shape).astype(np.float32))
     parts = _instrument(task)
@@ -231,6 +254,7 @@ class _VectorRunner:
         self.rng = np.random.default_rng(seed)
         self.env.reset(seed=seed)
         self.episodes_ended = 0
+        stagger_episodes(self.env, self.rng)
 
     def block(self, steps: int) -> tuple[float, float, float]:
         actions = self.rng.uniform(-1.0, 1.0, (steps, self.n, 4)).astype(np.float32)
@@ -365,7 +389,10 @@ def _markdown(results: dict) -> str:
           "the machine was shared, so these are medians of noisy blocks, and the blocks of all "
           "configurations were interleaved (one of each per round) so that they saw the same load. "
           "0.1 s simulated per env step (the default `control_dt`); rates include the resets of "
-          "episodes that end during the run. "
+          "episodes that end during the run. In the vector env the scenes' episodes were spread over "
+          "their length before timing (scene s restarted at step s x max_steps / N of an untimed warm-up), "
+          "as training finds them; started together, under random actions they would all run to "
+          "truncation together, and a block would time one phase of the episode only. "
           + ("**Every kernel compiled for an AVX2-only CPU** (`NUMBA_CPU_NAME=haswell`, `--avx2`): what most "
              "laptops and cloud VMs run, on this machine. " if results.get("compiled_for") == "haswell" else "")
           + f"Chart: [{'env_throughput_avx2' if results.get('compiled_for') == 'haswell' else 'env_throughput'}.png]"

@@ -55,6 +55,38 @@ def test_fused_energy_and_forces_equal_the_separate_kernels():
         field.params, np.zeros_like(x), 0, mesh.n_tets))
 
 
+def test_an_initial_hessian_too_ill_conditioned_for_single_precision_is_factorised_in_double():
+    """Two vertices joined by one edge (Laplacian weight 1 m) with a mass term of 1e-9 of
+    it: ``A = [[1 + 1e-9, -1], [-1, 1 + 1e-9]]`` is positive definite, but stored in
+    single precision its diagonal rounds to 1 and it is singular, so the single-precision
+    factorisation breaks down (checked). The kernel then factorises in double precision
+    and rounds: the factor has a positive diagonal (``L L^T`` is a valid initial Hessian)
+    and reproduces ``A`` to single precision's rounding."""
+    from heml_gym.solvers import kernels_quasi_newton as kq
+
+    a = np.array([[1.0 + 1e-9, -1.0], [-1.0, 1.0 + 1e-9]])
+    layout = EnvelopeLayout.of(sp.csr_matrix(a))
+    single = np.zeros(layout.size, dtype=np.float32)
+    pos = layout.positions(np.array([0, 1, 1]), np.array([0, 0, 1]))
+    single[pos] = a[[0, 1, 1], [0, 0, 1]]
+    assert envelope_cholesky(layout.first, layout.ptr, single) >= 0  # single precision breaks down
+    values = np.zeros((1, 2, 3, layout.size), dtype=np.float32)
+    status = np.empty(1, dtype=np.int64)
+    zero = np.zeros(1, dtype=np.int64)
+    edge_i, edge_j = np.array([0]), np.array([1])
+    kq.factor_jobs(zero, zero, zero, values, layout.first, layout.ptr, layout.positions(np.arange(2), np.arange(2)),
+                   layout.positions(edge_i, edge_j), edge_i, edge_j, np.array([1.0]), np.ones(2), np.full(2, 1e-9),
+                   np.array([1.0]), np.array([1.0]), np.zeros((1, 2), dtype=bool), np.zeros((1, 2, 3, 2)), status)
+    assert status[0] == -1
+    factor = np.zeros((2, 2))
+    for r in range(2):
+        factor[r, layout.first[r]:r + 1] = values[0, 0, 0, layout.ptr[r]:layout.ptr[r + 1]]
+    assert np.all(np.diag(factor) > 0)
+    perm = np.empty(2, dtype=np.int64)
+    perm[layout.inverse] = np.arange(2)
+    np.testing.assert_allclose(factor @ factor.T, a[np.ix_(perm, perm)], rtol=0, atol=1e-6)
+
+
 def test_envelope_layout_factor_and_pair_solve_match_scipy():
     mesh = hg.box_mesh((0.03, 0.02, 0.01), (4, 3, 2))
     n = mesh.n_vertices
@@ -222,6 +254,66 @@ def test_factors_are_refreshed_only_when_their_content_changes():
     m.set_material(0, M.NeoHookean(E=6e3, nu=0.45))
     solver.step(state, state, control, 0.05)
     assert solver.factorizations == first + 2  # scene 0's material changed
+    control.detach(1)
+    solver.step(state, state, control, 0.05)
+    assert solver.factorizations == first + 2  # released: scene 1's previous initial Hessian is kept
+    control.attach(1, HELD, state.x[1])
+    solver.step(state, state, control, 0.05)
+    assert solver.factorizations == first + 2  # grasped again: so is the one with HELD held
+
+
+def test_a_kept_initial_hessian_steps_as_a_fresh_factorisation_does():
+    """Grasp, release, grasp: the steps after the release and the second grasp use the
+    kept factors; a solver told to forget its factors before each of those steps
+    factorises afresh. The two give the same states to round-off (the wrong kept
+    factor, or curvature pairs carried across the change, would not)."""
+    m = model(M.NeoHookean(E=3e3, nu=0.45))
+    runs = []
+    for fresh in (False, True):
+        solver = hg.QuasiNewtonSolver(m, newton_tol=1e-5, max_iter=500)
+        state, control = m.state(), m.control()
+        for k in range(9):
+            if k in (3, 6):
+                control.attach(0, HELD, state.x[0])
+                control.drive(0, HELD, MESH.vertices[HELD] + [0.0, 0.0, 0.002])
+            elif k == 5:
+                control.detach(0)
+            if fresh and k in (5, 6):
+                solver.forget(0)
+            stats = solver.step(state, state, control, 0.05)
+            assert stats.converged.all() and not stats.diverged.any()
+        runs.append((state.x.copy(), solver.factorizations))
+    (x_kept, n_kept), (x_fresh, n_fresh) = runs
+    assert n_kept < n_fresh
+    np.testing.assert_allclose(x_kept, x_fresh, rtol=0, atol=1e-12)
+
+
+def test_reaction_from_the_held_vertices_tets_equals_the_full_force_evaluation():
+    """The solver computes the elastic force on held vertices from their own tets only:
+    the same as the forces of all tets, on those vertices, for the spring-split and the
+    general kernels."""
+    from heml_gym.solvers import kernels_quasi_newton as kq
+
+    mesh = hg.box_mesh((0.03, 0.02, 0.01), (4, 3, 2))
+    rng = np.random.default_rng(3)
+    x = mesh.vertices + rng.normal(0.0, 2e-4, mesh.vertices.shape)
+    held = np.zeros(mesh.n_vertices, dtype=bool)
+    held[rng.choice(mesh.n_vertices, 7, replace=False)] = True
+    for material in (M.NeoHookean(E=4e3, nu=0.45), M.StVenantKirchhoff(E=4e3, nu=0.45)):
+        m = hg.Model(mesh, material)
+        field = m.fields[0]
+        rest = field.rest
+        weights = field.spring_weights if field.split else np.zeros((6, 1))
+        args = (rest.tets, rest.coef_t, field.q_t, field.use_q, field.law_id, field.params, field.split, weights,
+                rest.inv_det)
+        full, part = np.zeros_like(x), np.zeros_like(x)
+        kq.elastic_forces(x, full, *args)
+        order = np.argsort(mesh.tets.ravel(), kind="stable")  # the tets around each vertex
+        vt_tets = (order // 4).astype(np.int64)
+        vt_ptr = np.concatenate([[0], np.cumsum(np.bincount(mesh.tets.ravel(), minlength=mesh.n_vertices))])
+        kq.held_forces(x, part, held, vt_ptr, vt_tets, *args)
+        scale = np.abs(full).max()
+        np.testing.assert_allclose(part[held], full[held], rtol=1e-12, atol=1e-12 * scale)
 
 
 def test_rejects_bad_arguments_naming_them():

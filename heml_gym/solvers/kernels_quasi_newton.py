@@ -64,16 +64,26 @@ def assemble_factor(values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge
 
 
 @nb.njit(cache=True, parallel=True)
-def factor_jobs(job_scene, job_slot, values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w, lap_diag, mass,
-                c, stiffness, held, extra, status):
-    """Factorise ``values[s, slot]`` for each job ``(s, slot)`` (over threads), with the
-    scene's ``stiffness[s]``, ``held[s]`` and ``extra[s, slot]`` (see
-    :func:`assemble_factor`); ``status[job]`` receives its result."""
+def factor_jobs(job_scene, job_entry, job_slot, values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
+                lap_diag, mass, c, stiffness, held, extra, status):
+    """Factorise ``values[s, entry, slot]`` (single precision) for each job ``(s, entry,
+    slot)`` (over threads), with the scene's ``stiffness[s]``, ``held[s]`` and ``extra[s,
+    entry, slot]`` (see :func:`assemble_factor`); ``status[job]`` receives its result. A
+    factor whose single-precision pivots fail (a matrix too ill-conditioned for them) is
+    factorised in double precision and rounded."""
     for k in prange(job_scene.shape[0]):
         s = job_scene[k]
+        e = job_entry[k]
         slot = job_slot[k]
-        status[k] = assemble_factor(values[s, slot], first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
-                                    lap_diag, mass, c[s], stiffness[s], held[s], extra[s, slot])
+        target = values[s, e, slot]
+        status[k] = assemble_factor(target, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
+                                    lap_diag, mass, c[s], stiffness[s], held[s], extra[s, e, slot])
+        if status[k] >= 0:
+            exact = np.empty(target.shape[0])
+            status[k] = assemble_factor(exact, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
+                                        lap_diag, mass, c[s], stiffness[s], held[s], extra[s, e, slot])
+            for i in range(target.shape[0]):
+                target[i] = exact[i]
 
 
 @nb.njit(cache=True)
@@ -126,7 +136,7 @@ def _potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat
         if not math.isfinite(phi):
             return math.inf
         if want_gradient:
-            _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+            elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
     if n_supports:
         signed_distances(x, planes, grids, grid_values, dist, normal)
     for i in range(n):
@@ -149,13 +159,51 @@ def _potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat
 
 
 @nb.njit(cache=True)
-def _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
+def elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
     """``f`` = the HEML forces (N) at ``x``."""
     f[:, :] = 0.0
     if split:
         constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, 0, tets.shape[0])
     else:
         heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, 0, tets.shape[0])
+
+
+@nb.njit(cache=True)
+def held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
+    """The HEML forces (N) at ``x`` on the ``held`` vertices, exactly (from every tet that
+    touches one), into ``f``; ``f`` is zero or partial elsewhere. The reaction on held
+    vertices needs no more: a tenth of the tets of the lobe, or fewer."""
+    m = tets.shape[0]
+    touches = np.zeros(m, dtype=np.bool_)
+    k = 0
+    for i in range(held.shape[0]):
+        if held[i]:
+            for j in range(vt_ptr[i], vt_ptr[i + 1]):
+                t = vt_tets[j]
+                if not touches[t]:
+                    touches[t] = True
+                    k += 1
+    sub_tets = np.empty((k, 4), dtype=tets.dtype)
+    sub_inv_det = np.empty(k)
+    sub_w = np.empty((w.shape[0], k if split else 1))
+    sub_coef = np.empty((coef_t.shape[0], k))
+    sub_q = np.empty((q_t.shape[0], k if use_q else 1))
+    r = 0
+    for t in range(m):
+        if touches[t]:
+            for a in range(4):
+                sub_tets[r, a] = tets[t, a]
+            sub_inv_det[r] = inv_det[t]
+            if split:
+                for a in range(w.shape[0]):
+                    sub_w[a, r] = w[a, t]
+            for a in range(coef_t.shape[0]):
+                sub_coef[a, r] = coef_t[a, t]
+            if use_q:
+                for a in range(q_t.shape[0]):
+                    sub_q[a, r] = q_t[a, t]
+            r += 1
+    elastic_forces(x, f, sub_tets, sub_coef, sub_q, use_q, law, p, split, sub_w, sub_inv_det)
 
 
 _FAST = {"reassoc", "contract", "nsz", "arcp"}  # lets the dot products vectorise
@@ -231,7 +279,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     f = np.empty((n, 3))
     # the start's holding force: what held vertices need to stay put (quasi-static)
     if first_substep:
-        _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+        held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
         for i in range(n):
             for d in range(3):
                 r_prev[i, d] = -(f[i, d] + load[i, d] - alpha * mass[i] * v[i, d]) if held[i] else 0.0
@@ -384,7 +432,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     # the constraint force on held vertices: m a minus every other force on them (``f`` holds
     # the forces at ``x`` from its last evaluation, unless the projection moved it)
     if moved or not last_at_x:
-        _elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+        held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
     for i in range(n):
         if held[i]:
             for d in range(3):
@@ -402,30 +450,33 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
 @nb.njit(cache=True, parallel=True)
 def lbfgs_steps_parallel(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction,
                          tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
-                         grid_values, kappa, inverse, first, ptr, values, axis_slot, edge_i, edge_j, edge_w, stiffness,
-                         vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active, r_prev,
-                         reaction, out):
-    """:func:`_lbfgs_scene` for every active scene (leading axis N), scenes over threads."""
+                         grid_values, kappa, inverse, first, ptr, values, entry, axis_slot, edge_i, edge_j, edge_w,
+                         stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active,
+                         r_prev, reaction, out):
+    """:func:`_lbfgs_scene` for every active scene (leading axis N), scenes over threads;
+    scene ``s`` preconditions with its current initial Hessian ``values[s, entry[s]]``."""
     for s in prange(x.shape[0]):
         if active[s]:
             _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], fixed, mass, gravity,
                          ext[s], alpha, h, fraction, tets, coef_t, q_t, use_q, laws[s], params[s], split, weights[s],
-                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values[s],
-                         axis_slot[s], edge_i, edge_j, edge_w, stiffness[s], vt_ptr, vt_tets, tol[s], max_iter,
-                         s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s], reaction[s], out[s])
+                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr,
+                         values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
+                         vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
+                         reaction[s], out[s])
 
 
 @nb.njit(cache=True)
 def lbfgs_steps_serial(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction,
                        tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
-                       grid_values, kappa, inverse, first, ptr, values, axis_slot, edge_i, edge_j, edge_w, stiffness,
-                       vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active, r_prev,
-                       reaction, out):
+                       grid_values, kappa, inverse, first, ptr, values, entry, axis_slot, edge_i, edge_j, edge_w,
+                       stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active,
+                       r_prev, reaction, out):
     """:func:`lbfgs_steps_parallel` scene after scene."""
     for s in range(x.shape[0]):
         if active[s]:
             _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], fixed, mass, gravity,
                          ext[s], alpha, h, fraction, tets, coef_t, q_t, use_q, laws[s], params[s], split, weights[s],
-                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values[s],
-                         axis_slot[s], edge_i, edge_j, edge_w, stiffness[s], vt_ptr, vt_tets, tol[s], max_iter,
-                         s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s], reaction[s], out[s])
+                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr,
+                         values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
+                         vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
+                         reaction[s], out[s])
