@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 import time
 from dataclasses import dataclass
@@ -54,6 +53,8 @@ from heml_gym.envs.organ_retraction import DEFAULT_JAW_SIZE, OrganRetractionEnv,
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, tissue_scene  # noqa: E402
 
 TOLERANCE = 0.05
+#: the scenes by their command-line names
+SCENE_ARGS = {"tissue": "TissueRetraction", "organ": "OrganRetraction"}
 
 
 @dataclass(frozen=True)
@@ -316,7 +317,7 @@ def rerun_scene(scene: str, spec: dict, stored: dict, integrator: str) -> dict:
         if not same:
             raise SystemExit(f"{scene}, seed {seed}: the scripted path on the default model changed, so every "
                              f"model must replay it: run `python benchmarks/scene_convergence.py "
-                             f"{'organ' if scene == 'OrganRetraction' else 'tissue'}` (no --rerun)")
+                             f"{next(k for k, v in SCENE_ARGS.items() if v == scene)}` (no --rerun)")
         for m in chosen:
             if m is check and seed not in check_seeds:
                 continue
@@ -340,17 +341,22 @@ def tabulate(scene: str, spec: dict, out: dict) -> dict:
     return out
 
 
-def tighter_twin_outside(row: dict, rows: list[dict]) -> dict | None:
-    """A model with ``row``'s mesh and step but a tighter solver tolerance that is NOT
-    within 5 %, if there is one (labels ``<mesh> quasi_newton dt=<h> tol=<tol>``)."""
-    pattern = re.compile(r"^(.*) quasi_newton dt=(\S+) tol=(\S+)$")
-    own = pattern.match(row["model"])
-    if own is None:
+def tighter_twin_outside(scene: str, row: dict, rows: list[dict]) -> dict | None:
+    """A model of ``scene`` with ``row``'s mesh and physics but a tighter solver tolerance
+    (``newton_tol``) that is NOT within 5 %, if there is one."""
+    models = {m.label: m for m in SCENES[scene]["models"]}
+    own = models.get(row["model"])
+    if own is None or "newton_tol" not in dict(own.physics):
         return None
+    own_physics = dict(own.physics)
     for other in rows:
-        m = pattern.match(other["model"])
-        if (m and m.group(1) == own.group(1) and m.group(2) == own.group(2)
-                and float(m.group(3)) < float(own.group(3)) and not other["within_5pct"]):
+        m = models.get(other["model"])
+        if m is None or m.scene_args != own.scene_args or other["within_5pct"]:
+            continue
+        physics = dict(m.physics)
+        tol = physics.pop("newton_tol", None)
+        if (tol is not None and tol < own_physics["newton_tol"]
+                and physics == {k: v for k, v in own_physics.items() if k != "newton_tol"}):
             return other
     return None
 
@@ -366,7 +372,7 @@ def verdict(res: dict) -> str:
     if cheapest is not None:
         text += (f" Cheapest model within 5 %: {cheapest['model']} ({cheapest['cpu_ms_per_step']:.1f} CPU ms per "
                  "step)")
-        tighter = tighter_twin_outside(cheapest, rows)
+        tighter = tighter_twin_outside(res["scene"], cheapest, rows)
         if tighter is not None:
             text += (f", but the same step solved more tightly ({tighter['model']}) is not ({100 * tighter['force']:.1f} "
                      "% in force): its pass is a cancellation between the step's error and the loose solve's, not "
@@ -545,11 +551,10 @@ def main(argv=None):
                     help="replay only the models of this integrator (after a change to its solver), keeping the "
                          "stored runs of the others; stops if the default's scripted path changed")
     args = ap.parse_args(argv)
-    names = {"tissue": "TissueRetraction", "organ": "OrganRetraction"}
-    unknown = set(args.scenes) - set(names)
+    unknown = set(args.scenes) - set(SCENE_ARGS)
     if unknown:
         ap.error(f"unknown scenes {sorted(unknown)}: choose from tissue, organ")
-    chosen = [names[s] for s in (args.scenes or names)]
+    chosen = [SCENE_ARGS[s] for s in (args.scenes or SCENE_ARGS)]
     if args.from_json:
         stored = json.loads((RESULTS / "scene_convergence.json").read_text())
         results = {s: tabulate(s, SCENES[s], r) for s, r in stored["results"].items()}
@@ -567,7 +572,7 @@ def main(argv=None):
         results = {s: run_scene(s, SCENES[s], args.quick) for s in chosen}
         wall = time.perf_counter() - start
         stored_path = RESULTS / "scene_convergence.json"
-        if not args.quick and stored_path.is_file() and set(chosen) != set(names.values()):
+        if not args.quick and stored_path.is_file() and set(chosen) != set(SCENE_ARGS.values()):
             stored = json.loads(stored_path.read_text())  # one scene re-run: keep the other's stored results
             results = {**{s: r for s, r in stored["results"].items() if s not in results}, **results}
             wall += stored["wall_s"]

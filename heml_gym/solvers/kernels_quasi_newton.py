@@ -186,7 +186,7 @@ def held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, s
     sub_tets = np.empty((k, 4), dtype=tets.dtype)
     sub_inv_det = np.empty(k)
     sub_w = np.empty((w.shape[0], k if split else 1))
-    sub_coef = np.empty((coef_t.shape[0], k))
+    sub_coef = np.empty((coef_t.shape[0], 1 if split else k))
     sub_q = np.empty((q_t.shape[0], k if use_q else 1))
     r = 0
     for t in range(m):
@@ -197,8 +197,9 @@ def held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, s
             if split:
                 for a in range(w.shape[0]):
                     sub_w[a, r] = w[a, t]
-            for a in range(coef_t.shape[0]):
-                sub_coef[a, r] = coef_t[a, t]
+            else:
+                for a in range(coef_t.shape[0]):
+                    sub_coef[a, r] = coef_t[a, t]
             if use_q:
                 for a in range(q_t.shape[0]):
                     sub_q[a, r] = q_t[a, t]
