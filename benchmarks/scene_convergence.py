@@ -31,6 +31,7 @@ Writes docs/benchmarks/scene_convergence.{json,md}, scene_convergence_verdict.md
 scene, for the top of docs/scene_convergence.md) and docs/img/scene_convergence*.png.
 
     python benchmarks/scene_convergence.py [tissue] [organ] [--quick] [--from-json]
+    python benchmarks/scene_convergence.py tissue --variation jaws_adhesion
 """
 
 from __future__ import annotations
@@ -50,11 +51,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs import scripted  # noqa: E402
 from heml_gym.envs.organ_retraction import DEFAULT_JAW_SIZE, OrganRetractionEnv, organ_scene  # noqa: E402
-from heml_gym.envs.tissue_retraction import TissueRetractionEnv, tissue_scene  # noqa: E402
+from heml_gym.envs.tissue_retraction import JAWS_AND_ADHESION, TissueRetractionEnv, tissue_scene  # noqa: E402
 
 TOLERANCE = 0.05
 #: the scenes by their command-line names
 SCENE_ARGS = {"tissue": "TissueRetraction", "organ": "OrganRetraction"}
+#: ``--variation``: per-episode variation that is not a default, applied to every model of
+#: the flap (``configs/quick_jaws_adhesion.yaml``'s 40 mm jaws and 0-20 mm of adhesion)
+VARIATIONS = {"jaws_adhesion": JAWS_AND_ADHESION}
+#: the scene changes every model gets (``--variation``; none by default)
+SCENE_CHANGES: dict = {}
 
 
 @dataclass(frozen=True)
@@ -71,7 +77,10 @@ class Model:
     def env(self, scene_name: str):
         build = tissue_scene if scene_name == "TissueRetraction" else organ_scene
         cls = TissueRetractionEnv if scene_name == "TissueRetraction" else OrganRetractionEnv
-        return cls(scene=build(*self.scene_args), physics={"safety": self.safety, **dict(self.physics)})
+        scene = build(*self.scene_args)
+        if SCENE_CHANGES:
+            scene = scene.updated(SCENE_CHANGES)
+        return cls(scene=scene, physics={"safety": self.safety, **dict(self.physics)})
 
     @property
     def integrator(self) -> str:
@@ -167,7 +176,8 @@ SCENES = {
 
 def record(scene: str, model: Model, seed: int, steps: int) -> tuple[np.ndarray, int]:
     """The scripted baseline's actions on ``model`` from ``reset(seed)``, and its episode length."""
-    env, policy = model.env(scene), scripted.scripted_policy(scene)
+    env = model.env(scene)
+    policy = scripted.scripted_policy(env.scene)
     obs, _ = env.reset(seed=seed)
     policy.reset()
     actions, episode = [], None
@@ -550,7 +560,26 @@ def main(argv=None):
     ap.add_argument("--rerun", choices=("quasi_newton", "explicit", "implicit"), default=None,
                     help="replay only the models of this integrator (after a change to its solver), keeping the "
                          "stored runs of the others; stops if the default's scripted path changed")
+    ap.add_argument("--variation", choices=sorted(VARIATIONS), default=None,
+                    help="the flap with per-episode variation that is not a default (every model); writes only "
+                         "docs/benchmarks/scene_convergence_VARIATION.{json,md}")
     args = ap.parse_args(argv)
+    if args.variation:
+        if args.scenes != ["tissue"] or args.from_json or args.rerun or args.quick:
+            ap.error("--variation: run it as 'scene_convergence.py tissue --variation NAME' alone")
+        SCENE_CHANGES.update(VARIATIONS[args.variation])
+        numba.set_num_threads(1)
+        start = time.perf_counter()
+        results = {"TissueRetraction": run_scene("TissueRetraction", SCENES["TissueRetraction"], False)}
+        md = (f"The flap with `--variation {args.variation}` ({VARIATIONS[args.variation]}) on every model: not the "
+              "default task; the tables of docs/scene_convergence.md are the default's.\n\n"
+              + markdown(results, time.perf_counter() - start))
+        write_json(f"scene_convergence_{args.variation}.json",
+                   {"machine": machine_info(), "wall_s": time.perf_counter() - start, "variation": args.variation,
+                    "changes": VARIATIONS[args.variation], "results": results})
+        (RESULTS / f"scene_convergence_{args.variation}.md").write_text(md)
+        print(md)
+        return
     unknown = set(args.scenes) - set(SCENE_ARGS)
     if unknown:
         ap.error(f"unknown scenes {sorted(unknown)}: choose from tissue, organ")

@@ -79,7 +79,6 @@ class TaskSettings:
     max_speed: float = 0.05  # m/s of the gripper at action 1
     grasp_reach: float = 0.012  # m: closing grasps tissue only if the grasp patch (or a surface vertex) is this close
     jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
-    jaw_length: float | None = None  # m: hold only the grasp patch within half of this of the jaws, along it (None: all)
     damage_strain: float = 0.5  # gauge strain above which the strain penalty applies
     tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
@@ -91,8 +90,6 @@ class TaskSettings:
     def __post_init__(self):
         for name in ("control_dt", "max_speed", "grasp_reach", "jaw_radius", "damage_strain", "tear_strain"):
             _positive(self, name, getattr(self, name))
-        if self.jaw_length is not None:
-            _positive(self, "jaw_length", self.jaw_length)
         if self.control_dt > 10.0:
             raise SpecError(f"TaskSettings.control_dt: must be at most 10 s, got {self.control_dt}")
         if not self.tear_strain > self.damage_strain:
@@ -164,7 +161,7 @@ class BatchedRetraction:
                 faces = np.column_stack([e, e[:, 1]])
             self._patch_faces = faces
             rest = s.mesh.vertices[s.grasp_patch]
-            # the patch's long axis (unit): ``jaw_length`` is measured along it
+            # the patch's long axis (unit): ``gripper.jaw_length`` is measured along it
             self._patch_axis = np.linalg.svd(rest - rest.mean(axis=0))[2][0] if len(rest) > 1 else np.zeros(3)
         self._sphere = fibonacci_sphere(self.settings.exposure_samples)
         self._edge = np.asarray(s.edge_vertices, dtype=np.int64)
@@ -336,12 +333,13 @@ class BatchedRetraction:
                           nearest_triangle_distance(self.gripper[i], x, self._patch_faces))
             if nearest > st.grasp_reach:
                 return patch[:0]
-            if st.jaw_length is None:
+            jaw_length = self.scene.spec.gripper.jaw_length
+            if jaw_length is None:
                 return patch
             # the part of the patch between the jaws: within jaw_length / 2 of them along
             # the patch's long axis (at least the nearest such vertex)
             along = np.abs((x[patch] - self.gripper[i]) @ self._patch_axis)
-            return patch[(along <= st.jaw_length / 2) | (along == along.min())]
+            return patch[(along <= jaw_length / 2) | (along == along.min())]
         d = np.linalg.norm(x[self._graspable] - self.gripper[i], axis=1)
         held = (d <= st.jaw_radius) | (d == d.min())
         return self._graspable[held & (d <= st.grasp_reach)]

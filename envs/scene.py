@@ -266,14 +266,22 @@ class TargetSpec:
 @dataclass
 class GripperSpec:
     """The gripper starts uniformly in ``start_low``..``start_high`` and is kept inside
-    ``workspace_low``..``workspace_high`` (m)."""
+    ``workspace_low``..``workspace_high`` (m). ``jaw_length`` (m): closed jaws hold only the
+    part of the scene's grasp region within half of it of them, measured along the
+    region's long axis (at least its nearest vertex), so where along the region they close
+    matters; null: all of the region within reach."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)
     workspace_low: Vec3 = (-1.0, -1.0, -1.0)
     workspace_high: Vec3 = (1.0, 1.0, 1.0)
+    jaw_length: float | None = None
 
     def __post_init__(self):
+        j = self.jaw_length
+        if j is not None and (isinstance(j, bool) or not isinstance(j, (int, float)) or not math.isfinite(j)
+                              or j <= 0):
+            raise invalid(self, "jaw_length", f"must be a positive length in metres or null, got {j!r}")
         for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
             lo, hi = getattr(self, lo_name), getattr(self, hi_name)
             if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
@@ -329,7 +337,7 @@ class Scene:
     ``attachment``: the vertices that never move; ``adhesion``: more of them, held for an
     episode over a width drawn per episode (null: none); ``grasp``: the tissue the jaws
     hold (closing within ``grasp_reach`` of it holds all of it, or the part of it within
-    ``jaw_length`` of the jaws; null: the nearest surface vertex and those within
+    ``gripper.jaw_length`` / 2 of the jaws; null: the nearest surface vertex and those within
     ``jaw_radius``); ``tracked``: the 4 points reported in the observation;
     ``strain_gauge``: the length (m) tissue strain is measured over.
     """

@@ -2,7 +2,9 @@
 hold it there.
 
 The policy reads only the state observation (gripper position, grasp flag, exposure). It
-closes the gripper where it starts (next to the free edge); once holding tissue it moves
+closes the gripper where it starts (next to the free edge), or, with jaws shorter than
+the grasp region, first moves to the region's middle (``grasp_point``); once holding
+tissue it moves
 the gripper along a circular arc about the attached edge (the hinge), keeping its
 distance to the hinge so the tissue is folded rather than stretched, until the target is
 exposed (``hold_exposure``) or the arc reaches ``max_angle``, and holds the gripper still
@@ -18,6 +20,8 @@ import numpy as np
 from .core import STATE_FIELDS
 
 EXPOSURE = STATE_FIELDS.index("exposure")  # its entry in the state observation
+ALIGNED = 0.001  # m: close enough to ``grasp_point`` to close the jaws
+GRASP_INSET = 0.008  # m: the jaws close this far inside a grasp region's x (a free edge), to be within reach
 
 
 class FoldBackPolicy:
@@ -28,11 +32,18 @@ class FoldBackPolicy:
     the latest (past vertical, so the tissue lies back over its attachment);
     ``hold_exposure``: the exposure (0..1) at which to stop folding and hold (None: fold
     to ``max_angle``); ``max_speed`` and ``control_dt`` convert a displacement (m) into a
-    velocity command.
+    velocity command; ``grasp_point`` (m): ``(x, y)`` where to close the jaws, either may
+    be None (None: where the gripper starts); ``radius_scale``: the arc's radius as a
+    fraction of the grasp's distance from the hinge (below 1 the fold carries the grasped
+    edge back over the hinge with some slack instead of pulling it taut).
     """
 
     def __init__(self, hinge=(0.0, 0.008), step_angle=0.06, max_angle=1.9, max_speed=0.05,
-                 control_dt=0.1, direction=1.0, hold_exposure: float | None = 0.95):
+                 control_dt=0.1, direction=1.0, hold_exposure: float | None = 0.95, grasp_point=None,
+                 radius_scale: float = 1.0):
+        self.radius_scale = float(radius_scale)
+        self.grasp_point = None if grasp_point is None else np.array(
+            [np.nan if v is None else float(v) for v in grasp_point])
         self.hinge = np.asarray(hinge, dtype=np.float64)
         self.direction = 1.0 if direction >= 0 else -1.0  # -1: the tissue extends towards -x
         self.step_angle = float(step_angle)
@@ -49,11 +60,15 @@ class FoldBackPolicy:
         gripper, grasping = np.asarray(state[0:3], dtype=np.float64), state[3] > 0.5
         if not grasping:
             self.radius = None
+            if self.grasp_point is not None:  # move to the grasp point first (the jaws stay open)
+                move = np.nan_to_num(self.grasp_point - gripper[:2])
+                if np.abs(move).max() > ALIGNED:
+                    return np.concatenate([np.clip(move * self.scale, -1.0, 1.0), [0.0, 0.0]]).astype(np.float32)
             return np.array([0.0, 0.0, 0.0, 1.0], dtype=np.float32)
         sign = self.direction
         rel = np.array([sign * (gripper[0] - self.hinge[0]), gripper[2] - self.hinge[1]])
         if self.radius is None:
-            self.radius = float(np.hypot(*rel))
+            self.radius = self.radius_scale * float(np.hypot(*rel))
         exposed = self.hold_exposure is not None and state[EXPOSURE] >= self.hold_exposure
         angle = min(math.atan2(rel[1], rel[0]) + (0.0 if exposed else self.step_angle), self.max_angle)
         target = self.radius * np.array([math.cos(angle), math.sin(angle)])
@@ -65,6 +80,10 @@ class FoldBackPolicy:
 #: How far (rad above the free direction) each scene family is folded: the flap back
 #: past vertical over its attachment, the lobe's thin edge up about its base.
 MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 0.8}
+#: With jaws shorter than the grasp region, the fold's arc radius as a fraction of the
+#: grasp's distance from the hinge: on the flap 0.9 (held by 40 mm jaws, a taut fold
+#: strains soft tissue beyond damage at the jaws' ends); 1 otherwise
+PARTIAL_JAWS_RADIUS_SCALE = {"TissueRetraction": 0.9}
 
 
 def scripted_policy(scene) -> FoldBackPolicy:
@@ -79,7 +98,29 @@ def scripted_policy(scene) -> FoldBackPolicy:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
     max_angle = MAX_FOLD_ANGLE.get(scene.name, 1.9)
-    return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle)
+    if scene.gripper.jaw_length is None:
+        return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle)
+    return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle,
+                          radius_scale=PARTIAL_JAWS_RADIUS_SCALE.get(scene.name, 1.0), grasp_point=grasp_point(scene))
+
+
+def grasp_point(scene) -> tuple[float | None, float | None]:
+    """Where (m; x, y) to close jaws that hold only part of ``scene``'s grasp region:
+    ``GRASP_INSET`` inside its x (towards the hinge) where it fixes x, and the middle of its
+    y extent where it bounds y, else of a box tissue's (None where neither says)."""
+    region = scene.grasp
+    low = region.low if region is not None and region.low is not None else (None, None, None)
+    high = region.high if region is not None and region.high is not None else (None, None, None)
+    x = None
+    if low[0] is not None and low[0] == high[0]:
+        x = low[0] - scene.fold.direction * GRASP_INSET
+    if low[1] is not None and high[1] is not None:
+        y = 0.5 * (low[1] + high[1])
+    elif scene.tissue.kind == "box":
+        y = scene.tissue.origin[1] + 0.5 * scene.tissue.size[1]
+    else:
+        y = None
+    return x, y
 
 
 def run_episodes(env, policy, episodes: int, seed: int = 0) -> dict:

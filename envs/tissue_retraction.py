@@ -123,6 +123,11 @@ FLAP_SIZE = (0.12, 0.12, 0.008)
 DEFAULT_CELLS = (12, 12, 1)
 STIFFNESS_RANGE = (4e3, 8e3)  # Pa: E drawn per episode
 HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fold hinge
+#: the flap's underside (a scene region), and the flap's per-episode variation that is not
+#: a default yet (changes to the scene, as configs/quick_jaws_adhesion.yaml; docs/envs.md):
+#: 40 mm jaws and the underside stuck 0-20 mm out from the hinge
+UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0]}
+JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.04}, "adhesion": {"region": UNDERSIDE, "width": [0.0, 0.02]}}
 
 
 def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> Scene:

@@ -1,5 +1,5 @@
 """Per-episode adhesion (``Scene.adhesion``) and jaws that hold only the part of the grasp
-patch between them (``TaskSettings.jaw_length``): the held sets against ones selected
+patch between them (``Scene.gripper.jaw_length``): the held sets against ones selected
 independently from the mesh, and the held tissue's motion."""
 
 from __future__ import annotations
@@ -7,13 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from heml_gym.envs.core import TaskSettings
-from heml_gym.envs.scene import Scene
+from heml_gym.envs.scene import GripperSpec, Scene
 from heml_gym.envs.spec import SpecError
-from heml_gym.envs.tissue_retraction import FLAP_SIZE, TissueRetractionEnv, tissue_scene
+from heml_gym.envs.tissue_retraction import FLAP_SIZE, UNDERSIDE, TissueRetractionEnv, tissue_scene
 
 LX, LY, LZ = FLAP_SIZE
-UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0]}
 CLOSE, OPEN = np.array([0, 0, 0, 1.0], dtype=np.float32), np.array([0, 0, 0, -1.0], dtype=np.float32)
 LIFT_BACK = np.array([-0.6, 0.0, 1.0, 1.0], dtype=np.float32)
 
@@ -85,20 +83,52 @@ def _close_at(env, y: float, z: float = LZ + 0.004) -> np.ndarray:
     return np.flatnonzero(env.task.held[0])
 
 
-@pytest.mark.parametrize("y", [0.03, 0.061, 0.114])
-def test_jaws_of_a_given_length_hold_the_grasp_line_between_them(y):
-    env = TissueRetractionEnv(settings={"jaw_length": 0.03})
+@pytest.mark.parametrize("jaw_length", [0.03, 0.04])
+@pytest.mark.parametrize("y", [0.033, 0.061, 0.114])  # no jaw end on a vertex row
+def test_jaws_of_a_given_length_hold_the_grasp_line_between_them(y, jaw_length):
+    env = TissueRetractionEnv(scene={"gripper": {"jaw_length": jaw_length}})
+    half = jaw_length / 2
     rest = env.task.scene.mesh.vertices
     line = np.flatnonzero(np.isclose(rest[:, 0], LX) & np.isclose(rest[:, 2], LZ))
-    within = line[np.abs(rest[line, 1] - y) <= 0.015 + 1e-12]
+    within = line[np.abs(rest[line, 1] - y) <= half + 1e-12]
     np.testing.assert_array_equal(_close_at(env, y), within)
-    assert 2 <= len(within) <= 4  # a 30 mm jaw on a line of 10 mm cells
-    # without a jaw length, the jaws hold the whole line, wherever along it they close
+    assert 2 <= len(within) <= 2 * half / 0.01 + 1  # the jaws on a line of 10 mm cells
+    # without a jaw length (the default), the jaws hold the whole line, wherever along it they close
     np.testing.assert_array_equal(_close_at(TissueRetractionEnv(), y), line)
 
 
 def test_jaws_out_of_reach_hold_nothing_and_a_bad_jaw_length_is_refused():
-    env = TissueRetractionEnv(settings={"jaw_length": 0.03})
+    env = TissueRetractionEnv(scene={"gripper": {"jaw_length": 0.03}})
     assert _close_at(env, 0.06, z=LZ + 0.03).size == 0
-    with pytest.raises(SpecError, match="TaskSettings.jaw_length"):
-        TaskSettings(jaw_length=-0.01)
+    with pytest.raises(SpecError, match="GripperSpec.jaw_length"):
+        GripperSpec(jaw_length=-0.01)
+    with pytest.raises(SpecError, match="scene.gripper.jaw_length: must be a positive length"):
+        TissueRetractionEnv(scene={"gripper": {"jaw_length": 0.0}})
+
+
+def test_the_scripted_fold_closes_its_partial_jaws_at_the_edge_middle():
+    """With jaws shorter than the edge the scripted policy first moves to the edge's middle
+    (inside the free edge by GRASP_INSET), jaws open, then closes there; the held vertices
+    are then the edge-line vertices within 20 mm of y = 60 mm (those exactly 20 mm away,
+    on a jaw end, either way: the distance is measured in floating point)."""
+    from heml_gym.envs.scripted import GRASP_INSET, scripted_policy
+
+    env = TissueRetractionEnv(scene={"gripper": {"jaw_length": 0.04}})
+    policy = scripted_policy(env.task.scene.spec)
+    np.testing.assert_allclose(policy.grasp_point, [LX - GRASP_INSET, LY / 2])
+    assert scripted_policy("TissueRetraction").grasp_point is None  # whole-edge jaws close where they start
+    obs, _ = env.reset(seed=4)
+    start_y = obs[1]
+    action = policy(obs)
+    assert action[3] == 0.0 and np.sign(action[1]) == np.sign(LY / 2 - start_y)  # moves, jaws stay open
+    for _ in range(20):
+        obs, *_ = env.step(policy(obs))
+        if obs[3] > 0.5:
+            break
+    assert obs[3] > 0.5 and abs(obs[1] - LY / 2) <= 0.001
+    rest = env.task.scene.mesh.vertices
+    line = np.flatnonzero(np.isclose(rest[:, 0], LX) & np.isclose(rest[:, 2], LZ))
+    held = set(np.flatnonzero(env.task.held[0]))
+    distance = np.abs(rest[line, 1] - LY / 2)
+    assert set(line[distance < 0.02 - 1e-9]) <= held <= set(line[distance <= 0.02 + 1e-9])
+    assert len(held) >= 3
