@@ -132,3 +132,17 @@ def test_the_scripted_fold_closes_its_partial_jaws_at_the_edge_middle():
     distance = np.abs(rest[line, 1] - LY / 2)
     assert set(line[distance < 0.02 - 1e-9]) <= held <= set(line[distance <= 0.02 + 1e-9])
     assert len(held) >= 3
+
+
+def test_the_scripted_fold_succeeds_with_partial_jaws_and_adhesion():
+    """With 40 mm jaws and 0-20 mm of adhesion (configs/quick_jaws_adhesion.yaml) the
+    scripted fold, grasping at the edge's middle on a 0.9x arc, exposes the target and
+    holds it 2 s below damage strain in at least 9 of 10 seeded episodes (the earlier fold,
+    closing where the gripper starts and folding taut, succeeded in 90 % with 40 mm jaws
+    and 70 % with 30 mm, docs/benchmarks/task_difficulty.md in git history)."""
+    from heml_gym.envs.scripted import run_episodes, scripted_policy
+    from heml_gym.envs.tissue_retraction import JAWS_AND_ADHESION
+
+    env = TissueRetractionEnv(scene=JAWS_AND_ADHESION)
+    result = run_episodes(env, scripted_policy(env.scene), 10)
+    assert result["success_rate"] >= 0.9
