@@ -98,10 +98,10 @@ def scripted_policy(scene) -> FoldBackPolicy:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
     max_angle = MAX_FOLD_ANGLE.get(scene.name, 1.9)
-    if scene.gripper.jaw_length is None:
-        return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle)
+    partial = scene.gripper.jaw_length is not None  # jaws shorter than the grasp region
     return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle,
-                          radius_scale=PARTIAL_JAWS_RADIUS_SCALE.get(scene.name, 1.0), grasp_point=grasp_point(scene))
+                          radius_scale=PARTIAL_JAWS_RADIUS_SCALE.get(scene.name, 1.0) if partial else 1.0,
+                          grasp_point=grasp_point(scene) if partial else None)
 
 
 def grasp_point(scene) -> tuple[float | None, float | None]:
