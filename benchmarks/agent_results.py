@@ -27,13 +27,19 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 
-#: (results name of the sweep, config, algorithm, env, seeds the command runs)
+#: (results name of the sweep, config, algorithm, env, difficulty, seeds the command runs)
 SWEEPS = [
-    ("quick_sweep", "configs/quick.yaml", "PPO", "heml_gym/TissueRetraction-v0", "0,1,2,3,4"),
-    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v0", "0,1,2,3,4"),
-    ("tissue_sac_sweep", "configs/tissue_sac.yaml", "SAC", "heml_gym/TissueRetraction-v0", "0,1,2"),
-    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v0", "0,1,2"),
+    ("quick_sweep", "configs/quick.yaml", "PPO", "heml_gym/TissueRetraction-v0", 1, "0,1,2,3,4"),
+    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v0", 1, "0,1,2,3,4"),
+    ("tissue_sac_sweep", "configs/tissue_sac.yaml", "SAC", "heml_gym/TissueRetraction-v0", 1, "0,1,2"),
+    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v0", 1, "0,1,2"),
+    ("tissue_ppo_difficulty2", "configs/tissue_ppo_difficulty2.yaml", "PPO", "heml_gym/TissueRetraction-v0", 2,
+     "0,1,2,3,4"),
+    ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v0", 2,
+     "0,1,2"),
 ]
+#: line colours of the chart by (algorithm, difficulty)
+COLOURS = {("PPO", 1): "tab:blue", ("SAC", 1): "tab:orange", ("PPO", 2): "tab:purple", ("SAC", 2): "tab:brown"}
 BAR_SUCCESS = 0.9
 
 
@@ -76,19 +82,20 @@ def collect() -> dict:
     difficulty = RESULTS / "task_difficulty.json"
     if difficulty.is_file():
         for r in json.loads(difficulty.read_text())["rows"]:
-            if r["difficulty"] == 1:  # the default task
+            if r["difficulty"] == 1 and r.get("variant") is None:  # the default task
                 scripted[r["env"]] = {"success_rate": r["success_rate"], "episodes": r["episodes"]}
     groups, missing = [], []
-    for name, config, algo, env, seeds in SWEEPS:
+    for name, config, algo, env, difficulty, seeds in SWEEPS:
         path = RESULTS / f"{name}.json"
         if not path.is_file():
-            missing.append({"name": name, "config": config, "algorithm": algo, "env": env,
+            missing.append({"name": name, "config": config, "algorithm": algo, "env": env, "difficulty": difficulty,
                             "command": command(name, config, seeds)})
             continue
         sweep = json.loads(path.read_text())
         done = [s for s in sweep["seeds"] if s["status"] == "finished"]
         finals = [s["success_rate"] for s in done]
-        group = {"name": name, "config": config, "algorithm": algo, "env": env, "machine": sweep["machine"],
+        group = {"name": name, "config": config, "algorithm": algo, "env": env, "difficulty": difficulty,
+                 "machine": sweep["machine"],
                  "trials_at_once": sweep.get("trials_at_once"), "command": sweep.get("command"),
                  "seeds": done, "failed_seeds": [s for s in sweep["seeds"] if s["status"] != "finished"],
                  "seeds_at_90_percent": sum(f >= BAR_SUCCESS for f in finals)}
@@ -114,14 +121,13 @@ def chart(results: dict, path: Path) -> None:
     if not envs:
         return
     fig, axes = plt.subplots(2, len(envs), figsize=(6.4 * len(envs), 8.4), squeeze=False)
-    colours = {"PPO": "tab:blue", "SAC": "tab:orange"}
     for col, env in enumerate(envs):
         for row, (key, curve, label, scale) in enumerate([("env_steps", "curve_steps", "env steps (thousands)", 1e3),
                                                          ("wall_s", "curve_wall", "wall time (min, one CPU per "
                                                           "trial)", 60.0)]):
             ax = axes[row, col]
             for g in [g for g in results["groups"] if g["env"] == env]:
-                c = colours.get(g["algorithm"], "tab:green")
+                c = COLOURS.get((g["algorithm"], g["difficulty"]), "tab:green")
                 for s in g["seeds"]:
                     if all(key in e for e in s["evaluations"]):
                         ax.plot([e[key] / scale for e in s["evaluations"]],
@@ -129,17 +135,18 @@ def chart(results: dict, path: Path) -> None:
                 if curve in g:
                     x = np.array(g[curve]["x"]) / scale
                     ax.plot(x, g[curve]["iqm"], color=c, lw=2.4,
-                            label=f"{g['algorithm']}: IQM of {len(g['seeds'])} seeds (thin: each seed)")
+                            label=f"{g['algorithm']}, difficulty {g['difficulty']}: IQM of {len(g['seeds'])} "
+                                  "seeds (thin: each seed)")
                     ax.fill_between(x, g[curve]["low"], g[curve]["high"], color=c, alpha=0.15)
             scripted = results["scripted"].get(env)
             if scripted:
                 ax.axhline(scripted["success_rate"], color="k", ls=":", lw=1.2,
-                           label=f"scripted baseline ({scripted['success_rate']:.0%})")
+                           label=f"scripted baseline, difficulty 1 ({scripted['success_rate']:.0%})")
             ax.axhline(BAR_SUCCESS, color="tab:red", ls="--", lw=1, label="90 %")
             ax.set_ylim(-0.03, 1.03)
             ax.set_xlabel(label)
             ax.set_ylabel("evaluated success rate (20 episodes)")
-            ax.set_title(f"{env.split('/')[-1]} (difficulty 1): success vs {label.split(' (')[0]}", fontsize=10)
+            ax.set_title(f"{env.split('/')[-1]}: success vs {label.split(' (')[0]}", fontsize=10)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7.5, loc="lower right")
     fig.suptitle("Learning across seeds: IQM with 95 % stratified-bootstrap band, every seed drawn", fontsize=10)
@@ -150,8 +157,10 @@ def chart(results: dict, path: Path) -> None:
 
 def markdown(results: dict) -> str:
     md = ("Written by `benchmarks/agent_results.py` from the seed sweeps of the shipped configs (each "
-          "`heml-gym sweep CONFIG --seeds ...` on Ray Tune, one CPU per trial). The default task of each env "
-          "(difficulty 1: expose the target and hold it exposed, below damage strain, for 2 s). Final "
+          "`heml-gym sweep CONFIG --seeds ...` on Ray Tune, one CPU per trial). Difficulty 1 is each env's "
+          "default task (expose the target and hold it exposed, below damage strain, for 2 s); difficulty 2 "
+          "(not a default) draws the tissue's stiffness from a wider range and puts the target deeper under "
+          "the tissue (the env docstrings' tables). Final "
           "success: 20 fresh seeded episodes, deterministic policy. IQM: interquartile mean across seeds with "
           "a 95 % stratified-bootstrap interval (Agarwal et al. 2021).\n\n")
     rows = []
@@ -159,7 +168,7 @@ def markdown(results: dict) -> str:
         firsts = [s["first_eval_at_90_percent"] for s in g["seeds"]]
         reached = [f for f in firsts if f is not None]
         walls = [s["wall_s"] / 60 for s in g["seeds"]]
-        rows.append([g["env"].split("/")[-1], g["algorithm"], f"`{g['config']}`", len(g["seeds"]),
+        rows.append([g["env"].split("/")[-1], g["algorithm"], g["difficulty"], f"`{g['config']}`", len(g["seeds"]),
                      f"{g['seeds_at_90_percent']} of {len(g['seeds'])}",
                      " / ".join(f"{s['success_rate']:.0%}" for s in g["seeds"]),
                      f"{g['iqm']:.0%} ({g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})" if "iqm" in g else "-",
@@ -169,13 +178,14 @@ def markdown(results: dict) -> str:
                      f"{min(walls):.1f}-{max(walls):.1f}",
                      f"{g['machine']['cpu']}, {g['machine']['date']}, {g['trials_at_once']} at a time"])
     if rows:
-        md += markdown_table(["env", "algorithm", "config", "seeds", ">= 90 %", "final success per seed",
+        md += markdown_table(["env", "algorithm", "difficulty", "config", "seeds", ">= 90 %", "final success per seed",
                               "IQM (95 % interval)", "first eval >= 90 % at", "budget (env steps)",
                               "wall min per seed", "measured on"], rows)
     for env, s in results["scripted"].items():
         md += f"\nScripted baseline on {env.split('/')[-1]} (difficulty 1): {s['success_rate']:.0%} of {s['episodes']} episodes."
     for m in results["missing"]:
-        md += (f"\n\nNot run yet: {m['algorithm']} on {m['env'].split('/')[-1]} (`{m['config']}`): "
+        md += (f"\n\nNot run yet: {m['algorithm']} on {m['env'].split('/')[-1]} at difficulty {m['difficulty']} "
+               f"(`{m['config']}`): "
                f"`{m['command']}`.")
     md += "\n\nPer seed: " + ", ".join(f"[{g['name']}.md]({g['name']}.md)" for g in results["groups"]) + "."
     md += "\n\n![success vs env steps and wall time, every seed and the IQM](../img/agent_results.png)\n"
