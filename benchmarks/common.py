@@ -16,6 +16,26 @@ RESULTS = DOCS / "benchmarks"
 IMAGES = DOCS / "img"
 
 
+def cpu_avx_flags() -> list[str]:
+    """The CPU's AVX feature flags (``/proc/cpuinfo``), e.g. ``["avx", "avx2", "avx512f", ...]``."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return [f for f in line.split(":", 1)[1].split() if f.startswith("avx")]
+    except OSError:
+        pass
+    return []
+
+
+def vector_isa(flags: list[str] | None = None) -> str:
+    """``"AVX-512"``, ``"AVX2 only"`` or ``"no AVX2"``: what the vectorised kernels can use.
+    The same Numba kernel runs up to 3-4x faster with AVX-512, so every result records it."""
+    flags = cpu_avx_flags() if flags is None else flags
+    if any(f.startswith("avx512") for f in flags):
+        return "AVX-512"
+    return "AVX2 only" if "avx2" in flags else "no AVX2"
+
+
 def machine_info() -> dict:
     """CPU, core count and library versions, stored beside every result."""
     import numba
@@ -30,6 +50,7 @@ def machine_info() -> dict:
         pass
     return {
         "cpu": cpu,
+        "vector_isa": vector_isa(),
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "numpy": np.__version__,

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, throughput_rate, throughput_rows  # noqa: E402
+from common import RESULTS, throughput_rate, throughput_rows, vector_isa  # noqa: E402
 
 
 def load(name: str) -> dict | None:
@@ -26,7 +26,8 @@ def load(name: str) -> dict | None:
 
 def where(data: dict) -> str:
     m = data["machine"]
-    return f"{m['cpu']}, {m['cores']} cores, {m['date']}"
+    isa = f", {m['vector_isa']}" if "vector_isa" in m else ""  # results stored before 2026-11-25 lack it
+    return f"{m['cpu']}, {m['cores']} cores{isa}, {m['date']}"
 
 
 def learning(data: dict) -> str:
@@ -111,10 +112,14 @@ def forces(data: dict) -> str:
         return ""
     nh, stvk = (laws["native"]["tets_per_s"][k] / 1e6 for k in ("HEML Neo-Hookean", "HEML StVK"))
     avx2 = laws["avx2_target"]["tets_per_s"]["HEML Neo-Hookean"] / 1e6
-    flags = "AVX-512" if any(f.startswith("avx512") for f in laws.get("cpu_avx_flags", [])) else "AVX2 only"
+    place = where(data)
+    if "vector_isa" not in data["machine"]:  # stored before machine_info recorded it
+        place += f", {vector_isa(laws.get('cpu_avx_flags', []))}"
+    processes = laws["native"].get("processes", 1)
+    median = f"; medians of {processes} processes each" if processes > 1 else ""
     return (f"**Forces.** HEML equals textbook FEM to 1e-15; its Neo-Hookean kernel runs {nh:.0f} M tets/s on one core "
-            f"({stvk:.0f} M for StVK; {avx2:.0f} M when compiled for a plain AVX2 CPU) on a "
-            f"{laws['native']['n_tets']:,}-tet box ({where(data)}, {flags}; "
+            f"({stvk:.0f} M for StVK; {avx2:.0f} M when compiled for a plain AVX2 CPU{median}) on a "
+            f"{laws['native']['n_tets']:,}-tet box ({place}; "
             "[physics_core.md](../physics_core.md#force-kernel-throughput)).")
 
 
@@ -134,15 +139,17 @@ def agents(data: dict) -> str:
     for g in data["groups"]:
         if g["name"] == "quick_sweep":
             continue
-        parts.append(f"{g['algorithm']} on {g['env'].split('/')[-1].replace('-v0', '')}: "
+        level = "" if g.get("difficulty", 1) == 1 else f" at difficulty {g['difficulty']}"
+        parts.append(f"{g['algorithm']} on {g['env'].split('/')[-1].replace('-v0', '')}{level}: "
                      f"{g['seeds_at_90_percent']} of {len(g['seeds'])} seeds >= 90 % at "
                      f"{max(s['env_steps'] for s in g['seeds']) // 1000} k steps (IQM {g['iqm']:.0%}, "
                      f"{g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})")
     for m in data["missing"]:
-        parts.append(f"{m['algorithm']} on {m['env'].split('/')[-1].replace('-v0', '')}: not run yet")
+        level = "" if m.get("difficulty", 1) == 1 else f" at difficulty {m['difficulty']}"
+        parts.append(f"{m['algorithm']} on {m['env'].split('/')[-1].replace('-v0', '')}{level}: not run yet")
     if not parts:
         return ""
-    return (f"**Other agents** (default task, difficulty 1): {'; '.join(parts)} "
+    return (f"**Other agents** (default task, difficulty 1, unless named): {'; '.join(parts)} "
             "([agents.md](../agents.md#results)).")
 
 
