@@ -59,6 +59,18 @@ def quickstart(data: dict) -> str:
     return text + " [Per seed](quick_sweep.md)."
 
 
+def quickstart_elsewhere(data: dict) -> str:
+    """The same job re-run with other seeds on another machine (``quick_sweep_avx2``)."""
+    done = [s for s in data["seeds"] if s["status"] == "finished"]
+    if not done:
+        return ""
+    wall = sorted(s["wall_s"] / 60 for s in done)
+    rates = ", ".join(f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done)
+    return (f" On an AVX2-only machine ({where(data)}) with seeds no config was tuned on, training took "
+            f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed ({data.get('trials_at_once', 1)} at a time) and ended at "
+            f"{rates} ([per seed](quick_sweep_avx2.md)).")
+
+
 def pixels(data: dict) -> str:
     done = [s for s in data["seeds"] if s["status"] == "finished"]
     if not done:
@@ -195,7 +207,9 @@ def main() -> int:
     print(out)
     sweep = load("quick_sweep")
     if sweep is not None:
-        (RESULTS / "readme_quickstart.md").write_text(quickstart(sweep) + "\n")
+        elsewhere = load("quick_sweep_avx2")
+        text = quickstart(sweep) + (quickstart_elsewhere(elsewhere) if elsewhere else "")
+        (RESULTS / "readme_quickstart.md").write_text(text + "\n")
     return 0
 
 

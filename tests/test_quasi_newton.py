@@ -262,6 +262,40 @@ def test_factors_are_refreshed_only_when_their_content_changes():
     assert solver.factorizations == first + 2  # grasped again: so is the one with HELD held
 
 
+def test_scenes_stepped_over_threads_equal_scenes_stepped_one_after_another():
+    """Five scenes (different stiffness; two grasped and lifted, all sagging onto a
+    support) stepped by the parallel kernel, scenes over two threads, are bit for bit
+    those of one thread stepping them in turn (the serial kernel): a scene's solve uses
+    no state of another and no scratch shared between threads."""
+    import numba
+
+    materials = [M.NeoHookean(E=E, nu=0.45) for E in (2e3, 3e3, 5e3, 8e3, 4e3)]
+    runs = []
+    old = numba.get_num_threads()
+    try:
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            m = model(materials, supports=[hg.PlaneSupport(height=-0.004)])
+            solver = hg.QuasiNewtonSolver(m)
+            state, control = m.state(), m.control()
+            for s in (1, 3):
+                control.attach(s, HELD, state.x[s])
+            steps = []
+            for k in range(6):
+                for s in (1, 3):
+                    control.drive(s, HELD, MESH.vertices[HELD] + [0.0, 0.0, 0.003 * (k + 1)])
+                stats = solver.step(state, state, control, 0.05)
+                assert stats.converged.all() and not stats.diverged.any()
+                steps.append((state.x.copy(), state.v.copy(), stats.reaction.copy(), stats.newton_iterations.copy()))
+            runs.append(steps)
+    finally:
+        numba.set_num_threads(old)
+    assert any(np.any(x[:, :, 2] < -0.0039) for x, *_ in runs[0])  # the sagging scenes reach the support
+    for one, two in zip(*runs):
+        for a, b in zip(one, two):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_a_kept_initial_hessian_steps_as_a_fresh_factorisation_does():
     """Grasp, release, grasp: the steps after the release and the second grasp use the
     kept factors; a solver told to forget its factors before each of those steps
