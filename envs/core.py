@@ -298,7 +298,8 @@ class BatchedRetraction:
         terms["reward_hold"] = np.where(meets & ~success, w.hold * st.control_dt, 0.0)
         terms["reward_success"] = np.where(success, w.success, 0.0)
         # a failed scene earns nothing: every term is zeroed, so they still add up
-        terms = {k: np.where(failed, 0.0, v) for k, v in terms.items()}
+        if failed.any():
+            terms = {k: np.where(failed, 0.0, v) for k, v in terms.items()}
         reward = sum(terms.values())
         torn = (self.max_strain >= st.tear_strain) & ~failed
         terminated = success | torn | failed
@@ -374,11 +375,13 @@ class BatchedRetraction:
         rest divided by the scene's ``fold_angle``, each clipped to [0, 1]."""
         x_edge = self.state.x[np.atleast_1d(scenes)][:, self._edge]
         progress = (self._fold_angles(x_edge) - self._rest_angle) / self.scene.fold_angle
-        return np.nan_to_num(np.clip(progress, 0.0, 1.0)).mean(axis=1)
+        return finite(np.clip(progress, 0.0, 1.0), nan=0.0).mean(axis=1)
 
     def _max_strain(self, scenes) -> np.ndarray:
         """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per scene."""
-        return np.nan_to_num(self.gauges.max_strain(self.state.x[np.atleast_1d(scenes)]), nan=STRAIN_BOUND)
+        scenes = np.atleast_1d(scenes)
+        x = self.state.x if np.array_equal(scenes, np.arange(self.n)) else self.state.x[scenes]
+        return finite(self.gauges.max_strain(x), nan=STRAIN_BOUND)
 
     # ------------------------------------------------------------ observation
     def state_observation(self) -> np.ndarray:
@@ -386,13 +389,21 @@ class BatchedRetraction:
         tracked = self.state.x[:, self.scene.tracked].reshape(self.n, -1)
         obs = np.concatenate([self.gripper, self.grasping[:, None].astype(np.float64), self.grasp_force,
                               self.target, tracked, self.max_strain[:, None], self.exposure[:, None]], axis=1)
-        obs = np.clip(np.nan_to_num(obs, nan=0.0), STATE_LOW, STATE_HIGH)
+        obs = np.clip(finite(obs, nan=0.0), STATE_LOW, STATE_HIGH)
         return obs.astype(np.float32)
 
     @staticmethod
     def state_bounds() -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the state observation (from :data:`STATE_SPEC`)."""
         return STATE_LOW.copy(), STATE_HIGH.copy()
+
+
+def finite(values: np.ndarray, nan: float) -> np.ndarray:
+    """``np.nan_to_num(values, nan=nan)`` (infinities to the largest finite floats); the
+    array itself, without a copy, when every value is finite already (the usual case)."""
+    if np.isfinite(values).all():
+        return values
+    return np.nan_to_num(values, nan=nan)
 
 
 def settings_with(settings: TaskSettings, **changes) -> TaskSettings:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 
+import numba as nb
 import numpy as np
 
 from heml_gym.mesh import TetMesh
@@ -93,7 +94,40 @@ class StrainGauges:
         return np.einsum("...pkd,pk->...pd", x[..., self.corners, :], self.weights)
 
     def max_strain(self, x: np.ndarray) -> np.ndarray:
-        """Largest gauge strain ``|l / L - 1|`` for positions ``x`` (..., n, 3): shape (...)."""
-        p = self.positions(x)
-        length = np.linalg.norm(p[..., self.pairs[:, 1], :] - p[..., self.pairs[:, 0], :], axis=-1)
-        return np.abs(length / self.rest_length - 1.0).max(axis=-1)
+        """Largest gauge strain ``|l / L - 1|`` for positions ``x`` (..., n, 3): shape (...)
+        (NaN where a position is not finite)."""
+        x = np.asarray(x, dtype=np.float64)
+        batch = x.reshape(-1, *x.shape[-2:])
+        out = np.empty(len(batch))
+        _max_strain_kernel(np.ascontiguousarray(batch), self.corners, self.weights, self.pairs, self.rest_length, out)
+        return out.reshape(x.shape[:-2])
+
+
+@nb.njit(cache=True)
+def _max_strain_kernel(x, corners, weights, pairs, rest_length, out):
+    """``out[s]``: the largest ``|l / L - 1|`` of the gauge segments ``pairs`` in scene
+    ``s`` of ``x (N, n, 3)`` (points interpolated from their tet's ``corners`` with
+    ``weights``), NaN if any is NaN; the arithmetic, in order, of the NumPy expression
+    ``|norm(p_j - p_i) / L - 1|``."""
+    n_points = corners.shape[0]
+    p = np.empty((n_points, 3))
+    for s in range(x.shape[0]):
+        for q in range(n_points):
+            for d in range(3):
+                acc = 0.0
+                for k in range(4):
+                    acc += x[s, corners[q, k], d] * weights[q, k]
+                p[q, d] = acc
+        worst = -1.0
+        for e in range(pairs.shape[0]):
+            i, j = pairs[e, 0], pairs[e, 1]
+            dx = p[j, 0] - p[i, 0]
+            dy = p[j, 1] - p[i, 1]
+            dz = p[j, 2] - p[i, 2]
+            strain = abs(np.sqrt(dx * dx + dy * dy + dz * dz) / rest_length[e] - 1.0)
+            if np.isnan(strain):
+                worst = strain
+                break
+            if strain > worst:
+                worst = strain
+        out[s] = worst

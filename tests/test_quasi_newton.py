@@ -387,3 +387,66 @@ def test_step_mean_reaction_matches_the_explicit_solvers():
     peak = np.abs(forces["explicit"]).max()
     assert np.abs(forces["quasi_newton"] - forces["explicit"])[4:].max() < 1e-3 * peak
     assert np.abs(np.array(end_forces) - forces["explicit"])[4:].min() > 1e-2 * peak
+
+
+def test_count_report_adds_a_calls_report_as_the_numpy_expressions_do():
+    """The compiled bookkeeping of one L-BFGS call equals the NumPy it replaced: iterations
+    added for the scenes run only, the largest residual (NaN kept), converged and feasible
+    cleared by a scene run that did not converge / had no feasible start (NaN flags too)."""
+    rng = np.random.default_rng(3)
+    for trial in range(50):
+        n = 7
+        run = rng.random(n) < 0.6
+        out = np.column_stack([rng.integers(0, 40, n).astype(float), rng.exponential(1.0, n),
+                               rng.random(n).round(), rng.random(n).round()])
+        out[rng.random((n, 4)) < 0.1] = np.nan
+        out[:, 0] = np.nan_to_num(out[:, 0])  # the kernel always reports a count
+        iterations = rng.integers(0, 50, n)
+        residual = rng.exponential(1.0, n)
+        residual[rng.random(n) < 0.1] = np.nan
+        converged, feasible = rng.random(n) < 0.7, rng.random(n) < 0.8
+        expected = (iterations + np.where(run, out[:, 0], 0).astype(np.int64),
+                    np.maximum(residual, np.where(run, out[:, 1], 0.0)),
+                    converged & (~run | (out[:, 2] > 0.5)), feasible & (~run | (out[:, 3] > 0.5)))
+        hg.solvers.kernels_quasi_newton.count_report(run, out, iterations, residual, converged, feasible)
+        for got, want in zip((iterations, residual, converged, feasible), expected):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_suspect_scenes_include_every_scene_divergence_flags():
+    """The compiled pre-check may flag more scenes than :meth:`divergence` does, never fewer:
+    NaN or infinite positions or velocities, and speeds at, just above and just below the
+    limit (the last not flagged by either)."""
+    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1)), M.NeoHookean(E=1e4, nu=0.4), n_scenes=8)
+    solver = hg.QuasiNewtonSolver(model, max_speed=2.0)
+    x = np.repeat(model.mesh.vertices[None], 8, axis=0)
+    v = np.zeros_like(x)
+    x[1, 3, 0] = np.nan
+    x[2, 0, 2] = np.inf
+    v[3, 5, 1] = -np.inf
+    v[4, 2] = [0.0, 2.0, 0.0]  # at the limit: not too fast
+    v[5, 2] = [0.0, np.nextafter(2.0, 3.0), 0.0]
+    v[6, 4] = [1.2, 1.6, 1e-4]  # |v| 2.5e-9 m/s above 2
+    v[7, 1] = [1.0, 1.0, 1.0]  # well below
+    flagged = solver.suspect_scenes(x, v, np.arange(8))
+    verdicts = [bool(solver.divergence(x[s], v[s])[0]) for s in range(8)]
+    assert verdicts == [False, True, True, True, False, True, True, False]
+    assert set(np.flatnonzero(verdicts)) <= set(flagged.tolist())
+    assert 0 not in flagged and 7 not in flagged
+    np.testing.assert_array_equal(solver.suspect_scenes(x, v, np.array([0, 7, 2])), [2])
+
+
+def test_force_scales_equal_the_per_scene_force_scale():
+    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1)), M.NeoHookean(E=1e4, nu=0.4), n_scenes=3)
+    solver = hg.QuasiNewtonSolver(model)
+    control = model.control()
+    assert solver.force_scales(control).tolist() == [solver.force_scale(s, control) for s in range(3)]
+    control.external_forces[1, 4] = [0.3, -0.2, 0.1]
+    assert solver.force_scales(control).tolist() == [solver.force_scale(s, control) for s in range(3)]
+    weightless = hg.Model(model.mesh, M.NeoHookean(E=1e4, nu=0.4), n_scenes=3, gravity=np.zeros(3))
+    solver = hg.QuasiNewtonSolver(weightless)
+    control = weightless.control()
+    control.external_forces[2, 0, 2] = 0.5
+    scales = solver.force_scales(control)
+    assert scales.tolist() == [solver.force_scale(s, control) for s in range(3)]
+    assert scales[0] == pytest.approx(1e4 * weightless.mesh.min_edge_length ** 2) and scales[2] == 0.5

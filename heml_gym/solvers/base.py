@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 
 from ..control import Control
@@ -78,7 +79,7 @@ class StepStats:
                    residual=np.zeros(n_scenes), tolerance=np.full(n_scenes, math.inf),
                    converged=np.ones(n_scenes, dtype=bool), diverged=np.zeros(n_scenes, dtype=bool),
                    reaction=np.zeros((n_scenes, n_vertices, 3)), messages=[""] * n_scenes,
-                   elements=[np.zeros(0, dtype=np.int64) for _ in range(n_scenes)],
+                   elements=[NO_ELEMENTS] * n_scenes,
                    refinement=np.ones(n_scenes, dtype=np.int64))
 
     def scene(self, s: int) -> SceneStepStats:
@@ -86,6 +87,11 @@ class StepStats:
         return SceneStepStats(self.substeps, int(self.newton_iterations[s]), float(self.residual[s]),
                               float(self.tolerance[s]), bool(self.converged[s]), bool(self.diverged[s]),
                               self.messages[s])
+
+
+#: The ``StepStats.elements`` of a scene that did not diverge (shared, read-only).
+NO_ELEMENTS = np.zeros(0, dtype=np.int64)
+NO_ELEMENTS.flags.writeable = False
 
 
 def stack_law_params(fields) -> np.ndarray:
@@ -161,6 +167,27 @@ class Solver:
             return load
         return m.materials[scene].young_modulus * m.mesh.min_edge_length ** 2
 
+    def force_scales(self, control: Control) -> np.ndarray:
+        """:meth:`force_scale` of every scene, ``(N,)`` N (the same numbers, in one pass)."""
+        m = self.model
+        weight = np.linalg.norm(m.gravity) * m.mass.sum()
+        if not control.external_forces.any():  # (+ 0.0: the same numbers)
+            return np.full(m.n_scenes, float(weight)) if weight > 0 else np.array(
+                [self.force_scale(s, control) for s in range(m.n_scenes)])
+        load = weight + np.abs(control.external_forces).reshape(m.n_scenes, -1).sum(axis=1)
+        if np.all(load > 0):
+            return load
+        return np.array([load[s] if load[s] > 0 else self.force_scale(s, control) for s in range(m.n_scenes)])
+
+    def suspect_scenes(self, x: np.ndarray, v: np.ndarray, scenes: np.ndarray) -> np.ndarray:
+        """Those of ``scenes`` (indices) whose ``x, v`` ``(N, n, 3)`` :meth:`divergence`
+        may flag (a non-finite value or a vertex above ``max_speed``); checking only
+        them gives the same verdicts as checking every scene."""
+        scenes = np.asarray(scenes, dtype=np.int64)
+        flagged = np.zeros(len(scenes), dtype=np.bool_)
+        _flag_suspects(x, v, scenes, self.max_speed, flagged)
+        return scenes[flagged]
+
     def divergence(self, x: np.ndarray, v: np.ndarray) -> tuple[str, np.ndarray]:
         """Why one scene's ``x, v`` ``(n, 3)`` counts as diverged, and the tets touching
         its bad vertices ("" and none if it does not)."""
@@ -169,9 +196,25 @@ class Solver:
             speed = np.sqrt((v * v).sum(axis=1))
         too_fast = speed > self.max_speed
         if not (bad_vertices.any() or too_fast.any()):
-            return "", np.zeros(0, dtype=np.int64)
+            return "", NO_ELEMENTS
         bad = bad_vertices | too_fast
         tets = np.flatnonzero(bad[self.model.mesh.tets].any(axis=1))
         what = "non-finite positions or velocities" if bad_vertices.any() else (
             f"speed {np.nanmax(speed):.3g} m/s above max_speed {self.max_speed:g} m/s")
         return what, tets
+
+
+@nb.njit(cache=True)
+def _flag_suspects(x, v, scenes, max_speed, flagged):
+    """``flagged[k]``: scene ``scenes[k]`` of ``x, v (N, n, 3)`` has a non-finite value or
+    a vertex faster than ``max_speed`` (m/s), compared as squares with a relative margin
+    of 1e-12 so that no vertex :meth:`Solver.divergence` calls too fast is missed."""
+    limit = max_speed * max_speed * (1.0 - 1e-12)
+    for k in range(scenes.shape[0]):
+        s = scenes[k]
+        for i in range(x.shape[1]):
+            speed2 = v[s, i, 0] * v[s, i, 0] + v[s, i, 1] * v[s, i, 1] + v[s, i, 2] * v[s, i, 2]
+            position = x[s, i, 0] + x[s, i, 1] + x[s, i, 2]
+            if not (np.isfinite(speed2) and np.isfinite(position) and speed2 <= limit):
+                flagged[k] = True
+                break

@@ -481,3 +481,21 @@ def lbfgs_steps_serial(x, v, targets, kinematic, fixed, mass, gravity, ext, alph
                          values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
                          vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
                          reaction[s], out[s])
+
+
+@nb.njit(cache=True)
+def count_report(run, out, iterations, residual, converged, feasible):
+    """Add one call's ``out (N, 4)`` report (iterations, force residual N, converged,
+    feasible start) of the ``run`` scenes into the step's ``iterations``, ``residual``
+    (the largest, NaN kept), ``converged`` and ``feasible`` (in place)."""
+    for s in range(run.shape[0]):
+        if not run[s]:
+            continue
+        iterations[s] += np.int64(out[s, 0])
+        r = out[s, 1]
+        if not np.isnan(residual[s]) and (np.isnan(r) or r > residual[s]):
+            residual[s] = r
+        if not out[s, 2] > 0.5:
+            converged[s] = False
+        if not out[s, 3] > 0.5:
+            feasible[s] = False

@@ -144,6 +144,7 @@ class QuasiNewtonSolver(Solver):
         self._memory[:, 1] = -1
         self._weights = None  # (N, 6, m) spring weights of the scenes' fields, see _spring_weights
         self._weights_of: list = []
+        self._constants = None  # the scenes' law constants, see _scene_constants
         self.factorizations = 0
 
     def laplacian(self) -> sp.csr_matrix:
@@ -183,7 +184,7 @@ class QuasiNewtonSolver(Solver):
         n = m.n_vertices
         if len(scenes) == 0:
             return
-        stiffness = np.array([self.stiffness(s) for s in range(m.n_scenes)])
+        stiffness = self._scene_constants()["stiffness"]
         if len(m.supports):
             d, normal = m.supports.signed_distance(x[scenes])
             contact = (d.reshape(len(scenes), n) <= self._contact_margin) & ~held[scenes]
@@ -258,7 +259,7 @@ class QuasiNewtonSolver(Solver):
         stats.residual[:] = 0.0
         h = dt / substeps
         held = control.kinematic | m.fixed[None, :]
-        tol = np.array([self.newton_tol * self.force_scale(s, control) for s in range(N)])
+        tol = self.newton_tol * self.force_scales(control)
         stats.tolerance[:] = tol
         x, v = state_out.x, state_out.v
         x0, v0 = x.copy(), v.copy()
@@ -269,7 +270,7 @@ class QuasiNewtonSolver(Solver):
         with np.errstate(all="ignore"):
             for k in range(1, substeps + 1):
                 run = active & feasible
-                saved = x[run], v[run], r_prev[run]
+                saved = x.copy(), v.copy(), r_prev.copy()  # (whole arrays: cheaper than a masked gather)
                 residual_before = stats.residual.copy()
                 contribution = np.zeros_like(x)
                 out = self._advance(args, run, h, 1.0 / (substeps - k + 1), k == 1, r_prev, contribution)
@@ -281,8 +282,7 @@ class QuasiNewtonSolver(Solver):
                     # take the sub-step again in ``factor`` shorter ones, from its start (the
                     # held vertices move a ``factor``-th as far per step, and the tissue in
                     # front of them has time to give way)
-                    sub = retry[run]
-                    x[retry], v[retry], r_prev[retry] = saved[0][sub], saved[1][sub], saved[2][sub]
+                    x[retry], v[retry], r_prev[retry] = saved[0][retry], saved[1][retry], saved[2][retry]
                     finer = np.zeros_like(x)
                     feasible[retry] = True
                     stats.converged[retry] = True
@@ -299,7 +299,9 @@ class QuasiNewtonSolver(Solver):
                     retry &= ~(feasible & stats.converged)
                 stats.reaction += contribution
         stats.reaction /= substeps
-        for s in np.flatnonzero(active):
+        check = active & ~(feasible & stats.converged)  # (the others: only those divergence may flag)
+        check[self.suspect_scenes(x, v, np.flatnonzero(active))] = True
+        for s in np.flatnonzero(check):
             reason, elements = self.divergence(x[s], v[s])
             if not feasible[s]:
                 reason = "no feasible start: the held vertices invert elements within one step"
@@ -322,13 +324,29 @@ class QuasiNewtonSolver(Solver):
         """What every call of the L-BFGS kernel in one step shares."""
         m = self.model
         fields = m.fields
-        split = all(f.split for f in fields)
-        use_q = any(f.use_q for f in fields)
-        return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, split=split, use_q=use_q,
+        c = self._scene_constants()
+        split = bool(c["split"].all())
+        return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, split=split,
+                    use_q=bool(c["use_q"].any()),
                     weights=self._spring_weights() if split else np.zeros((m.n_scenes, 6, 1)),
-                    laws=np.array([f.law_id for f in fields], dtype=np.int64),
-                    psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
-                    params=stack_law_params(fields), stiffness=np.array([self.stiffness(s) for s in range(m.n_scenes)]))
+                    laws=c["laws"], psi1=c["psi1"], params=c["params"], stiffness=c["stiffness"])
+
+    def _scene_constants(self) -> dict:
+        """The scenes' law ids, law constants (zero-padded), ``psi1`` (0 unless split),
+        split / ``use_q`` flags and :meth:`stiffness` (Pa), kept from step to step: rebuilt
+        only when a scene's field changed (a reset drew a new material)."""
+        fields, materials = self.model.fields, self.model.materials
+        c = self._constants
+        if c is not None and all(a is b for a, b in zip(c["of"], fields + materials)):
+            return c
+        self._constants = c = dict(
+            of=fields + materials,  # themselves (kept alive: ids could be reused)
+            laws=np.array([f.law_id for f in fields], dtype=np.int64),
+            psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
+            params=stack_law_params(fields),
+            stiffness=np.array([self.stiffness(s) for s in range(self.model.n_scenes)]),
+            split=np.array([f.split for f in fields]), use_q=np.array([f.use_q for f in fields]))
+        return c
 
     def _spring_weights(self) -> np.ndarray:
         """``(N, 6, m)`` the scenes' constant spring weights (Neo-Hookean), kept from step to
@@ -372,7 +390,4 @@ class QuasiNewtonSolver(Solver):
     @staticmethod
     def _count(stats: StepStats, run: np.ndarray, out: np.ndarray, feasible: np.ndarray) -> None:
         """Add one kernel call's report of the ``run`` scenes to ``stats`` (and ``feasible``)."""
-        stats.newton_iterations += np.where(run, out[:, 0], 0).astype(np.int64)
-        stats.residual = np.maximum(stats.residual, np.where(run, out[:, 1], 0.0))
-        stats.converged &= ~run | (out[:, 2] > 0.5)
-        feasible &= ~run | (out[:, 3] > 0.5)
+        kq.count_report(run, out, stats.newton_iterations, stats.residual, stats.converged, feasible)
