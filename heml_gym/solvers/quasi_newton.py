@@ -323,7 +323,6 @@ class QuasiNewtonSolver(Solver):
     def _kernel_args(self, state: State, control: Control, held: np.ndarray, tol: np.ndarray) -> dict:
         """What every call of the L-BFGS kernel in one step shares."""
         m = self.model
-        fields = m.fields
         c = self._scene_constants()
         split = bool(c["split"].all())
         return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, split=split,
