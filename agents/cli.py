@@ -139,7 +139,7 @@ def _sweep(args) -> int:
 
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
               "env_throughput", "scene_convergence", "scene_stability", "reliability", "scale_out",
-              "camera_throughput"]
+              "camera_throughput", "time_schemes"]
 
 
 def _bench(args) -> int:

@@ -32,6 +32,7 @@ scene, for the top of docs/scene_convergence.md) and docs/img/scene_convergence*
 
     python benchmarks/scene_convergence.py [tissue] [organ] [--quick] [--from-json]
     python benchmarks/scene_convergence.py tissue --variation {jaws_adhesion,jaws,adhesion}
+    python benchmarks/scene_convergence.py organ --variation {jaws_adhesion,jaws,adhesion}
 """
 
 from __future__ import annotations
@@ -51,17 +52,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs import scripted  # noqa: E402
 from heml_gym.envs.organ_retraction import DEFAULT_JAW_SIZE, OrganRetractionEnv, organ_scene  # noqa: E402
+from heml_gym.envs.organ_retraction import JAWS_AND_ADHESION as ORGAN_JAWS_AND_ADHESION  # noqa: E402
 from heml_gym.envs.tissue_retraction import JAWS_AND_ADHESION, TissueRetractionEnv, tissue_scene  # noqa: E402
 
 TOLERANCE = 0.05
 #: the scenes by their command-line names
 SCENE_ARGS = {"tissue": "TissueRetraction", "organ": "OrganRetraction"}
 #: ``--variation``: per-episode variation that is not a default, applied to every model of
-#: the flap: ``configs/quick_jaws_adhesion.yaml``'s 40 mm jaws and 0-20 mm of adhesion,
-#: and each of the two alone (which of them a mesh fails on)
-VARIATIONS = {"jaws_adhesion": JAWS_AND_ADHESION,
-              "jaws": {"gripper": JAWS_AND_ADHESION["gripper"]},
-              "adhesion": {"adhesion": JAWS_AND_ADHESION["adhesion"]}}
+#: a scene, both together and each alone (which of them a mesh fails on). The flap:
+#: ``configs/quick_jaws_adhesion.yaml``'s 40 mm jaws and 0-20 mm of adhesion; the lobe:
+#: 20 mm jaws (the middle half of the 40 mm footprint, where they close) and its underside
+#: stuck to the support 0-60 mm out from the base.
+VARIATIONS = {scene: {"jaws_adhesion": both, "jaws": {"gripper": both["gripper"]},
+                      "adhesion": {"adhesion": both["adhesion"]}}
+              for scene, both in (("TissueRetraction", JAWS_AND_ADHESION),
+                                  ("OrganRetraction", ORGAN_JAWS_AND_ADHESION))}
 
 
 @dataclass(frozen=True)
@@ -96,7 +101,7 @@ def _tag(physics) -> str:
     if "material" in p:
         parts.append({"StVenantKirchhoff": "StVK", "StableNeoHookean": "SNH"}.get(p["material"], p["material"]))
     if p.get("integrator", "explicit") != "explicit":
-        parts.append(f"{p['integrator']} dt={p.get('max_dt', 1 / 30):.3g}")
+        parts.append(f"{p['integrator']}{' BDF2' if p.get('scheme') == 'bdf2' else ''} dt={p.get('max_dt', 1 / 30):.3g}")
         if "newton_tol" in p:
             parts.append(f"tol={p['newton_tol']:g}")
     return (" " + " ".join(parts)) if parts else ""
@@ -148,6 +153,8 @@ SCENES = {
                 tissue((12, 12, 1), **QN), tissue((12, 12, 1), **{**QN, "newton_tol": 1e-2}),
                 tissue((12, 12, 1), **{**QN, "max_dt": 0.1}), tissue((8, 8, 1), **QN), tissue((10, 10, 1), **QN),
                 tissue((16, 16, 2), **QN),
+                # the same by BDF2 (second order, the same cost per step)
+                tissue((12, 12, 1), **QN, scheme="bdf2"), tissue((12, 12, 1), **{**QN, "max_dt": 0.1}, scheme="bdf2"),
                 tissue((12, 12, 1), integrator="implicit", max_dt=0.1),
                 tissue((12, 12, 1), integrator="implicit", max_dt=0.05),
                 # the other laws on the default mesh and integrator
@@ -169,6 +176,9 @@ SCENES = {
                 organ(0.010, jaw=J, **ORGAN_QN), organ(0.007, jaw=0.003, **ORGAN_QN),
                 organ(0.008, **ORGAN_QN), organ(0.007, **ORGAN_QN), organ(0.006, edge=0.004, **ORGAN_QN),
                 organ(0.005, edge=0.003, **ORGAN_QN),
+                # the same by BDF2 (second order, the same cost per step)
+                organ(0.008, jaw=J, **ORGAN_QN, scheme="bdf2"),
+                organ(0.008, jaw=J, **{**ORGAN_QN, "max_dt": 0.1}, scheme="bdf2"),
                 organ(0.008, jaw=J, integrator="implicit", max_dt=0.1),
                 organ(0.008, jaw=J, integrator="implicit", max_dt=0.05)],
         # the finest meshes of benchmarks/grasp_convergence.py (0.9 % apart there)
@@ -177,11 +187,31 @@ SCENES = {
 }
 
 
-#: ``--variation`` runs the flap's models and these: more rows along the grasp edge, more
-#: layers, a finer grid of one layer (where the error comes from)
-VARIATION_SPEC = {**SCENES["TissueRetraction"],
-                  "models": SCENES["TissueRetraction"]["models"]
-                  + [tissue((12, 12, 2), **QN), tissue((12, 24, 1), **QN), tissue((16, 16, 1), **QN)]}
+#: ``--variation`` runs, on the flap, its models and these: more rows along the grasp edge,
+#: more layers, a finer grid of one layer (where the error comes from); on the lobe, the
+#: default, its mesh stepped explicitly, by L-BFGS in half the step and by BDF2 (the
+#: integrator's share of the error), and finer meshes by L-BFGS (is there a model within
+#: 5 %, and at what cost)
+VARIATION_SPECS = {
+    "TissueRetraction": {**SCENES["TissueRetraction"],
+                         "models": SCENES["TissueRetraction"]["models"]
+                         + [tissue((12, 12, 2), **QN), tissue((12, 24, 1), **QN), tissue((16, 16, 1), **QN)]},
+    "OrganRetraction": {**SCENES["OrganRetraction"],
+                        "models": [organ(0.008, 0.75, jaw=J), organ(0.008, jaw=J, **ORGAN_QN),
+                                   organ(0.008, jaw=J, **{**ORGAN_QN, "max_dt": 0.025}),
+                                   organ(0.008, jaw=J, **ORGAN_QN, scheme="bdf2"),
+                                   organ(0.008, jaw=J, **{**ORGAN_QN, "max_dt": 0.1}, scheme="bdf2"),
+                                   organ(0.007, jaw=0.003, **ORGAN_QN), organ(0.006, jaw=J, **ORGAN_QN),
+                                   organ(0.006, edge=0.004, **ORGAN_QN), organ(0.005, edge=0.003, **ORGAN_QN),
+                                   organ(0.005, jaw=J, **ORGAN_QN)],
+                        "check": (SCENES["OrganRetraction"]["check"][0], ())},
+}
+
+
+def variation_name(scene: str, variation: str) -> str:
+    """The results name of ``--variation``: ``scene_convergence_VARIATION`` for the flap (as
+    first stored), ``scene_convergence_organ_VARIATION`` for the lobe."""
+    return f"scene_convergence_{variation}" if scene == "TissueRetraction" else f"scene_convergence_organ_{variation}"
 
 
 def record(scene: str, model: Model, seed: int, steps: int, changes: dict | None = None) -> tuple[np.ndarray, int]:
@@ -578,24 +608,27 @@ def main(argv=None):
     ap.add_argument("--rerun", choices=("quasi_newton", "explicit", "implicit"), default=None,
                     help="replay only the models of this integrator (after a change to its solver), keeping the "
                          "stored runs of the others; stops if the default's scripted path changed")
-    ap.add_argument("--variation", choices=sorted(VARIATIONS), default=None,
-                    help="the flap with per-episode variation that is not a default (every model); writes only "
-                         "docs/benchmarks/scene_convergence_VARIATION.{json,md}")
+    ap.add_argument("--variation", choices=sorted(VARIATIONS["TissueRetraction"]), default=None,
+                    help="one scene with per-episode variation that is not a default (every model); writes only "
+                         "docs/benchmarks/scene_convergence_VARIATION.{json,md} (the lobe: "
+                         "scene_convergence_organ_VARIATION)")
     args = ap.parse_args(argv)
     if args.variation:
-        if args.scenes != ["tissue"] or args.from_json or args.rerun or args.quick:
-            ap.error("--variation: run it as 'scene_convergence.py tissue --variation NAME' alone")
+        if len(args.scenes) != 1 or args.scenes[0] not in SCENE_ARGS or args.from_json or args.rerun or args.quick:
+            ap.error("--variation: run it as 'scene_convergence.py tissue --variation NAME' (or organ) alone")
+        scene = SCENE_ARGS[args.scenes[0]]
+        changes = VARIATIONS[scene][args.variation]
+        name = variation_name(scene, args.variation)
         numba.set_num_threads(1)
         start = time.perf_counter()
-        results = {"TissueRetraction": run_scene("TissueRetraction", VARIATION_SPEC, False,
-                                                 VARIATIONS[args.variation])}
-        md = (f"The flap with `--variation {args.variation}` ({VARIATIONS[args.variation]}) on every model: not the "
+        results = {scene: run_scene(scene, VARIATION_SPECS[scene], False, changes)}
+        what = "The flap" if scene == "TissueRetraction" else "The lobe"
+        md = (f"{what} with `--variation {args.variation}` ({changes}) on every model: not the "
               "default task; the tables of docs/scene_convergence.md are the default's.\n\n"
               + markdown(results, time.perf_counter() - start))
-        write_json(f"scene_convergence_{args.variation}.json",
-                   {"machine": machine_info(), "wall_s": time.perf_counter() - start, "variation": args.variation,
-                    "changes": VARIATIONS[args.variation], "results": results})
-        (RESULTS / f"scene_convergence_{args.variation}.md").write_text(md)
+        write_json(f"{name}.json", {"machine": machine_info(), "wall_s": time.perf_counter() - start,
+                                    "variation": args.variation, "changes": changes, "results": results})
+        (RESULTS / f"{name}.md").write_text(md)
         print(md)
         return
     unknown = set(args.scenes) - set(SCENE_ARGS)

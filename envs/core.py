@@ -140,7 +140,8 @@ class BatchedRetraction:
             # scene and batch, so a scene's trajectory does not depend on its neighbours
             self.substeps = self.solver.substeps(dt, self.model.critical_dt(material=ph.material_for(E_high)))
         elif ph.integrator == "quasi_newton":
-            self.solver = QuasiNewtonSolver(self.model, newton_tol=ph.newton_tol, max_iter=ph.max_newton)
+            self.solver = QuasiNewtonSolver(self.model, newton_tol=ph.newton_tol, max_iter=ph.max_newton,
+                                            scheme=ph.scheme)
             self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))
         else:
             self.solver = ImplicitSolver(self.model, newton_tol=ph.newton_tol, max_newton=ph.max_newton)

@@ -92,6 +92,14 @@ def _top_z(x: float) -> float:
 JAW_WIDTH = 0.006
 
 
+#: the lobe's flat underside (a scene region: it rests on the support at z = 0), and its
+#: per-episode variation that is not a default (changes to the scene; docs/envs.md): 20 mm
+#: jaws (the middle half of the 40 mm footprint, where they close) and the underside stuck
+#: to the support 0-60 mm out from the base
+UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0], "tolerance": 1e-6}
+JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.02}, "adhesion": {"region": UNDERSIDE, "width": [0.0, 0.06]}}
+
+
 def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "patch",
                 jaw_size: float | None = DEFAULT_JAW_SIZE) -> Scene:
     """The liver-lobe scene meshed at ``mesh_size`` metres.

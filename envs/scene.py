@@ -27,7 +27,7 @@ from heml_gym import box_mesh, load_mesh, materials, organs
 from heml_gym.contact import MeshSupport, PlaneSupport
 from heml_gym.mesh import TetMesh
 from heml_gym.model import FORCE_FIELDS
-from heml_gym.solvers import INTEGRATORS
+from heml_gym.solvers import INTEGRATORS, QuasiNewtonSolver
 
 from .spec import SpecError, from_mapping, invalid, merge, to_mapping
 
@@ -36,6 +36,7 @@ __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "Adhe
 
 #: Material laws by class name (``physics.material``).
 LAWS = {cls.__name__: cls for cls in materials.ALL_MATERIALS}
+SCHEMES = tuple(QuasiNewtonSolver.SCHEMES)  # the implicit steps' time discretisations
 #: Procedural organs (``tissue.organ``): name -> mesher in :mod:`heml_gym.organs`.
 ORGANS = {"liver_lobe": organs.liver_lobe_mesh, "kidney": organs.kidney_mesh, "uterus": organs.uterus_mesh,
           "fat_flap": organs.fat_flap_mesh, "irregular_cube": organs.irregular_cube_mesh}
@@ -104,7 +105,9 @@ class PhysicsSpec:
     tissue the scene can draw), ``"implicit"`` (backward Euler steps of at most
     ``max_dt`` s, Newton to ``newton_tol`` of the weight in at most ``max_newton``
     iterations) or ``"quasi_newton"`` (the same steps by L-BFGS from a constant
-    factorised Hessian, at most ``max_newton`` iterations; HEML fields only).
+    factorised Hessian, at most ``max_newton`` iterations; HEML fields only);
+    ``scheme``: the implicit steps' time discretisation, ``"backward_euler"`` or, with
+    ``"quasi_newton"``, ``"bdf2"`` (second order, the same cost per step).
     """
 
     material: str = "NeoHookean"
@@ -120,6 +123,7 @@ class PhysicsSpec:
     max_dt: float = 1.0 / 30.0
     newton_tol: float = 1e-3
     max_newton: int = 20
+    scheme: str = "backward_euler"
 
     def __post_init__(self):
         if self.material not in LAWS:
@@ -156,6 +160,10 @@ class PhysicsSpec:
             raise invalid(self, "newton_tol", f"must be a positive number, got {self.newton_tol}")
         if self.max_newton < 1:
             raise invalid(self, "max_newton", f"must be >= 1, got {self.max_newton}")
+        if self.scheme not in SCHEMES:
+            raise invalid(self, "scheme", f"must be one of {sorted(SCHEMES)}, got {self.scheme!r}")
+        if self.scheme == "bdf2" and self.integrator != "quasi_newton":
+            raise invalid(self, "scheme", f"'bdf2' needs integrator 'quasi_newton', got {self.integrator!r}")
 
     def material_for(self, young_modulus: float) -> materials.Material:
         """The scene's law with Young's modulus ``young_modulus`` (Pa)."""

@@ -5,7 +5,7 @@ iterations, residual against tolerance, converged, diverged, constraint reaction
 
 * :class:`ExplicitSolver`: symplectic Euler, sub-stepped below the critical step;
 * :class:`ImplicitSolver`: backward Euler, Newton with the analytic Hessian;
-* :class:`QuasiNewtonSolver`: backward Euler, L-BFGS from a constant factorised Hessian;
+* :class:`QuasiNewtonSolver`: backward Euler (or BDF2), L-BFGS from a constant factorised Hessian;
 * :class:`StaticSolver`: equilibrium (``solve(state, control)``).
 """
 

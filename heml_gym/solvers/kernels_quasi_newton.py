@@ -2,10 +2,16 @@
 of :func:`_lbfgs_scene`, scenes over threads in :func:`lbfgs_steps_parallel`, and the
 assembly and factorisation of its scalar initial Hessians (:func:`factor_jobs`).
 
-Each step minimises the incremental potential of backward Euler over the free vertices,
+Each step minimises the incremental potential of backward Euler (or of BDF2) over the free
+vertices,
 
     Phi(x) = c/2 sum_i m_i |x_i - x_hat_i|^2 + W(x) - sum_i (f_ext,i + m_i g) . x_i
-             + sum_i k_i/2 min(d_i(x), 0)^2,       c = 1/h^2 + alpha/h,
+             + sum_i k_i/2 min(d_i(x), 0)^2,
+
+backward Euler: ``c = 1/h^2 + alpha/h``, ``x_hat = x_n + h v_n / (1 + alpha h)``;
+BDF2 (second order, ``v_n+1 = (3 x_n+1 - 4 x_n + x_n-1) / 2h``, the same for the
+acceleration): ``c = 9/(4 h^2) + 3 alpha/(2 h)``, ``x_hat = (3 p/(4 h^2) + q/(2 h) + alpha
+p/(2 h)) / c`` with ``p = 4 x_n - x_n-1``, ``q = 4 v_n - v_n-1`` (see :func:`inertia`),
 
 by L-BFGS whose initial Hessian is, on each axis ``a``, the scalar matrix
 
@@ -35,6 +41,16 @@ from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, consta
                                    heml_energy_chunk, heml_forces_chunk)
 from ..kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
 from ..kernels_contact import signed_distances
+
+
+@nb.njit(cache=True)
+def inertia(order, h, alpha):
+    """``c`` (1/s^2) of a step of length ``h`` (s) with mass damping ``alpha`` (1/s):
+    the weight of ``M`` in the incremental potential and its Hessian; ``order`` 1:
+    backward Euler, 2: BDF2."""
+    if order == 2:
+        return 2.25 / (h * h) + 1.5 * alpha / h
+    return 1.0 / (h * h) + alpha / h
 
 
 # ------------------------------------------------------------------ initial Hessians
@@ -253,8 +269,19 @@ def _positive_volumes(x, tets, inv_det, vt_ptr, vt_tets, moved):
 def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, tets, coef_t, q_t, use_q,
                  law, p, split, w, psi1, inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values,
                  axis_slot, edge_i, edge_j, edge_w, stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho,
-                 memory, first_substep, r_prev, reaction, out):
-    """One backward Euler sub-step of one scene by L-BFGS, in place on ``x, v`` ``(n, 3)``.
+                 memory, first_substep, r_prev, reaction, out, order, x_prev, v_prev, history_h):
+    """One backward Euler (``order`` 1) or BDF2 (``order`` 2) sub-step of one scene by
+    L-BFGS, in place on ``x, v`` ``(n, 3)``.
+
+    BDF2 reads the state one step back from ``x_prev``, ``v_prev`` when ``history_h[0]``
+    is this step's length ``h``, else it expands the state about the step's start with its
+    acceleration (``x_n-1 = x_n - h v_n + h^2 a_n / 2``, ``v_n-1 = v_n - h a_n``, supports
+    aside): a start that keeps the scheme second order, at the cost of one force
+    evaluation. Either way the step's start is stored there after the step
+    (``history_h[0] = h``). Held and fixed vertices follow their prescribed path, straight
+    within a step and turning between steps (the gripper's commands): their velocity is
+    the step's displacement over ``h`` and their inertia in the reaction ``m (v - v_n) /
+    h`` under either scheme (BDF2's formula would read a turn as a spurious acceleration).
 
     Held (``kinematic``) vertices move a ``fraction`` of the way from where they are to
     their ``targets``; fixed ones stay. The free vertices start from the explicit
@@ -266,7 +293,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     ``(iterations, residual (N), converged, feasible)``.
     """
     n = x.shape[0]
-    c = 1.0 / (h * h) + alpha / h
+    c = inertia(order, h, alpha)
     k_contact = kappa * c
     x_n = x.copy()
     v_n = v.copy()
@@ -278,6 +305,21 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
         for d in range(3):
             load[i, d] = ext[i, d] + mass[i] * gravity[d]
     f = np.empty((n, 3))
+    # BDF2: the state one step back, kept from the last step if it had this length, else
+    # its Taylor expansion about the start with the start's acceleration (held and fixed
+    # vertices: their constant-velocity history), which keeps the scheme second order
+    x_m = np.empty((n, 3))
+    v_m = np.empty((n, 3))
+    if order == 2 and history_h[0] == h:
+        x_m[:, :] = x_prev
+        v_m[:, :] = v_prev
+    elif order == 2:
+        elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+        for i in range(n):
+            for d in range(3):
+                a0 = 0.0 if held[i] else (f[i, d] + load[i, d]) / mass[i] - alpha * v_n[i, d]
+                x_m[i, d] = x_n[i, d] - h * v_n[i, d] + 0.5 * h * h * a0
+                v_m[i, d] = v_n[i, d] - h * a0
     # the start's holding force: what held vertices need to stay put (quasi-static)
     if first_substep:
         held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
@@ -289,7 +331,12 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     any_jump = False
     for i in range(n):
         for d in range(3):
-            x_hat[i, d] = x_n[i, d] + h * v_n[i, d] / (1.0 + alpha * h)
+            if order == 2:
+                p_i = 4.0 * x_n[i, d] - x_m[i, d]
+                q_i = 4.0 * v_n[i, d] - v_m[i, d]
+                x_hat[i, d] = (0.75 * p_i / (h * h) + 0.5 * q_i / h + 0.5 * alpha * p_i / h) / c
+            else:
+                x_hat[i, d] = x_n[i, d] + h * v_n[i, d] / (1.0 + alpha * h)
         if kinematic[i] and not fixed[i]:
             for d in range(3):
                 xi = x[i, d] + (targets[i, d] - x[i, d]) * fraction
@@ -425,7 +472,10 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
         moved = True
     for i in range(n):
         for d in range(3):
-            v[i, d] = (x[i, d] - x_n[i, d]) / h
+            if order == 2 and not held[i]:
+                v[i, d] = (3.0 * x[i, d] - 4.0 * x_n[i, d] + x_m[i, d]) / (2.0 * h)
+            else:
+                v[i, d] = (x[i, d] - x_n[i, d]) / h
         if inside[i]:
             vn = min(v[i, 0] * normal[i, 0] + v[i, 1] * normal[i, 1] + v[i, 2] * normal[i, 2], 0.0)
             for d in range(3):
@@ -437,7 +487,8 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     for i in range(n):
         if held[i]:
             for d in range(3):
-                r_end = mass[i] * (v[i, d] - v_n[i, d]) / h - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
+                inertial = mass[i] * (v[i, d] - v_n[i, d]) / h
+                r_end = inertial - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
                 reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
                 r_prev[i, d] = r_end
         else:
@@ -445,6 +496,9 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
                 r_prev[i, d] = 0.0
     memory[0] = stored
     memory[1] = newest
+    x_prev[:, :] = x_n
+    v_prev[:, :] = v_n
+    history_h[0] = h
     out[0], out[1], out[2], out[3] = float(it), gnorm, 1.0 if gnorm <= tol else 0.0, 1.0
 
 
@@ -453,7 +507,7 @@ def lbfgs_steps_parallel(x, v, targets, kinematic, fixed, mass, gravity, ext, al
                          tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
                          grid_values, kappa, inverse, first, ptr, values, entry, axis_slot, edge_i, edge_j, edge_w,
                          stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active,
-                         r_prev, reaction, out):
+                         r_prev, reaction, out, order, x_prev, v_prev, history_h):
     """:func:`_lbfgs_scene` for every active scene (leading axis N), scenes over threads;
     scene ``s`` preconditions with its current initial Hessian ``values[s, entry[s]]``."""
     for s in prange(x.shape[0]):
@@ -463,7 +517,7 @@ def lbfgs_steps_parallel(x, v, targets, kinematic, fixed, mass, gravity, ext, al
                          psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr,
                          values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
                          vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
-                         reaction[s], out[s])
+                         reaction[s], out[s], order, x_prev[s], v_prev[s], history_h[s:s + 1])
 
 
 @nb.njit(cache=True)
@@ -471,7 +525,7 @@ def lbfgs_steps_serial(x, v, targets, kinematic, fixed, mass, gravity, ext, alph
                        tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
                        grid_values, kappa, inverse, first, ptr, values, entry, axis_slot, edge_i, edge_j, edge_w,
                        stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active,
-                       r_prev, reaction, out):
+                       r_prev, reaction, out, order, x_prev, v_prev, history_h):
     """:func:`lbfgs_steps_parallel` scene after scene."""
     for s in range(x.shape[0]):
         if active[s]:
@@ -480,7 +534,7 @@ def lbfgs_steps_serial(x, v, targets, kinematic, fixed, mass, gravity, ext, alph
                          psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr,
                          values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
                          vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
-                         reaction[s], out[s])
+                         reaction[s], out[s], order, x_prev[s], v_prev[s], history_h[s:s + 1])
 
 
 @nb.njit(cache=True)
