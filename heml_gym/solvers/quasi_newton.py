@@ -301,7 +301,6 @@ class QuasiNewtonSolver(Solver):
             for k in range(1, substeps + 1):
                 run = active & feasible
                 saved = x.copy(), v.copy(), r_prev.copy()  # (whole arrays: cheaper than a masked gather)
-                history = (self._x_prev.copy(), self._v_prev.copy(), self._history_h.copy()) if self.order == 2 else None
                 residual_before = stats.residual.copy()
                 contribution = np.zeros_like(x)
                 out = self._advance(args, run, h, 1.0 / (substeps - k + 1), k == 1, r_prev, contribution)
@@ -314,9 +313,6 @@ class QuasiNewtonSolver(Solver):
                     # held vertices move a ``factor``-th as far per step, and the tissue in
                     # front of them has time to give way)
                     x[retry], v[retry], r_prev[retry] = saved[0][retry], saved[1][retry], saved[2][retry]
-                    if history is not None:
-                        self._x_prev[retry], self._v_prev[retry] = history[0][retry], history[1][retry]
-                        self._history_h[retry] = history[2][retry]
                     finer = np.zeros_like(x)
                     feasible[retry] = True
                     stats.converged[retry] = True
