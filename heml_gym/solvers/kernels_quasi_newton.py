@@ -277,7 +277,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     is this step's length ``h``, else it expands the state about the step's start with its
     acceleration (``x_n-1 = x_n - h v_n + h^2 a_n / 2``, ``v_n-1 = v_n - h a_n``, supports
     aside): a start that keeps the scheme second order, at the cost of one force
-    evaluation. Either way the step's start is stored there after the step
+    evaluation. Either way BDF2 stores the step's start there after the step
     (``history_h[0] = h``). Held and fixed vertices follow their prescribed path, straight
     within a step and turning between steps (the gripper's commands): their velocity is
     the step's displacement over ``h`` and their inertia in the reaction ``m (v - v_n) /
@@ -496,9 +496,10 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
                 r_prev[i, d] = 0.0
     memory[0] = stored
     memory[1] = newest
-    x_prev[:, :] = x_n
-    v_prev[:, :] = v_n
-    history_h[0] = h
+    if order == 2:
+        x_prev[:, :] = x_n
+        v_prev[:, :] = v_n
+        history_h[0] = h
     out[0], out[1], out[2], out[3] = float(it), gnorm, 1.0 if gnorm <= tol else 0.0, 1.0
 
 
