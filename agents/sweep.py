@@ -286,6 +286,7 @@ def chart(trials: list[Trial], summary: dict, path: Path) -> None:
             ax.plot(grid_steps, centre, color="black", lw=2, label="IQM across seeds")
             ax.fill_between(grid_steps, lo, hi, color="black", alpha=0.12, label="95 % bootstrap interval")
         ax.set_xlabel("env steps")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v / 1000:g} k"))
         wall_ax.set_xlabel("wall time (min, one CPU per trial)")
         ax.set_title(", ".join(f"{k}={v}" for k, v in point["grid_point"].items()) or "all seeds", fontsize=9)
         for a in (ax, wall_ax):
