@@ -12,6 +12,10 @@ independent integrator, first order in its tiny step):
   pulled 0.5 mm per 0.05 s step, sagging under gravity from flat: the held end's vertical
   reaction per 0.05 s env step, each scheme with 1 and with 8 sub-steps. The slab's
   first sag oscillation lasts about three 0.05 s steps.
+* **robustness on the env scenes**: both envs' default physics under each scheme, 16
+  scenes stepped together, the same seeded stream of actions for both (every third step
+  extreme: each command at +-1; the others uniform in [-1, 1]): how many env steps were
+  unconverged, diverged, re-taken in shorter steps, or non-finite.
 
 Writes docs/benchmarks/time_schemes.{json,md} and docs/img/time_schemes.png.
 
@@ -75,6 +79,32 @@ def pulled(kind: str, substeps: int, steps: int = 12, dt: float = 0.05) -> list[
     return series
 
 
+def soak(env_id: str, scheme: str, vector_steps: int, num_envs: int = 16) -> dict:
+    """Counts of troubled env steps of ``env_id`` under ``scheme`` (see the docstring)."""
+    import gymnasium as gym
+
+    import heml_gym.envs  # noqa: F401
+
+    venv = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
+                        physics={"scheme": scheme})
+    obs, _ = venv.reset(seed=7)
+    rng = np.random.default_rng(7)
+    counts = dict(env_steps=0, unconverged=0, diverged=0, refined=0, non_finite=0, episodes=0)
+    for k in range(vector_steps):
+        a = rng.uniform(-1.0, 1.0, (num_envs, 4))
+        if k % 3 == 0:
+            a = np.sign(a)
+        obs, reward, terminated, truncated, info = venv.step(a.astype(np.float32))
+        counts["env_steps"] += num_envs
+        counts["unconverged"] += int((~info["solver_converged"]).sum())
+        counts["diverged"] += int(info["simulation_diverged"].sum())
+        counts["refined"] += int((info["substep_refinement"] > 1).sum())
+        counts["non_finite"] += int((~np.isfinite(obs)).any(axis=1).sum() + (~np.isfinite(reward)).sum())
+        counts["episodes"] += int((terminated | truncated).sum())
+    venv.close()
+    return counts
+
+
 def main() -> int:
     start = time.perf_counter()
     steps = (0.02, 0.01, 0.005, 0.0025)
@@ -87,9 +117,11 @@ def main() -> int:
     ref = np.array(reaction["explicit"])
     peak = float(np.abs(ref).max())
     deviation = {k: float(np.abs(np.array(v) - ref).max() / peak) for k, v in reaction.items() if k != "explicit"}
+    robustness = {env_id: {kind: soak(env_id, kind, n) for kind in SCHEMES}
+                  for env_id, n in (("heml_gym/TissueRetraction-v0", 1200), ("heml_gym/OrganRetraction-v0", 500))}
     result = {"machine": machine_info(), "wall_s": time.perf_counter() - start, "steps_s": list(steps),
               "order_errors_m": order, "reaction_N": reaction, "reaction_deviation_of_peak": deviation,
-              "command": "python benchmarks/time_schemes.py"}
+              "robustness": robustness, "command": "python benchmarks/time_schemes.py"}
     write_json("time_schemes.json", result)
     (RESULTS / "time_schemes.md").write_text(markdown(result))
     chart(result, IMAGES / "time_schemes.png")
@@ -118,6 +150,13 @@ def markdown(r: dict) -> str:
                          [[k + 1] + [f"{1e3 * r['reaction_N'][key][k]:.1f}" for key in keys] for k in range(n)]
                          + [["deviation"] + ["-"] + [f"{100 * r['reaction_deviation_of_peak'][key]:.1f} %"
                                                       for key in keys[1:]]])
+    md += ("\n**Robustness on the env scenes** (default physics under each scheme, 16 scenes, the same actions; "
+           "every third env step extreme):\n\n")
+    md += markdown_table(["env", "scheme", "env steps", "unconverged", "diverged", "re-taken shorter", "non-finite",
+                          "episodes"],
+                         [[env_id.split("/")[-1], kind, c["env_steps"], c["unconverged"], c["diverged"], c["refined"],
+                           c["non_finite"], c["episodes"]]
+                          for env_id, by in r["robustness"].items() for kind, c in by.items()])
     md += "\n![error against step, and the reaction per env step](../img/time_schemes.png)\n"
     return md
 
