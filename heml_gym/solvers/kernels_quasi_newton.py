@@ -308,8 +308,8 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     # BDF2: the state one step back, kept from the last step if it had this length, else
     # its Taylor expansion about the start with the start's acceleration (held and fixed
     # vertices: their constant-velocity history), which keeps the scheme second order
-    x_m = np.empty((n, 3))
-    v_m = np.empty((n, 3))
+    x_m = np.empty((n if order == 2 else 0, 3))  # (backward Euler reads neither)
+    v_m = np.empty((n if order == 2 else 0, 3))
     if order == 2 and history_h[0] == h:
         x_m[:, :] = x_prev
         v_m[:, :] = v_prev
