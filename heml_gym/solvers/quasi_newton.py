@@ -162,8 +162,9 @@ class QuasiNewtonSolver(Solver):
         self._memory = np.zeros((N, 2), dtype=np.int64)
         self._memory[:, 1] = -1
         # BDF2: each scene's state one step back, and that step's length (0: none)
-        self._x_prev = np.zeros((N, n, 3))
-        self._v_prev = np.zeros((N, n, 3))
+        kept = n if self.order == 2 else 0  # (backward Euler keeps none)
+        self._x_prev = np.zeros((N, kept, 3))
+        self._v_prev = np.zeros((N, kept, 3))
         self._history_h = np.zeros(N)
         self._weights = None  # (N, 6, m) spring weights of the scenes' fields, see _spring_weights
         self._weights_of: list = []
