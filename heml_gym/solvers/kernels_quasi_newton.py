@@ -487,8 +487,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     for i in range(n):
         if held[i]:
             for d in range(3):
-                inertial = mass[i] * (v[i, d] - v_n[i, d]) / h
-                r_end = inertial - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
+                r_end = mass[i] * (v[i, d] - v_n[i, d]) / h - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
                 reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
                 r_prev[i, d] = r_end
         else:

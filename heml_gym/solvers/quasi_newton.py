@@ -20,8 +20,9 @@ release after a grasp, the normal step after a refined one) costs no factorisati
 formula (``v_n+1 = (3 x_n+1 - 4 x_n + x_n-1) / 2h``, the same for the acceleration): the
 same potential to minimise with another weight of the inertia and another predicted
 position, so the same cost per step, and far less numerical damping (backward Euler's
-error is first order in the step; at the envs' 0.05 s steps it is the larger part of their
-models' error on the retraction scenes). It reads the state one step back; a scene without
+error is first order in the step). On the retraction scenes' 0.05-0.1 s steps it is no
+more accurate and less robust: those steps do not resolve the tissue's sag oscillation,
+which backward Euler damps out (docs/dynamics.md). It reads the state one step back; a scene without
 one (its first step, or after :meth:`QuasiNewtonSolver.forget`, a refined step, or a change
 of step length) expands it about the step's start with the start's acceleration, which
 keeps the scheme second order. Both schemes are A-stable.
@@ -272,11 +273,12 @@ class QuasiNewtonSolver(Solver):
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
-        steps of the scheme (backward Euler or BDF2). A sub-step whose L-BFGS stops above its tolerance, or that
-        has no start without inverted elements (held vertices driven into the tissue faster
-        than it can give way), is taken again in ``refinements[0]`` shorter steps, then
-        ``refinements[1]``, ... (more inertia per step: a better conditioned, more convex
-        potential, e.g. when the tissue buckles; and a shorter move of the held vertices);
+        steps of the scheme (backward Euler or BDF2). A sub-step whose L-BFGS stops above
+        its tolerance, or that has no start without inverted elements (held vertices driven
+        into the tissue faster than it can give way), is taken again in ``refinements[0]``
+        shorter steps, then ``refinements[1]``, ... (more inertia per step: a better
+        conditioned, more convex potential, e.g. when the tissue buckles; and a shorter
+        move of the held vertices);
         ``StepStats.refinement`` says by how much. A scene that goes non-finite, explodes
         or still cannot start is flagged ``diverged`` (its state kept); one whose solve
         still stops above tolerance ``converged = False``."""
