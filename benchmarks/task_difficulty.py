@@ -21,7 +21,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine_info, markdown_table, write_json  # noqa: E402
-from heml_gym.envs.organ_retraction import JAWS_AND_ADHESION as ORGAN_JAWS_AND_ADHESION  # noqa: E402
 from heml_gym.envs.tissue_retraction import JAWS_AND_ADHESION  # noqa: E402
 
 ENVS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
@@ -36,11 +35,10 @@ VARIANTS = [
     ("heml_gym/TissueRetraction-v0", "30 mm jaws", {"scene": {"gripper": {"jaw_length": 0.03}}}),
     ("heml_gym/OrganRetraction-v0", "20 mm jaws: the middle 20 mm of the 40 mm footprint held",
      {"scene": {"gripper": {"jaw_length": 0.02}}}),
-    ("heml_gym/OrganRetraction-v0", "the underside stuck to the support 0-60 mm out from the base (scene.adhesion)",
-     {"scene": {"adhesion": ORGAN_JAWS_AND_ADHESION["adhesion"]}}),
-    ("heml_gym/OrganRetraction-v0", "both (organ_retraction.JAWS_AND_ADHESION)", {"scene": ORGAN_JAWS_AND_ADHESION}),
-    ("heml_gym/OrganRetraction-v0", "the target beneath the lobe's base third (x 30-45 mm; level 2: 15-27.5 mm)",
-     {"scene": {"target": {"low": [0.03, -0.02, -0.023], "high": [0.045, 0.02, -0.023]}}}),
+    ("heml_gym/OrganRetraction-v0", "no adhesion (scene.adhesion: null; the underside free to lift off the support)",
+     {"scene": {"adhesion": None}}),
+    ("heml_gym/OrganRetraction-v0", "the target behind the thin edge (x -35..-10 mm: the default before 2026-11-25, "
+     "exposed by a 2 cm lift)", {"scene": {"target": {"low": [-0.035, -0.02, -0.023], "high": [-0.01, 0.02, -0.023]}}}),
 ]
 
 

@@ -1,14 +1,17 @@
-"""OrganRetraction-v0: lift a liver lobe to expose the structure beneath its edge.
+"""OrganRetraction-v0: fold a liver lobe back about its base to expose what lies beneath it.
 
 ## Description
 
 A soft liver-like lobe (145 x 100 x 44 mm, meshed with gmsh; thin towards -x) lies on
 the organs below (a rigid, frictionless plane at z = 0) and is attached along the bottom
 edge of its base (the cut face at x = 65 mm, where it would join the rest of the liver),
-about which it can turn. Beneath it, behind its thin edge, lies a structure to expose (a
-sphere of radius 8 mm, e.g. a gallbladder neck), hidden from a laparoscope placed in
-front of and above the thin edge (at (-170, 0, 120) mm, looking under the edge). The
-agent grasps the lobe near its thin edge and lifts it. Neo-Hookean HEML tissue (E drawn
+about which it can turn; its underside is stuck to the support over a width drawn per
+episode, 0-40 mm out from the base, so it turns about a line that far out. Beneath its
+base third lies a structure to expose (a sphere of radius 8 mm, e.g. a gallbladder neck),
+hidden from a laparoscope placed in front of and above the thin edge (at (-170, 0, 120)
+mm, looking under the edge). The agent grasps the lobe near its thin edge and folds it
+back and up about its base (the scripted fold turns the edge up by about 45 degrees, the
+gripper travelling some 10 cm on an arc), then holds it there. Neo-Hookean HEML tissue (E drawn
 in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, integrated by backward Euler in
 0.05 s steps, each solved by L-BFGS to 3e-3 of the lobe's weight
 (:class:`heml_gym.QuasiNewtonSolver`): several times faster than explicit sub-steps
@@ -31,9 +34,10 @@ that it is the same tissue at any mesh size).
 
 ## Starting State
 
-Tissue at rest on its support; target centre uniform in x -35..-10 mm, y -20..20 mm,
-23 mm below the lobe's flat face; gripper uniform in x -58..-52 mm, y -10..10 mm,
-z 24-27 mm (above the jaws' footprint); E uniform in 4-8 kPa.
+Tissue at rest on its support, its underside stuck 0-40 mm out from the base (uniform);
+target centre uniform in x 30..45 mm, y -20..20 mm, 23 mm below the lobe's flat face;
+gripper uniform in x -58..-52 mm, y -10..10 mm, z 24-27 mm (above the jaws' footprint);
+E uniform in 4-8 kPa.
 
 ## Arguments
 
@@ -69,10 +73,10 @@ from __future__ import annotations
 
 from .retraction_env import RetractionEnv, RetractionVectorEnv
 from .spec import SpecError
-from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
+from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
                     TissueSpec)
 
-DEFAULT_MESH_SIZE = 0.008  # m: element size away from the jaws
+DEFAULT_MESH_SIZE = 0.010  # m: element size away from the jaws
 DEFAULT_JAW_SIZE = 0.0025  # m: element size around the jaws
 BASE_X = 0.065  # m: the lobe is cut off here (its base) and attached along the base's bottom edge
 #: m: the jaws hold the lobe along this segment across its top face near the thin edge,
@@ -92,12 +96,17 @@ def _top_z(x: float) -> float:
 JAW_WIDTH = 0.006
 
 
-#: the lobe's flat underside (a scene region: it rests on the support at z = 0), and its
-#: per-episode variation that is not a default (changes to the scene; docs/envs.md): 20 mm
-#: jaws (the middle half of the 40 mm footprint, where they close) and the underside stuck
-#: to the support 0-60 mm out from the base
+#: the lobe's flat underside (a scene region: it rests on the support at z = 0), stuck to
+#: the support over a width drawn per episode, 0-40 mm out from the base (the default)
 UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0], "tolerance": 1e-6}
-JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.02}, "adhesion": {"region": UNDERSIDE, "width": [0.0, 0.06]}}
+ADHESION_WIDTH = (0.0, 0.04)  # m
+#: per-episode variation that is not a default (changes to the scene; docs/envs.md): 20 mm
+#: jaws (the middle half of the 40 mm footprint, where they close); with the default's adhesion
+JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.02},
+                     "adhesion": {"region": UNDERSIDE, "width": list(ADHESION_WIDTH)}}
+#: m: the region of the target's centre, beneath the lobe's base third (the default since
+#: 2026-11-25; it was x -35..-10 mm, behind the thin edge, exposed by a 2 cm lift)
+TARGET_LOW, TARGET_HIGH = (0.03, -0.02, -0.023), (0.045, 0.02, -0.023)
 
 
 def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "patch",
@@ -147,12 +156,14 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
                                    (0.0, 0.0, 0.0443)], surface=True),
         fold=FoldSpec(hinge=HINGE, direction=-1.0, angle=0.6,
                       edge=RegionSpec(high=(TIP_X + EDGE_BAND - 1e-7, None, None), surface=True, tolerance=0.0)),
-        target=TargetSpec(low=(-0.035, -0.02, -0.023), high=(-0.010, 0.02, -0.023), radius=0.008),
+        target=TargetSpec(low=TARGET_LOW, high=TARGET_HIGH, radius=0.008),
         gripper=GripperSpec(start_low=(-0.058, -0.01, 0.024), start_high=(-0.052, 0.01, 0.027),
                             workspace_low=(-0.15, -0.10, 0.0), workspace_high=(0.10, 0.10, 0.20)),
         camera=CameraSpec(eye=(-0.17, 0.0, 0.12)),
         support=SupportSpec(kind="plane", normal=(0.0, 0.0, 1.0), offset=0.0),
         strain_gauge=0.015,
+        adhesion=AdhesionSpec(region=RegionSpec(low=(None, None, 0.0), high=(None, None, 0.0), tolerance=1e-6),
+                              width=ADHESION_WIDTH),
     )
 
 

@@ -79,7 +79,7 @@ class FoldBackPolicy:
 
 #: How far (rad above the free direction) each scene family is folded: the flap back
 #: past vertical over its attachment, the lobe's thin edge up about its base.
-MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 0.8}
+MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 1.2}
 #: With jaws shorter than the grasp region, the fold's arc radius as a fraction of the
 #: grasp's distance from the hinge: on the flap 0.9 (held by 40 mm jaws, a taut fold
 #: strains soft tissue beyond damage at the jaws' ends); 1 otherwise
