@@ -7,6 +7,9 @@ ever more compliant as the mesh refines (the displacement of a line load is
 logarithmically singular), so the held edge droops further and the grasp force falls on
 every finer mesh, without limit. A held patch has a limit. This study measures both.
 
+On the lobe's former task (``organ_retraction.FORMER_TASK``: the target behind the thin
+edge, exposed by a 2 cm lift, the underside free; the default until 2026-11-25).
+
 Protocol: for each grasp, the scripted baseline runs 30 steps on the default model (7 mm,
 backward Euler by L-BFGS) from ``reset(seed)`` for seeds 0-4 (as scene_convergence.py;
 on the line grasp, seeds 2-4 hold the target at the margin of its visibility) and its
@@ -39,6 +42,8 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from scene_convergence import QN, Model, errors, lobe_mesh_label, record, replay  # noqa: E402
+
+from heml_gym.envs.organ_retraction import FORMER_TASK  # noqa: E402
 
 SCENE = "OrganRetraction"
 SEEDS = (0, 1, 2, 3, 4)
@@ -73,9 +78,10 @@ def run(grasp: str) -> dict:
     default = candidates[0]
     runs, actions, meta = {}, {}, {}
     for seed in tqdm(SEEDS, desc=f"{grasp} grasp"):
-        actions[seed], _ = record(SCENE, default, seed, STEPS)
+        actions[seed], _ = record(SCENE, default, seed, STEPS, FORMER_TASK)
         for m in explicit + candidates:
-            runs.setdefault(m.label, {})[seed] = replay(SCENE, m, seed, actions[seed], {"tip_height_mm": tip_height_mm})
+            runs.setdefault(m.label, {})[seed] = replay(SCENE, m, seed, actions[seed], {"tip_height_mm": tip_height_mm},
+                                                            changes=FORMER_TASK)
             meta[m.label] = {"size_mm": 1e3 * m.scene_args[0],
                              "edge_mm": None if m.scene_args[1] is None else 1e3 * m.scene_args[1],
                              "jaw_mm": None if m.scene_args[3] is None else 1e3 * m.scene_args[3],

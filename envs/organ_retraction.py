@@ -9,15 +9,15 @@ about which it can turn; its underside is stuck to the support over a width draw
 episode, 0-40 mm out from the base, so it turns about a line that far out. Beneath its
 base third lies a structure to expose (a sphere of radius 8 mm, e.g. a gallbladder neck),
 hidden from a laparoscope placed in front of and above the thin edge (at (-170, 0, 120)
-mm, looking under the edge). The agent grasps the lobe near its thin edge and folds it
-back and up about its base (the scripted fold turns the edge up by about 45 degrees, the
-gripper travelling some 10 cm on an arc), then holds it there. Neo-Hookean HEML tissue (E drawn
+mm, looking under the edge). The agent grasps the lobe near its thin edge, folds it back
+and up about its base until the target shows, and holds it there (the scripted fold: 32
+steps, median; docs/benchmarks/task_difficulty.md). Neo-Hookean HEML tissue (E drawn
 in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, integrated by backward Euler in
 0.05 s steps, each solved by L-BFGS to 3e-3 of the lobe's weight
 (:class:`heml_gym.QuasiNewtonSolver`): several times faster than explicit sub-steps
 (``physics={"integrator": "explicit"}``, at 0.5 of the critical step), for the same
-accuracy. The mesh (8 mm elements, refined to 2.5 mm around the jaws: about 1,400
-vertices and 6,300 tets) keeps grasp force and exposure within 5 % of a converged fine
+accuracy. The mesh (10 mm elements, refined to 2.5 mm around the jaws: about 4,400
+tets), the cheapest that keeps grasp force and exposure within 5 % of a converged fine
 mesh (docs/scene_convergence.md): lifting the lobe peels it off its support, and how
 far it peels depends on its bending stiffness, which coarse linear tets overestimate,
 and on how compliant the tissue next to the jaws is, which only fine elements there
@@ -43,7 +43,7 @@ E uniform in 4-8 kPa.
 
 ``obs_mode``, ``render_mode``, ``settings``, ``weights``, ``scene``, ``physics``, ``difficulty`` as for
 TissueRetraction (the default scene: ``configs/scenes/organ_retraction.yaml``);
-``mesh_size`` (m, gmsh element size away from the jaws; default 8 mm; it must stay above
+``mesh_size`` (m, gmsh element size away from the jaws; default 10 mm; it must stay above
 the 2.5 mm at the jaws, and ``scene=organ_scene(size, jaw_size=None)`` meshes uniformly).
 ``scene=organ_scene(grasp="line")`` holds only the 40 mm line through the footprint's
 middle (the former default): a line held in 3-D elasticity has no fine-mesh
@@ -52,9 +52,9 @@ limit (the edge in front of it droops further on every finer mesh), a patch does
 
 | difficulty | task | scripted success | scripted episode, median steps |
 |---|---|---|---|
-| 0 | success as soon as the target is exposed below damage strain | 100 % | 6 |
-| 1 (default) | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 26 |
-| 2 | as 1, with E drawn in 2-12 kPa, and the target under the lobe's body, halfway towards the base (x 15-27.5 mm): its thin edge must be turned up by 22-28 degrees about the base, against 13-16 at level 0 | 100 % | 30 |
+| 0 | success as soon as the target is exposed below damage strain | 100 % | 12 |
+| 1 (default) | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 32 |
+| 2 | as 1, with E drawn in 2-12 kPa, and the target halfway closer to the base (x 47.5-55 mm), next to where the underside may be stuck | 100 % | 33 |
 
 (20 seeded episodes each, ``python benchmarks/task_difficulty.py``.)
 
@@ -66,7 +66,12 @@ over its thick third, without gravity). Since 2026-11-24: difficulty 1 (hold 2 s
 default, and the lobe is stepped by the quasi-Newton solver (was explicit sub-steps).
 Later the same day: the jaws hold their 6 x 40 mm footprint (was the 40 mm line through
 it), on an 8 mm mesh refined to 2.5 mm at the jaws (was 7 mm throughout), the first
-default with a converged fine-mesh reference.
+default with a converged fine-mesh reference. Since 2026-11-25: a fold, not a lift: the
+target lies beneath the lobe's base third (was x -35..-10 mm, behind the thin edge,
+exposed by lifting the edge 2 cm: 26 scripted steps), the underside is stuck to the
+support 0-40 mm out from the base (drawn per episode; was free), the scripted fold goes
+up to 1.2 rad about the base (was 0.8), and the mesh is 10 mm away from the jaws (was
+8 mm: on the new task the cheaper mesh is within 5 %).
 """
 
 from __future__ import annotations
@@ -107,6 +112,10 @@ JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.02},
 #: m: the region of the target's centre, beneath the lobe's base third (the default since
 #: 2026-11-25; it was x -35..-10 mm, behind the thin edge, exposed by a 2 cm lift)
 TARGET_LOW, TARGET_HIGH = (0.03, -0.02, -0.023), (0.045, 0.02, -0.023)
+#: the task before 2026-11-25 (changes to the default scene): the target behind the thin edge,
+#: exposed by lifting it 2 cm, and the underside free (a seed draws the same target place,
+#: stiffness and gripper start as then: the adhesion width is drawn after them)
+FORMER_TASK = {"target": {"low": [-0.035, -0.02, -0.023], "high": [-0.01, 0.02, -0.023]}, "adhesion": None}
 
 
 def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = None, grasp: str = "patch",

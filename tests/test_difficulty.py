@@ -61,10 +61,8 @@ def test_bad_difficulty_is_refused_naming_it():
 @pytest.mark.parametrize("env_id", ["heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"])
 def test_level_2_hides_the_target_halfway_deeper_towards_the_hinge(env_id):
     """The target region's x moves half the way to the fold hinge (from the scene's own
-    numbers), every drawn target lies in it, and on the flap the scripted fold still exposes
-    it and holds it, later than at level 1 (the fold must go further; the hold is the same
-    2 s). On the lobe the level-2 target lies next to where the underside may be stuck, and
-    the scripted fold exposes it in only some episodes (docs/benchmarks/task_difficulty.md)."""
+    numbers), every drawn target lies in it, and the scripted fold still exposes it and
+    holds it, later than at level 1 (the fold must go further; the hold is the same 2 s)."""
     base = gym.make(env_id).unwrapped.scene
     env = gym.make(env_id, difficulty=2)
     scene = env.unwrapped.scene
@@ -76,8 +74,6 @@ def test_level_2_hides_the_target_halfway_deeper_towards_the_hinge(env_id):
         env.reset(seed=seed)
         x = env.unwrapped.task.target[0, 0]
         assert expected[0] - 1e-12 <= x <= expected[1] + 1e-12
-    if env_id == "heml_gym/OrganRetraction-v0":
-        return
     lengths = {}
     for level in (1, 2):
         lengths[level], info = _scripted_length(gym.make(env_id, difficulty=level), seed=0)

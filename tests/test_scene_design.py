@@ -307,3 +307,36 @@ def test_a_mesh_size_below_the_default_jaw_refinement_names_the_argument_and_the
     env_class = OrganRetractionEnv if make == "single" else OrganRetractionVectorEnv
     with pytest.raises(SpecError, match=r"^mesh_size: .*0\.0025 m.*jaw_size=None"):
         env_class(mesh_size=0.002)
+
+
+def test_the_lobe_target_needs_a_fold_not_a_lift():
+    """The default lobe task is a retraction, not a lift: the scripted motion that exposed
+    the former target (behind the thin edge; replayed up to where it exposed that target,
+    then held still) leaves today's target, beneath the base third, hidden (exposure below
+    the 0.8 success threshold), while the scripted fold exposes it (>= 0.95, where the fold
+    stops) on the same episode."""
+    from heml_gym.envs.organ_retraction import FORMER_TASK, OrganRetractionEnv
+    from heml_gym.envs.scripted import scripted_policy
+
+    former = OrganRetractionEnv(scene=FORMER_TASK)
+    obs, _ = former.reset(seed=3)
+    policy, actions, exposure = scripted_policy(former.scene), [], 0.0
+    while exposure < 0.95:
+        actions.append(policy(obs))
+        obs, _, terminated, truncated, info = former.step(actions[-1])
+        exposure = info["exposure"]
+        assert not (terminated or truncated)
+    assert 3 <= len(actions) <= 15  # a short lift
+    env = OrganRetractionEnv()
+    obs, _ = env.reset(seed=3)
+    best = 0.0
+    for action in actions + [np.array([0.0, 0.0, 0.0, 1.0], dtype=np.float32)] * 10:
+        obs, _, terminated, truncated, info = env.step(action)
+        best = max(best, info["exposure"])
+    assert best < env.task.settings.success_exposure
+    obs, _ = env.reset(seed=3)
+    policy, best = scripted_policy(env.scene), 0.0
+    for _ in range(25):
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        best = max(best, info["exposure"])
+    assert best >= 0.95
