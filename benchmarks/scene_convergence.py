@@ -62,8 +62,9 @@ SCENE_ARGS = {"tissue": "TissueRetraction", "organ": "OrganRetraction"}
 #: a scene, both together and each alone (which of them a mesh fails on). The flap:
 #: ``configs/quick_jaws_adhesion.yaml``'s 40 mm jaws and 0-20 mm of adhesion; the lobe:
 #: 20 mm jaws (the middle half of the 40 mm footprint, where they close), on its default
-#: (whose underside is stuck to the support 0-60 mm out from the base).
-VARIATIONS = {"TissueRetraction": {"jaws_adhesion": JAWS_AND_ADHESION, "jaws": {"gripper": JAWS_AND_ADHESION["gripper"]},
+#: (whose underside is stuck to the support 0-40 mm out from the base).
+VARIATIONS = {"TissueRetraction": {"jaws_adhesion": JAWS_AND_ADHESION,
+                                   "jaws": {"gripper": JAWS_AND_ADHESION["gripper"]},
                                    "adhesion": {"adhesion": JAWS_AND_ADHESION["adhesion"]}},
               # the lobe's adhesion is its default since 2026-11-25
               "OrganRetraction": {"jaws": {"gripper": ORGAN_JAWS_AND_ADHESION["gripper"]}}}

@@ -78,8 +78,8 @@ from __future__ import annotations
 
 from .retraction_env import RetractionEnv, RetractionVectorEnv
 from .spec import SpecError
-from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
-                    TissueSpec)
+from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec,
+                    TargetSpec, TissueSpec)
 
 DEFAULT_MESH_SIZE = 0.010  # m: element size away from the jaws
 DEFAULT_JAW_SIZE = 0.0025  # m: element size around the jaws
@@ -172,7 +172,7 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
         support=SupportSpec(kind="plane", normal=(0.0, 0.0, 1.0), offset=0.0),
         strain_gauge=0.015,
         adhesion=AdhesionSpec(region=RegionSpec(low=(None, None, 0.0), high=(None, None, 0.0), tolerance=1e-6),
-                              width=ADHESION_WIDTH),
+                              width=ADHESION_WIDTH),  # UNDERSIDE, as a spec (tuples, as a loaded scene has)
     )
 
 
