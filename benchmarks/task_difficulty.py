@@ -22,18 +22,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs.organ_retraction import FORMER_TASK  # noqa: E402
-from heml_gym.envs.tissue_retraction import JAWS_AND_ADHESION  # noqa: E402
+from heml_gym.envs.tissue_retraction import FORMER_TASK as TISSUE_FORMER_TASK  # noqa: E402
 
 ENVS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
-ADHESION = JAWS_AND_ADHESION["adhesion"]
-#: options that are not defaults yet, at the default level: (env, what, env kwargs: changes to the default scene)
+#: options that are not defaults, at the default level: (env, what, env kwargs: changes to the default scene)
 VARIANTS = [
-    ("heml_gym/TissueRetraction-v0", "the underside stuck 0-20 mm out from the hinge (scene.adhesion)",
-     {"scene": {"adhesion": ADHESION}}),
     ("heml_gym/TissueRetraction-v0", "40 mm jaws: only the part of the edge between them held "
-     "(scene.gripper.jaw_length)", {"scene": {"gripper": {"jaw_length": 0.04}}}),
-    ("heml_gym/TissueRetraction-v0", "both (configs/quick_jaws_adhesion.yaml)", {"scene": JAWS_AND_ADHESION}),
+     "(scene.gripper.jaw_length; configs/quick_jaws_adhesion.yaml)", {"scene": {"gripper": {"jaw_length": 0.04}}}),
     ("heml_gym/TissueRetraction-v0", "30 mm jaws", {"scene": {"gripper": {"jaw_length": 0.03}}}),
+    ("heml_gym/TissueRetraction-v0", "the former scene (tissue_retraction.FORMER_TASK: one layer of cells, "
+     "the underside free)", {"scene": TISSUE_FORMER_TASK}),
     ("heml_gym/OrganRetraction-v0", "20 mm jaws: the middle 20 mm of the 40 mm footprint held",
      {"scene": {"gripper": {"jaw_length": 0.02}}}),
     ("heml_gym/OrganRetraction-v0", "no adhesion (scene.adhesion: null; the underside free to lift off the support)",

@@ -11,10 +11,10 @@ episode, nu = 0.45, 950 kg/m^3) under gravity, resting on the organ: a rigid,
 frictionless plane at z = 0 (``Scene.support``). It is integrated by backward Euler in
 0.05 s steps, each solved by L-BFGS to 3e-3 of the flap's weight
 (:class:`heml_gym.QuasiNewtonSolver`; any law, field and integrator with ``physics=``).
-The mesh is 12 x 12 x 1 hex cells of 6 tets (864 tets): with this integrator the
+The mesh is 12 x 12 x 2 hex cells of 6 tets (1,728 tets): with this integrator the
 cheapest model whose grasp force and exposure stay within 5 % of a fine one along the
-scripted retraction and its 2 s hold (docs/scene_convergence.md), and cheaper than the
-explicit 8 x 8 x 1 mesh of earlier versions, which is 6 % off while the flap is held.
+scripted retraction and its 2 s hold (docs/scene_convergence.md); the one-layer
+12 x 12 x 1 mesh of earlier versions is 10 % off in the hold once the underside is stuck.
 
 ## Action Space
 
@@ -67,8 +67,10 @@ is refined.
 
 Tissue at rest on the organ; tumour centre uniform in x 50-90 mm, y 35-85 mm, 20 mm below
 the flap's underside (its top 12 mm below); gripper uniform in x 108-114 mm, y 40-80 mm,
-z 9-11 mm (just above the free edge); tissue E uniform in 4-8 kPa. ``reset(seed=...)``
-fixes all of them.
+z 9-11 mm (just above the free edge); tissue E uniform in 4-8 kPa; the flap's underside
+stuck to the organ from the attached edge out to a width uniform in 0-20 mm
+(``Scene.adhesion``: those vertices are held where they rest, so the flap folds about a
+line up to 20 mm further out than the attached edge). ``reset(seed=...)`` fixes all of them.
 
 ## Episode End
 
@@ -108,7 +110,10 @@ v0: initial version; the scene as described here since the convergence redesign 
 clamp, gravity on a support plane, gauge strain, step-mean grasp force); scenes as data
 and ``physics=`` since the one-simulator redesign (same dynamics for the default scene).
 Since 2026-11-24: difficulty 1 (hold 2 s) is the default, and the flap is a 12 x 12 x 1
-mesh stepped by the quasi-Newton solver (was 8 x 8 x 1, explicit sub-steps).
+mesh stepped by the quasi-Newton solver (was 8 x 8 x 1, explicit sub-steps). Since
+2026-11-25: the underside is stuck 0-20 mm out from the attached edge, drawn per episode
+(was free), and the mesh has two layers, 12 x 12 x 2 (was 12 x 12 x 1, which misses the
+5 % rule with the adhesion); ``FORMER_TASK`` restores the earlier scene.
 """
 
 from __future__ import annotations
@@ -116,18 +121,24 @@ from __future__ import annotations
 import math
 
 from .retraction_env import RetractionEnv, RetractionVectorEnv
-from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
+from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
                     TissueSpec)
 
 FLAP_SIZE = (0.12, 0.12, 0.008)
-DEFAULT_CELLS = (12, 12, 1)
+DEFAULT_CELLS = (12, 12, 2)
 STIFFNESS_RANGE = (4e3, 8e3)  # Pa: E drawn per episode
 HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fold hinge
-#: the flap's underside (a scene region), and the flap's per-episode variation that is not
-#: a default yet (changes to the scene, as configs/quick_jaws_adhesion.yaml; docs/envs.md):
-#: 40 mm jaws and the underside stuck 0-20 mm out from the hinge
+#: the flap's underside (a scene region), stuck to the organ over a width drawn per episode,
+#: 0-20 mm out from the attached edge (the default since 2026-11-25)
 UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0]}
-JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.04}, "adhesion": {"region": UNDERSIDE, "width": [0.0, 0.02]}}
+ADHESION_WIDTH = (0.0, 0.02)  # m
+#: per-episode variation that is not a default (changes to the scene, as
+#: configs/quick_jaws_adhesion.yaml; docs/envs.md): 40 mm jaws; with the default's adhesion
+JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.04}, "adhesion": {"region": UNDERSIDE, "width": list(ADHESION_WIDTH)}}
+#: the scene before 2026-11-25 (changes to the default scene): one layer of cells and the
+#: underside free (a seed draws the same target place, stiffness and gripper start as then:
+#: the adhesion width is drawn after them)
+FORMER_TASK = {"tissue": {"cells": [12, 12, 1]}, "adhesion": None}
 
 
 def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> Scene:
@@ -151,6 +162,8 @@ def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> Scene:
         camera=CameraSpec(eye=(0.06, 0.06, 0.30)),
         support=SupportSpec(kind="plane", normal=(0.0, 0.0, 1.0), offset=0.0),
         strain_gauge=0.015,
+        adhesion=AdhesionSpec(region=RegionSpec(low=(None, None, 0.0), high=(None, None, 0.0)),
+                              width=ADHESION_WIDTH),  # UNDERSIDE, as a spec (tuples, as a loaded scene has)
     )
 
 

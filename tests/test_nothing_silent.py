@@ -259,8 +259,12 @@ def test_human_render_without_a_display_returns_quickly_with_advice(monkeypatch)
 def test_pushing_the_grasped_edge_to_the_hinge_and_releasing_does_not_diverge(integrator):
     """The pattern that diverged in 28 of 60 episodes before the explicit solver re-stepped
     bad scenes finer, and left L-BFGS unconverged before it did too (the flap buckles):
-    grasp, push towards the attachment 7 steps, release."""
-    env = TissueRetractionEnv(physics={"integrator": integrator})
+    grasp, push towards the attachment 7 steps, release. On the one-layer flap with its
+    underside free (the default before 2026-11-25): the two-layer default is stiffer in
+    bending and does not buckle far enough for the explicit solver to need finer steps."""
+    from heml_gym.envs.tissue_retraction import FORMER_TASK
+
+    env = TissueRetractionEnv(physics={"integrator": integrator}, scene=FORMER_TASK)
     refined = 0
     for seed in range(12):
         env.reset(seed=seed)

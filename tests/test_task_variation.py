@@ -45,7 +45,8 @@ def test_adhesion_holds_the_underside_within_the_drawn_width_for_the_whole_episo
 
 
 def test_adhesion_width_is_drawn_per_episode_and_leaves_the_other_draws_alone():
-    plain, stuck = TissueRetractionEnv(), TissueRetractionEnv(scene=adhered_scene(0.0, 0.03))
+    plain = TissueRetractionEnv(scene={"adhesion": None})  # the underside free
+    stuck = TissueRetractionEnv(scene=adhered_scene(0.0, 0.03))
     widths = []
     for seed in range(12):
         _, a = plain.reset(seed=seed)
