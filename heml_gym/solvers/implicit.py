@@ -242,16 +242,22 @@ class ImplicitSolver(Solver):
     def _feasible_start(self, s, field, x_n, v_n, h, control, targets, potential, hessian):
         """A Newton starting point with finite energy (no inverted ln J element).
 
-        Tries the explicit predictor ``x_n + h v_n``, then the previous positions, then
-        the previous positions plus the linear response of the free vertices to the
-        kinematic vertices' motion (one solve with the step matrix at ``x_n``); all with
-        fixed vertices held and kinematic ones on their targets.
+        Of the explicit predictor ``x_n + h v_n`` and the previous positions, the one of
+        lower potential (a fast-moving tissue's predictor can land where an exponential
+        law's energy is ~1e16 J, from which Newton does not return within its
+        iterations); failing both, the previous positions plus the linear response of the
+        free vertices to the kinematic vertices' motion (one solve with the step matrix
+        at ``x_n``); all with fixed vertices held and kinematic ones on their targets.
         """
+        best, best_phi = None, np.inf
         for x in (x_n + h * v_n, x_n.copy()):
             v = v_n.copy()
             self._constrain(s, x, v, control, targets, h, x_n)
-            if np.isfinite(potential(x)):
-                return x
+            phi = potential(x)
+            if np.isfinite(phi) and (best is None or phi < best_phi):
+                best, best_phi = x, phi
+        if best is not None:
+            return best
         kin = np.repeat(control.kinematic[s], 3)
         free = np.repeat(~(self.model.fixed | control.kinematic[s]), 3)
         if kin.any():
