@@ -3,10 +3,11 @@
 ## Description
 
 A flap of fat tissue (120 x 120 x 8 mm, the size of LapGym's tissue-retraction slab)
-lies on an organ; its edge at ``x = 0`` is attached. Under it, hidden from a camera
-above, sits a tumour (a sphere of radius 8 mm, in the organ). The agent moves a gripper,
-closes it on the flap's free edge, and retracts the flap to expose the tumour without
-over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 4-8 kPa per
+lies on an organ; its edge at ``x = 0`` is attached, and its underside is stuck to the
+organ 0-20 mm further out (drawn per episode, see Starting State). Under it, hidden from
+a camera above, sits a tumour (a sphere of radius 8 mm, in the organ). The agent moves a
+gripper, closes it on the flap's free edge, and retracts the flap to expose the tumour
+without over-straining the tissue. The tissue is Neo-Hookean HEML (E drawn in 4-8 kPa per
 episode, nu = 0.45, 950 kg/m^3) under gravity, resting on the organ: a rigid,
 frictionless plane at z = 0 (``Scene.support``). It is integrated by backward Euler in
 0.05 s steps, each solved by L-BFGS to 3e-3 of the flap's weight
