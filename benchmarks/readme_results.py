@@ -42,7 +42,12 @@ def learning(data: dict) -> str:
             f"20 fresh episodes for **{data['seeds_at_90_percent']} of {data['seeds_finished']} seeds** "
             f"(final success {rates}; IQM {data['iqm']:.0%}, 95 % bootstrap interval {data['iqm_ci95'][0]:.0%}-"
             f"{data['iqm_ci95'][1]:.0%}){reach}; {wall[0]:.1f}-{wall[-1]:.1f} min of training per seed with one "
-            f"core each, two seeds at a time ({where(data)}; [per seed](quick_sweep.md)).")
+            f"core each, two seeds at a time{beside_other_work(data)} ({where(data)}; [per seed](quick_sweep.md)).")
+
+
+def beside_other_work(data: dict) -> str:
+    """What the wall times mean when the sweep's note says other work ran beside it."""
+    return ", beside other work on the machine: a quiet one is faster" if "beside" in data.get("note", "") else ""
 
 
 def quickstart(data: dict) -> str:
@@ -52,7 +57,8 @@ def quickstart(data: dict) -> str:
     misses = [f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done if s["success_rate"] < 0.9]
     m = data["machine"]
     text = (f"Measured on a {m['cores']}-core {m['cpu']} ({m['date']}), {len(done)} seeds: training took "
-            f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed (one core each, two seeds at a time), and "
+            f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed (one core each, two seeds at a time"
+            f"{beside_other_work(data)}), and "
             f"**{data['seeds_at_90_percent']} of {data['seeds_finished']} seeds** reached >= 90 % success on 20 fresh "
             "evaluation episodes")
     text += f" (below it: {', '.join(misses)})." if misses else "."

@@ -122,8 +122,8 @@ from __future__ import annotations
 import math
 
 from .retraction_env import RetractionEnv, RetractionVectorEnv
-from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
-                    TissueSpec)
+from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec,
+                    TargetSpec, TissueSpec)
 
 FLAP_SIZE = (0.12, 0.12, 0.008)
 DEFAULT_CELLS = (12, 12, 2)
