@@ -215,12 +215,12 @@ def test_unconverged_step_is_reported_not_hidden():
     assert not stats.converged[0] and not stats.diverged[0]
     assert stats.newton_iterations[0] == 1 and stats.residual[0] > stats.tolerance[0]
     assert "L-BFGS stopped" in stats.messages[0]
-    # refined: the step is taken again in 4, then 16 shorter steps, and still reported
+    # refined: the step is taken again in 4, 16, then 64 shorter steps, and still reported
     solver = hg.QuasiNewtonSolver(m, newton_tol=1e-10, max_iter=1)
     state = m.state()
     stats = solver.step(state, state, control, 0.1)
-    assert not stats.converged[0] and stats.refinement[0] == 16
-    assert stats.newton_iterations[0] == 1 + 4 + 16 and "refined 16x" in stats.messages[0]
+    assert not stats.converged[0] and stats.refinement[0] == 64
+    assert stats.newton_iterations[0] == 1 + 4 + 16 + 64 and "refined 64x" in stats.messages[0]
 
 
 @pytest.mark.parametrize("scheme", ["backward_euler", "bdf2"])
