@@ -36,7 +36,7 @@ SWEEPS = [
     ("tissue_ppo_difficulty2", "configs/tissue_ppo_difficulty2.yaml", "PPO", "heml_gym/TissueRetraction-v0", 2,
      "0,1,2,3,4"),
     ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v0", 2,
-     "0,1,2,3"),
+     "0,1,2,3,4"),
 ]
 #: line colours of the chart by (algorithm, difficulty)
 COLOURS = {("PPO", 1): "tab:blue", ("SAC", 1): "tab:orange", ("PPO", 2): "tab:purple", ("SAC", 2): "tab:brown"}
