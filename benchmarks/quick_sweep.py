@@ -85,6 +85,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cpus-per-trial", type=float, default=1)
     ap.add_argument("--name", default="quick_sweep", help="name of the results: docs/benchmarks/NAME.{json,md}")
     ap.add_argument("--note", default="", help="what else ran on the machine meanwhile (printed with the results)")
+    ap.add_argument("--loaded", action="store_true",
+                    help="other work shared the machine's cores meanwhile, so the wall times are high (stored as "
+                         "machine_loaded; readme_results.py says so beside them)")
     args = ap.parse_args(argv)
 
     import os
@@ -101,6 +104,8 @@ def main(argv=None) -> int:
     result = collect(trials, summary, config, concurrent, command)
     if args.note:
         result["note"] = args.note
+    if args.loaded:
+        result["machine_loaded"] = True
     write_json(f"{args.name}.json", result)
     text = table(result, args.name)
     (RESULTS / f"{args.name}.md").write_text(text)

@@ -46,8 +46,8 @@ def learning(data: dict) -> str:
 
 
 def beside_other_work(data: dict) -> str:
-    """What the wall times mean when the sweep's note says other work ran beside it."""
-    return ", beside other work on the machine: a quiet one is faster" if "beside" in data.get("note", "") else ""
+    """What the wall times mean when other work shared the machine (``quick_sweep.py --loaded``)."""
+    return ", beside other work on the machine: a quiet one is faster" if data.get("machine_loaded") else ""
 
 
 def quickstart(data: dict) -> str:

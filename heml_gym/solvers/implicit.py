@@ -254,7 +254,7 @@ class ImplicitSolver(Solver):
             v = v_n.copy()
             self._constrain(s, x, v, control, targets, h, x_n)
             phi = potential(x)
-            if np.isfinite(phi) and (best is None or phi < best_phi):
+            if np.isfinite(phi) and phi < best_phi:
                 best, best_phi = x, phi
         if best is not None:
             return best
