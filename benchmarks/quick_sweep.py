@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json  # noqa: E402
 
 
-def collect(trials, summary: dict, config_path: Path, concurrent: int, command: str) -> dict:
+def collect(trials, summary: dict, config_path: Path, concurrent: int, command: str,
+            cpus_per_trial: float = 1) -> dict:
     from heml_gym.agents.stats import iqm, iqm_interval
 
     seeds = []
@@ -44,12 +45,17 @@ def collect(trials, summary: dict, config_path: Path, concurrent: int, command: 
 
     out = {"machine": machine_info(), "config": str(config_path.relative_to(ROOT)),
            "evaluation_every_steps": load_config(config_path).evaluation.every_steps,
-           "trials_at_once": concurrent, "command": command, "seeds": seeds,
+           "trials_at_once": concurrent, "cpus_per_trial": cpus_per_trial, "command": command, "seeds": seeds,
            "seeds_at_90_percent": sum(f >= 0.9 for f in finals), "seeds_finished": len(finals)}
     if finals:
         out["iqm"] = iqm(finals)
         out["iqm_ci95"] = list(iqm_interval(finals))
     return out
+
+
+def cpus(n: float) -> str:
+    """``n`` CPUs in words: "one CPU", "2 CPUs"."""
+    return "one CPU" if n == 1 else f"{n:g} CPUs"
 
 
 def table(result: dict, name: str = "quick_sweep") -> str:
@@ -65,7 +71,7 @@ def table(result: dict, name: str = "quick_sweep") -> str:
         rows.append([s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", first, history,
                      f"{s['env_steps']:,}", f"{s['wall_s'] / 60:.1f}"])
     head = (f"`{result['config']}` with {len(result['seeds'])} seeds on {m['cpu']} ({m['cores']} cores), "
-            f"{m['date']}, {result['trials_at_once']} trials at a time with one CPU each "
+            f"{m['date']}, {result['trials_at_once']} at a time with {cpus(result.get('cpus_per_trial', 1))} each "
             f"(`{result.get('command', 'python benchmarks/quick_sweep.py')}`). Final success: 20 fresh seeded evaluation episodes, "
             "deterministic policy, 95 % Wilson interval." + (f" {result['note']}" if result.get("note") else "") + "\n\n")
     summary = (f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**; IQM of the "
@@ -100,8 +106,9 @@ def main(argv=None) -> int:
     config = Path(args.config).resolve()
     command = "python benchmarks/quick_sweep.py" + (
         f" --config {config.relative_to(ROOT)} --name {args.name}" if args.name != "quick_sweep" else "") + (
-        f" --seeds {args.seeds}" if args.seeds != ap.get_default("seeds") else "")
-    result = collect(trials, summary, config, concurrent, command)
+        f" --seeds {args.seeds}" if args.seeds != ap.get_default("seeds") else "") + (
+        f" --cpus-per-trial {args.cpus_per_trial:g}" if args.cpus_per_trial != 1 else "")
+    result = collect(trials, summary, config, concurrent, command, args.cpus_per_trial)
     if args.note:
         result["note"] = args.note
     if args.loaded:

@@ -77,6 +77,18 @@ def quickstart_elsewhere(data: dict) -> str:
             f"{rates} ([per seed](quick_sweep_avx2.md)).")
 
 
+def quickstart_quiet(data: dict) -> str:
+    """The same job alone on the machine with both cores, as ``scripts/main.sh`` runs it
+    (``quick_sweep_quiet``: ``quick_sweep.py --seeds 7 --cpus-per-trial 2 --name quick_sweep_quiet``)."""
+    done = [s for s in data["seeds"] if s["status"] == "finished"]
+    if not done or data.get("machine_loaded"):
+        return ""
+    runs = ", ".join(f"seed {s['seed']} took {s['wall_s'] / 60:.1f} min and ended at {s['success_rate']:.0%}"
+                     for s in done)
+    return (f" Alone on the machine with both cores, as `scripts/main.sh` runs it, {runs} "
+            f"([quiet run](quick_sweep_quiet.md)).")
+
+
 def pixels(data: dict) -> str:
     done = [s for s in data["seeds"] if s["status"] == "finished"]
     if not done:
@@ -213,8 +225,9 @@ def main() -> int:
     print(out)
     sweep = load("quick_sweep")
     if sweep is not None:
-        elsewhere = load("quick_sweep_avx2")
-        text = quickstart(sweep) + (quickstart_elsewhere(elsewhere) if elsewhere else "")
+        elsewhere, quiet = load("quick_sweep_avx2"), load("quick_sweep_quiet")
+        text = (quickstart(sweep) + (quickstart_quiet(quiet) if quiet else "")
+                + (quickstart_elsewhere(elsewhere) if elsewhere else ""))
         (RESULTS / "readme_quickstart.md").write_text(text + "\n")
     return 0
 
