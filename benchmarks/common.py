@@ -36,8 +36,37 @@ def vector_isa(flags: list[str] | None = None) -> str:
     return "AVX2 only" if "avx2" in flags else "no AVX2"
 
 
+#: The vector width each codegen target compiles for (see :func:`codegen_target`).
+TARGET_ISA = {"x86-64": "SSE2", "nehalem": "SSE4.2", "sandybridge": "AVX", "haswell": "AVX2", "broadwell": "AVX2",
+              "skylake": "AVX2", "znver1": "AVX2", "znver2": "AVX2", "znver3": "AVX2", "skylake-avx512": "AVX-512",
+              "cascadelake": "AVX-512", "icelake-server": "AVX-512", "sapphirerapids": "AVX-512",
+              "znver4": "AVX-512", "generic": "SSE2"}
+
+
+def codegen_target() -> dict:
+    """What the Numba kernels are compiled for: ``cpu`` (the LLVM CPU name: the host's, or
+    ``NUMBA_CPU_NAME``), ``features`` (``"host"``: the host's instruction flags, as Numba
+    adds them unless ``NUMBA_CPU_FEATURES`` is set; ``"target"``: the named CPU's own) and
+    ``isa`` (the vector width that gives). ``NUMBA_CPU_NAME=haswell`` alone on an AVX-512
+    host still compiles AVX-512 code: scripts/cpu_matrix.sh sets ``NUMBA_CPU_FEATURES=""``."""
+    import llvmlite.binding as ll
+    import numba
+
+    name = numba.config.CPU_NAME
+    features = numba.config.CPU_FEATURES
+    if name is None:
+        return {"cpu": ll.get_host_cpu_name(), "features": "host", "isa": vector_isa(), "set_by": "host"}
+    if features is None:
+        return {"cpu": name, "features": "host", "isa": vector_isa(), "set_by": "NUMBA_CPU_NAME"}
+    isa = TARGET_ISA.get(name.lower(), "?")
+    if features:
+        isa = "AVX-512" if "+avx512f" in features else "AVX2" if "+avx2" in features else isa
+    return {"cpu": name, "features": features or "target", "isa": isa, "set_by": "NUMBA_CPU_NAME"}
+
+
 def machine_info() -> dict:
-    """CPU, core count and library versions, stored beside every result."""
+    """CPU, core count, the Numba codegen target and library versions, stored beside
+    every result."""
     import numba
 
     cpu = platform.processor() or platform.machine()
@@ -56,6 +85,7 @@ def machine_info() -> dict:
         "numpy": np.__version__,
         "numba": numba.__version__,
         "numba_threads": numba.config.NUMBA_NUM_THREADS,
+        "codegen": codegen_target(),
         "date": time.strftime("%Y-%m-%d"),
     }
 

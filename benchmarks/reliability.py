@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import heml_gym.envs  # noqa: E402,F401  (registers the envs)
-from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
+from common import IMAGES, RESULTS, codegen_target, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs.scripted import scripted_policy  # noqa: E402
 
 ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
@@ -108,6 +108,7 @@ def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: 
     n = VECTOR_N if vector else 0
     actions = Actions(kind, n, rng, scene)
     rec = {"env": env_id, "mode": "vector" if vector else "single", "obs_mode": obs_mode, "actions": kind,
+           "codegen": codegen_target()["cpu"], "fallback_steps": 0, "refined_steps": 0,
            "env_steps": 0, "episodes": 0, "diverged": 0, "unconverged": 0, "non_finite": 0, "outside_space": 0,
            "exceptions": 0, "exception_messages": [], "slowest_step_s": 0.0, "wall_s": 0.0}
     t_start = time.perf_counter()
@@ -131,6 +132,8 @@ def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: 
             converged = np.atleast_1d(info["solver_converged"])
             rec["diverged"] += int(diverged.sum())
             rec["unconverged"] += int((~converged & ~diverged).sum())  # diverged ones are counted above
+            rec["fallback_steps"] += int(np.sum(info["solver_fallback"]))
+            rec["refined_steps"] += int(np.sum(np.asarray(info["substep_refinement"]) > 1))
             if not (_all_finite(obs) and _all_finite(reward) and _all_finite(info)):
                 rec["non_finite"] += 1
             if vector:
@@ -343,6 +346,7 @@ def main(argv=None) -> int:
     ap.add_argument("--envs", default=",".join(ENV_IDS), help="comma-separated environment ids")
     ap.add_argument("--out", default=str(RESULTS), help="folder for reliability.json / .md")
     ap.add_argument("--from-json", action="store_true", help="rewrite the report and chart from the stored run")
+    ap.add_argument("--no-bad-inputs", action="store_true", help="the soak only (scripts/cpu_matrix.sh)")
     ap.add_argument("--merge", action="store_true", help="replace only these envs' soak rows in the stored "
                     "reliability.json (the other envs' rows are kept, with the machine they ran on)")
     args = ap.parse_args(argv)
@@ -372,7 +376,7 @@ def main(argv=None) -> int:
     for i, (env_id, vector, obs_mode, kind) in enumerate(tqdm(configs, desc="reliability soak", unit="config")):
         soak_rows.append(soak(env_id, vector, obs_mode, kind, max(1, budget[env_id] // per_env), seed=1000 + i))
     results = {"machine": machine_info(), "steps_per_env": budget, "soak": soak_rows}
-    results["bad_inputs"] = bad_inputs()
+    results["bad_inputs"] = [] if args.no_bad_inputs else bad_inputs()
     results["wall_s"] = time.perf_counter() - t0
     if args.merge:
         import json

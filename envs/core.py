@@ -319,6 +319,7 @@ class BatchedRetraction:
             "solver_converged": stats.converged.copy(),
             "newton_iterations": stats.newton_iterations.copy(),
             "substep_refinement": stats.refinement.copy(),
+            "solver_fallback": stats.fallback.copy(),
         }
         return reward, terminated, truncated, info
 

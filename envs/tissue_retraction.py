@@ -82,8 +82,9 @@ tears (gauge strain >= 1.0), or on a physics failure: a simulation that diverged
 (``info["simulation_diverged"]``) or a Newton solve that did not converge
 (``info["solver_converged"]`` False, implicit integrator); the reward is then 0 and the
 observation stays finite. Truncated after 100 steps (10 s). ``info["substep_refinement"]``
-says when the explicit solver had to re-take a step with finer sub-steps (strongly
-compressed tissue), ``info["newton_iterations"]`` what an implicit step cost.
+says when the solver had to re-take a step in shorter sub-steps (strongly compressed
+tissue), ``info["solver_fallback"]`` when the quasi-Newton solver took it again by
+Newton's method (its fallback), ``info["newton_iterations"]`` what an implicit step cost.
 
 ## Arguments
 

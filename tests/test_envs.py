@@ -290,23 +290,24 @@ def test_pushing_the_held_lobe_into_itself_refines_instead_of_diverging():
     np.testing.assert_allclose(task.state.x[0, held] - start, np.tile(moved, (len(held), 1)), atol=1e-9)
 
 
-def test_a_third_shorter_retake_converges_the_lobe_pushed_into_its_stuck_underside():
-    """The reliability soak's push-and-release stream on the default lobe (seed 1004: close
-    the jaws, push the held edge towards the base 7 steps, release 2, over and over, the
-    episodes reset as they end). With its underside stuck to the support, the 1,107th step
-    drives the tissue between the jaws and the stuck region together faster than it gives
-    way: re-taken in 4 and then 16 shorter steps it stayed unconverged (the solver's
-    refinements before 2026-11-25); the third re-take, 64 shorter steps, converges it, and
-    every step of the stream converges."""
-    env = OrganRetractionEnv()
-    env.reset(seed=1004)
-    towards_base = -env.task.scene.fold_direction
-    for k in range(1107):
+@pytest.mark.parametrize("vector_class", [OrganRetractionVectorEnv, TissueRetractionVectorEnv])
+def test_every_step_of_twenty_push_and_release_streams_converges(vector_class):
+    """The reliability soak's hardest pattern on 20 scenes drawn from 20 seeds: close the
+    jaws, push the held edge towards the attachment for 7 steps, release for 2, over and
+    over, episodes reset as they end. With the underside stuck, the pushes drive the
+    tissue between the jaws and the stuck region together faster than it gives way (the
+    tissue buckles): L-BFGS leaves some of these steps unconverged, more or fewer
+    depending on the CPU's rounding, and its re-takes and the Newton fallback must solve
+    every one. A property of 3,000 steps, not of one trajectory's last bits."""
+    env = vector_class(num_envs=20)
+    env.reset(seed=list(range(1000, 1020)))
+    towards_attachment = -env.task.scene.fold_direction
+    retaken = 0
+    for k in range(150):
         phase = k % 10
-        action = np.array([towards_base if 0 < phase < 8 else 0.0, 0.0, 0.0, 1.0 if phase < 8 else -1.0],
-                          dtype=np.float32)
-        _, _, terminated, truncated, info = env.step(action)
-        assert info["solver_converged"] and not info["simulation_diverged"], f"step {k}"
-        if terminated or truncated:
-            env.reset()
-    assert int(info["substep_refinement"]) == 64  # the step this test is about needed the third re-take
+        action = np.array([towards_attachment if 0 < phase < 8 else 0.0, 0.0, 0.0, 1.0 if phase < 8 else -1.0])
+        obs, reward, _, _, info = env.step(np.tile(action.astype(np.float32), (20, 1)))
+        assert info["solver_converged"].all() and not info["simulation_diverged"].any(), f"step {k}"
+        assert np.all(np.isfinite(obs)) and np.all(np.isfinite(reward))
+        retaken += int((info["substep_refinement"] > 1).sum() + info["solver_fallback"].sum())
+    assert retaken > 0  # the streams did reach the hard steps this test is about

@@ -59,7 +59,9 @@ class StepStats:
     vertices, averaged over the step's sub-steps (the impulse over the step divided by
     its length); 0 on free vertices. Summed over a gripper's vertices it is the grasp
     force on the tissue (the tissue pulls the gripper with ``-R``). ``refinement (N,)``:
-    the factor by which the explicit solver had to multiply a scene's sub-steps (1: none).
+    the factor by which the solver had to multiply a scene's sub-steps (1: none).
+    ``fallback (N,)``: the quasi-Newton solver took the step (or a sub-step of it) again by
+    Newton's method, its fallback (``refinement`` then counts the Newton steps).
     """
 
     substeps: int
@@ -72,6 +74,7 @@ class StepStats:
     messages: list = field(default_factory=list)
     elements: list = field(default_factory=list)
     refinement: np.ndarray | None = None
+    fallback: np.ndarray | None = None
 
     @classmethod
     def empty(cls, n_scenes: int, n_vertices: int, substeps: int) -> "StepStats":
@@ -80,7 +83,7 @@ class StepStats:
                    converged=np.ones(n_scenes, dtype=bool), diverged=np.zeros(n_scenes, dtype=bool),
                    reaction=np.zeros((n_scenes, n_vertices, 3)), messages=[""] * n_scenes,
                    elements=[NO_ELEMENTS] * n_scenes,
-                   refinement=np.ones(n_scenes, dtype=np.int64))
+                   refinement=np.ones(n_scenes, dtype=np.int64), fallback=np.zeros(n_scenes, dtype=bool))
 
     def scene(self, s: int) -> SceneStepStats:
         """The report of scene ``s``."""

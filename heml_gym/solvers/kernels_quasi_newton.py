@@ -134,7 +134,7 @@ def _precondition(g, z, held, inverse, first, ptr, values, axis_slot, b, y):
 
 # ------------------------------------------------------------------------ potential
 @nb.njit(cache=True)
-def _potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat, load, held, k_contact,
+def potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat, load, held, k_contact,
                             tets, coef_t, q_t, use_q, law, p, split, w, psi1, inv_det, planes, grids, grid_values,
                             n_supports):
     """``Phi(x)`` (J) and, if ``want_gradient``, its gradient into ``g`` (N; zero on held
@@ -266,50 +266,33 @@ def _positive_volumes(x, tets, inv_det, vt_ptr, vt_tets, moved):
 
 # ----------------------------------------------------------------------- one scene
 @nb.njit(cache=True)
-def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, tets, coef_t, q_t, use_q,
-                 law, p, split, w, psi1, inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values,
-                 axis_slot, edge_i, edge_j, edge_w, stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho,
-                 memory, first_substep, r_prev, reaction, out, order, x_prev, v_prev, history_h):
-    """One backward Euler (``order`` 1) or BDF2 (``order`` 2) sub-step of one scene by
-    L-BFGS, in place on ``x, v`` ``(n, 3)``.
+def begin_substep(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, order, x_prev, v_prev,
+                  history_h, first_substep, r_prev, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, vt_ptr,
+                  vt_tets, x_n, v_n, x_m, v_m, x_hat, load, held, jump, f):
+    """What a sub-step of length ``h`` (s) needs before its minimisation, whichever method
+    minimises (L-BFGS, or Newton as the fallback): fills the step's start ``x_n, v_n``,
+    BDF2's state one step back ``x_m, v_m`` (``(0, 3)`` arrays under backward Euler), the
+    inertial target ``x_hat``, the ``load`` (N: external forces and weight), the ``held``
+    mask (kinematic or fixed) and the held vertices' ``jump`` beyond their own predictor;
+    moves the held vertices a ``fraction`` of the way to their ``targets`` in ``x``; at
+    ``first_substep`` puts the start's quasi-static holding force into ``r_prev`` (``f``:
+    scratch). Returns ``(c, any_jump)``: the inertia weight ``c`` (1/s^2, see
+    :func:`inertia`) and whether any held vertex jumps.
 
     BDF2 reads the state one step back from ``x_prev``, ``v_prev`` when ``history_h[0]``
     is this step's length ``h``, else it expands the state about the step's start with its
     acceleration (``x_n-1 = x_n - h v_n + h^2 a_n / 2``, ``v_n-1 = v_n - h a_n``, supports
     aside): a start that keeps the scheme second order, at the cost of one force
-    evaluation. Either way BDF2 stores the step's start there after the step
-    (``history_h[0] = h``). Held and fixed vertices follow their prescribed path, straight
-    within a step and turning between steps (the gripper's commands): their velocity is
-    the step's displacement over ``h`` and their inertia in the reaction ``m (v - v_n) /
-    h`` under either scheme (BDF2's formula would read a turn as a spurious acceleration).
-
-    Held (``kinematic``) vertices move a ``fraction`` of the way from where they are to
-    their ``targets``; fixed ones stay. The free vertices start from the explicit
-    predictor plus the linear response (through the initial Hessian) of the held
-    vertices' jump beyond it, else from where they are. ``reaction`` (N) receives the
-    step-mean constraint force on held and fixed vertices of this sub-step, by the
-    trapezoidal rule between ``r_prev`` (the sub-step's start: the quasi-static holding
-    force at ``first_substep``) and its end; ``r_prev`` then holds the end. ``out`` receives
-    ``(iterations, residual (N), converged, feasible)``.
+    evaluation.
     """
     n = x.shape[0]
     c = inertia(order, h, alpha)
-    k_contact = kappa * c
-    x_n = x.copy()
-    v_n = v.copy()
-    held = np.empty(n, dtype=np.bool_)
+    x_n[:, :] = x
+    v_n[:, :] = v
     for i in range(n):
         held[i] = kinematic[i] or fixed[i]
-    load = np.empty((n, 3))
-    for i in range(n):
         for d in range(3):
             load[i, d] = ext[i, d] + mass[i] * gravity[d]
-    f = np.empty((n, 3))
-    # BDF2: the state one step back, kept from the last step if it had this length, else
-    # its Taylor expansion about the start with the start's acceleration (held and fixed
-    # vertices: their constant-velocity history), which keeps the scheme second order
-    x_m = np.empty((n if order == 2 else 0, 3))  # (backward Euler reads neither)
-    v_m = np.empty((n if order == 2 else 0, 3))
     if order == 2 and history_h[0] == h:
         x_m[:, :] = x_prev
         v_m[:, :] = v_prev
@@ -326,8 +309,6 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
         for i in range(n):
             for d in range(3):
                 r_prev[i, d] = -(f[i, d] + load[i, d] - alpha * mass[i] * v[i, d]) if held[i] else 0.0
-    x_hat = np.empty((n, 3))
-    jump = np.zeros((n, 3))  # the held vertices' move beyond their own predictor
     any_jump = False
     for i in range(n):
         for d in range(3):
@@ -337,12 +318,110 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
                 x_hat[i, d] = (0.75 * p_i / (h * h) + 0.5 * q_i / h + 0.5 * alpha * p_i / h) / c
             else:
                 x_hat[i, d] = x_n[i, d] + h * v_n[i, d] / (1.0 + alpha * h)
+            jump[i, d] = 0.0
         if kinematic[i] and not fixed[i]:
             for d in range(3):
                 xi = x[i, d] + (targets[i, d] - x[i, d]) * fraction
                 jump[i, d] = xi - x_n[i, d] - h * v_n[i, d]
                 any_jump = any_jump or jump[i, d] != 0.0
                 x[i, d] = xi
+    return c, any_jump
+
+
+@nb.njit(cache=True)
+def end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, normal, n_supports, f, f_at_x,
+                reaction, r_prev, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, vt_ptr, vt_tets, x_prev,
+                v_prev, history_h):
+    """What a sub-step does after its minimisation reached ``x``, whichever method
+    minimised: vertices inside a support (``dist``, ``normal``: the signed distances at
+    ``x``) go onto it, unless that would turn a tet inside out (a sliver on the support),
+    and lose their velocity into it; the velocities ``v`` follow from the scheme; the
+    step-mean constraint force on held vertices is added into ``reaction`` (N) by the
+    trapezoidal rule between ``r_prev`` (the start's) and the end's, which ``r_prev`` then
+    holds; BDF2 keeps the step's start in ``x_prev, v_prev`` (``history_h[0] = h``).
+    ``f``: the elastic forces at ``x`` if ``f_at_x``, else scratch.
+
+    Held and fixed vertices follow their prescribed path, straight within a step and
+    turning between steps (the gripper's commands): their velocity is the step's
+    displacement over ``h`` and their inertia in the reaction ``m (v - v_n) / h`` under
+    either scheme (BDF2's formula would read a turn as a spurious acceleration).
+    """
+    n = x.shape[0]
+    trial = np.empty((n, 3))
+    inside = np.zeros(n, dtype=np.bool_)
+    n_inside = 0
+    for i in range(n):
+        if n_supports > 0 and not held[i] and dist[i] < 0.0:
+            inside[i] = True
+            n_inside += 1
+            for d in range(3):
+                trial[i, d] = x[i, d] - dist[i] * normal[i, d]
+        else:
+            for d in range(3):
+                trial[i, d] = x[i, d]
+    moved = False
+    if n_inside and _positive_volumes(trial, tets, inv_det, vt_ptr, vt_tets, inside):
+        x[:, :] = trial
+        moved = True
+    for i in range(n):
+        for d in range(3):
+            if order == 2 and not held[i]:
+                v[i, d] = (3.0 * x[i, d] - 4.0 * x_n[i, d] + x_m[i, d]) / (2.0 * h)
+            else:
+                v[i, d] = (x[i, d] - x_n[i, d]) / h
+        if inside[i]:
+            vn = min(v[i, 0] * normal[i, 0] + v[i, 1] * normal[i, 1] + v[i, 2] * normal[i, 2], 0.0)
+            for d in range(3):
+                v[i, d] -= vn * normal[i, d]
+    # the constraint force on held vertices: m a minus every other force on them
+    if moved or not f_at_x:
+        held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+    for i in range(n):
+        if held[i]:
+            for d in range(3):
+                r_end = mass[i] * (v[i, d] - v_n[i, d]) / h - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
+                reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
+                r_prev[i, d] = r_end
+        else:
+            for d in range(3):
+                r_prev[i, d] = 0.0
+    if order == 2:
+        x_prev[:, :] = x_n
+        v_prev[:, :] = v_n
+        history_h[0] = h
+
+
+@nb.njit(cache=True)
+def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, tets, coef_t, q_t, use_q,
+                 law, p, split, w, psi1, inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values,
+                 axis_slot, edge_i, edge_j, edge_w, stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho,
+                 memory, first_substep, r_prev, reaction, out, order, x_prev, v_prev, history_h):
+    """One backward Euler (``order`` 1) or BDF2 (``order`` 2) sub-step of one scene by
+    L-BFGS, in place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best
+    of four starts, :func:`end_substep`.
+
+    Held (``kinematic``) vertices move a ``fraction`` of the way from where they are to
+    their ``targets``; fixed ones stay. The free vertices start from the explicit
+    predictor plus the linear response (through the initial Hessian) of the held
+    vertices' jump beyond it, else from where they are. ``reaction`` (N) receives the
+    step-mean constraint force on held and fixed vertices of this sub-step (see
+    :func:`end_substep`). ``out`` receives ``(iterations, residual (N), converged,
+    feasible)``.
+    """
+    n = x.shape[0]
+    x_n = np.empty((n, 3))
+    v_n = np.empty((n, 3))
+    x_m = np.empty((n if order == 2 else 0, 3))  # (backward Euler reads neither)
+    v_m = np.empty((n if order == 2 else 0, 3))
+    x_hat = np.empty((n, 3))
+    load = np.empty((n, 3))
+    held = np.empty(n, dtype=np.bool_)
+    jump = np.empty((n, 3))
+    f = np.empty((n, 3))
+    c, any_jump = begin_substep(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, order,
+                                x_prev, v_prev, history_h, first_substep, r_prev, tets, coef_t, q_t, use_q, law, p,
+                                split, w, inv_det, vt_ptr, vt_tets, x_n, v_n, x_m, v_m, x_hat, load, held, jump, f)
+    k_contact = kappa * c
     n_supports = planes.shape[0] + grids.shape[0]
     g = np.zeros((n, 3))
     g_new = np.zeros((n, 3))
@@ -381,7 +460,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
                         trial[i, d] = x_n[i, d] + h * v_n[i, d]
                     if attempt % 2 == 0:
                         trial[i, d] += response[i, d]
-        phi = _potential_and_gradient(trial, True, g, f, dist, normal, *args)
+        phi = potential_and_gradient(trial, True, g, f, dist, normal, *args)
         if math.isfinite(phi):
             break
     if not math.isfinite(phi):
@@ -425,7 +504,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
             for i in range(n):
                 for dd in range(3):
                     trial[i, dd] = x[i, dd] + step * d_vec[i, dd]
-            phi_t = _potential_and_gradient(trial, True, g_new, f, dist, normal, *args)
+            phi_t = potential_and_gradient(trial, True, g_new, f, dist, normal, *args)
             if math.isfinite(phi_t):
                 # Armijo on the potential or, near convergence where its round-off hides the
                 # decrease, a smaller residual (as Newton's line search)
@@ -435,7 +514,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
             step *= 0.5
         if not accepted:
             # no progress possible at this precision: keep the best iterate (its distances)
-            _potential_and_gradient(x, False, g_new, f, dist, normal, *args)
+            potential_and_gradient(x, False, g_new, f, dist, normal, *args)
             last_at_x = False
             break
         phi = phi_t
@@ -453,52 +532,11 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
         x[:, :] = trial
         g[:, :] = g_new
         gnorm = math.sqrt(_dot(g, g))
-    # vertices inside a support (``dist``, ``normal``: at ``x``) go onto it, unless that
-    # would turn a tet inside out (a sliver on the support), and lose their velocity into it
-    inside = np.zeros(n, dtype=np.bool_)
-    n_inside = 0
-    for i in range(n):
-        if n_supports > 0 and not held[i] and dist[i] < 0.0:
-            inside[i] = True
-            n_inside += 1
-            for d in range(3):
-                trial[i, d] = x[i, d] - dist[i] * normal[i, d]
-        else:
-            for d in range(3):
-                trial[i, d] = x[i, d]
-    moved = False
-    if n_inside and _positive_volumes(trial, tets, inv_det, vt_ptr, vt_tets, inside):
-        x[:, :] = trial
-        moved = True
-    for i in range(n):
-        for d in range(3):
-            if order == 2 and not held[i]:
-                v[i, d] = (3.0 * x[i, d] - 4.0 * x_n[i, d] + x_m[i, d]) / (2.0 * h)
-            else:
-                v[i, d] = (x[i, d] - x_n[i, d]) / h
-        if inside[i]:
-            vn = min(v[i, 0] * normal[i, 0] + v[i, 1] * normal[i, 1] + v[i, 2] * normal[i, 2], 0.0)
-            for d in range(3):
-                v[i, d] -= vn * normal[i, d]
-    # the constraint force on held vertices: m a minus every other force on them (``f`` holds
-    # the forces at ``x`` from its last evaluation, unless the projection moved it)
-    if moved or not last_at_x:
-        held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
-    for i in range(n):
-        if held[i]:
-            for d in range(3):
-                r_end = mass[i] * (v[i, d] - v_n[i, d]) / h - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
-                reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
-                r_prev[i, d] = r_end
-        else:
-            for d in range(3):
-                r_prev[i, d] = 0.0
+    end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, normal, n_supports, f, last_at_x,
+                reaction, r_prev, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, vt_ptr, vt_tets, x_prev, v_prev,
+                history_h)
     memory[0] = stored
     memory[1] = newest
-    if order == 2:
-        x_prev[:, :] = x_n
-        v_prev[:, :] = v_n
-        history_h[0] = h
     out[0], out[1], out[2], out[3] = float(it), gnorm, 1.0 if gnorm <= tol else 0.0, 1.0
 
 

@@ -46,11 +46,12 @@ import scipy.sparse as sp
 
 from ..control import Control
 from ..forces.heml import HemlForce, assembled_edge_weights
-from ..linear_solvers import EnvelopeLayout
+from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeLayout, FreeSubmatrix, LaggedFactorPCG
 from ..model import Model
 from ..state import State
 from . import kernels_quasi_newton as kq
 from .base import Solver, StepStats, stack_law_params
+from .newton import minimize
 
 __all__ = ["QuasiNewtonSolver"]
 
@@ -83,11 +84,22 @@ class QuasiNewtonSolver(Solver):
         those it holds by more than this many (a stale contact set costs iterations, a
         factorisation about as much as ten of them).
     refinements : sequence of int
-        A sub-step that does not converge in ``max_iter`` iterations is taken again in
-        this many shorter steps, then the next number of them (``()``: never). The third,
-        64 shorter steps, converged the lobe's 10 steps of 50,000 that 16 left
-        unconverged (the held edge pushed into its stuck underside; 2026-11-25); it
-        costs up to a few seconds for such a step, and nothing for any other.
+        A sub-step that does not converge in ``max_iter`` iterations is taken again by
+        L-BFGS in this many shorter steps, then the next number of them (``()``: never).
+    fallback : sequence of int
+        A sub-step that L-BFGS and its refinements leave unconverged is taken again, from
+        its start, by Newton's method on the same incremental potential (the field's
+        analytic Hessian, made positive semi-definite per element when the exact one
+        gives no descent; a sparse Cholesky solve; a line search): in this many steps,
+        then the next number of them (``()``: never). L-BFGS's convergence on the hard
+        steps (the lobe's held edge pushed into its stuck underside, where the tissue
+        buckles) depends on the rounding of the CPU it runs on (on an AVX2-only Zen 3,
+        2026-11-26, one step of a soak stream stayed unconverged after 4, 16 and 64
+        times shorter re-takes that converged it on AVX-512 machines); Newton solved that
+        step in 5 + 11 iterations, about 0.5 s (the 64x re-take: 2.2 s).
+        ``StepStats.fallback`` says which steps took it.
+    max_newton : int
+        Newton iterations per fallback step at most.
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
     scheme : str
@@ -98,8 +110,9 @@ class QuasiNewtonSolver(Solver):
     SCHEMES = {"backward_euler": 1, "bdf2": 2}
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_iter: int = 50, history: int = 8,
-                 contact_stiffness: float = 1000.0, contact_refresh: int = 50, refinements=(4, 16, 64),
-                 max_speed: float = 1e3, scheme: str = "backward_euler"):
+                 contact_stiffness: float = 1000.0, contact_refresh: int = 50, refinements=(4, 16),
+                 fallback=(1, 4, 16), max_newton: int = 100, max_speed: float = 1e3,
+                 scheme: str = "backward_euler"):
         super().__init__(model, max_speed)
         if scheme not in self.SCHEMES:
             raise ValueError(f"scheme must be one of {sorted(self.SCHEMES)}, got {scheme!r}")
@@ -113,7 +126,7 @@ class QuasiNewtonSolver(Solver):
         if not (math.isfinite(newton_tol) and newton_tol > 0):
             raise ValueError(f"newton_tol must be a positive number, got {newton_tol}")
         for name, value, low in (("max_iter", max_iter, 1), ("history", history, 1),
-                                 ("contact_refresh", contact_refresh, 0)):
+                                 ("contact_refresh", contact_refresh, 0), ("max_newton", max_newton, 1)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
         contact_stiffness = float(contact_stiffness)
@@ -129,6 +142,16 @@ class QuasiNewtonSolver(Solver):
             raise ValueError(f"refinements must be integers > 1 (sub-steps to split an unconverged one into), "
                              f"got {refinements!r}")
         self.refinements = tuple(int(r) for r in refinements)
+        fallback = tuple(fallback)
+        if not all(isinstance(r, (int, np.integer)) and not isinstance(r, bool) and r >= 1 for r in fallback):
+            raise ValueError(f"fallback must be integers >= 1 (Newton steps to take an unconverged sub-step in), "
+                             f"got {fallback!r}")
+        self.fallback = tuple(int(r) for r in fallback)
+        self.max_newton = int(max_newton)
+        self._newton_linear: dict = {}  # per scene: the Newton fallback's lagged factorisation
+        self._free_submatrix = FreeSubmatrix()
+        self._add_diagonal = DiagonalAdd()
+        self._add_blocks = DiagonalBlockAdd()
         mesh = model.mesh
         n = mesh.n_vertices
         # the P1 Laplacian: per tet the Hessian of V0 (I1 - 3) / 2 on one axis, edge weights V0 a_k
@@ -282,9 +305,11 @@ class QuasiNewtonSolver(Solver):
         shorter steps, then ``refinements[1]``, ... (more inertia per step: a better
         conditioned, more convex potential, e.g. when the tissue buckles; and a shorter
         move of the held vertices);
-        ``StepStats.refinement`` says by how much. A scene that goes non-finite, explodes
-        or still cannot start is flagged ``diverged`` (its state kept); one whose solve
-        still stops above tolerance ``converged = False``."""
+        ``StepStats.refinement`` says by how much. A sub-step still unconverged is taken
+        again by Newton's method in ``fallback[0]`` steps, then ``fallback[1]``, ...
+        (``StepStats.fallback``; its ``refinement`` then counts the Newton steps). A scene
+        that goes non-finite, explodes or still cannot start is flagged ``diverged`` (its
+        state kept); one whose solve still stops above tolerance ``converged = False``."""
         dt, active = self._check(state_in, state_out, control, dt, active)
         substeps = int(substeps)
         if substeps < 1:
@@ -307,32 +332,42 @@ class QuasiNewtonSolver(Solver):
             for k in range(1, substeps + 1):
                 run = active & feasible
                 saved = x.copy(), v.copy(), r_prev.copy()  # (whole arrays: cheaper than a masked gather)
-                residual_before = stats.residual.copy()
+                history = self._x_prev.copy(), self._v_prev.copy(), self._history_h.copy()  # (BDF2's)
+                residual_before, converged_before = stats.residual.copy(), stats.converged.copy()
                 contribution = np.zeros_like(x)
                 out = self._advance(args, run, h, 1.0 / (substeps - k + 1), k == 1, r_prev, contribution)
                 self._count(stats, run, out, feasible)
                 retry = run & (out[:, 2] < 0.5)  # unconverged, or no feasible start
-                for factor in self.refinements:
+                refined, by_fallback = np.ones(N, dtype=np.int64), np.zeros(N, dtype=bool)  # this sub-step's
+                retakes = [(f, self._advance, False) for f in self.refinements]
+                retakes += [(f, self._newton_advance, True) for f in self.fallback]
+                for factor, advance, by_newton in retakes:
                     if not retry.any():
                         break
                     # take the sub-step again in ``factor`` shorter ones, from its start (the
                     # held vertices move a ``factor``-th as far per step, and the tissue in
                     # front of them has time to give way)
                     x[retry], v[retry], r_prev[retry] = saved[0][retry], saved[1][retry], saved[2][retry]
+                    self._x_prev[retry], self._v_prev[retry] = history[0][retry], history[1][retry]
+                    self._history_h[retry] = history[2][retry]
                     finer = np.zeros_like(x)
                     feasible[retry] = True
-                    stats.converged[retry] = True
+                    stats.converged[retry] = True  # this re-take's verdict (earlier sub-steps': below)
                     stats.residual[retry] = residual_before[retry]
+                    by_fallback[retry] = by_newton
                     for j in range(1, factor + 1):
                         go = retry & feasible
                         remaining = (substeps - k) * factor + factor - j + 1
                         part = np.zeros_like(x)
-                        out = self._advance(args, go, h / factor, 1.0 / remaining, k == 1 and j == 1, r_prev, part)
+                        out = advance(args, go, h / factor, 1.0 / remaining, k == 1 and j == 1, r_prev, part)
                         finer += part
                         self._count(stats, go, out, feasible)
                     contribution[retry] = finer[retry] / factor
-                    stats.refinement[retry] = factor
+                    refined[retry] = factor
                     retry &= ~(feasible & stats.converged)
+                stats.converged &= converged_before
+                stats.refinement = np.maximum(stats.refinement, refined)
+                stats.fallback |= by_fallback
                 stats.reaction += contribution
         stats.reaction /= substeps
         check = active & ~(feasible & stats.converged)  # (the others: only those divergence may flag)
@@ -351,9 +386,10 @@ class QuasiNewtonSolver(Solver):
                 stats.messages[s] = reason
                 stats.elements[s] = elements
             elif not stats.converged[s]:
-                stats.messages[s] = (f"L-BFGS stopped at a force residual of {stats.residual[s]:.3g} N, above its "
+                method = "Newton (the fallback)" if stats.fallback[s] else "L-BFGS"
+                stats.messages[s] = (f"{method} stopped at a force residual of {stats.residual[s]:.3g} N, above its "
                                      f"tolerance of {tol[s]:.3g} N, after {stats.newton_iterations[s]} iterations "
-                                     f"(sub-steps refined {stats.refinement[s]}x)")
+                                     f"in all (sub-steps refined {stats.refinement[s]}x)")
         stats.reaction[~active] = 0.0
         return stats
 
@@ -423,6 +459,95 @@ class QuasiNewtonSolver(Solver):
                self._memory, first_substep, run, r_prev, contribution, out, self.order, self._x_prev, self._v_prev,
                self._history_h)
         return out
+
+    def _newton_advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
+                        r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
+        """:meth:`_advance` by Newton's method, scene after scene: the same sub-step
+        (:func:`~.kernels_quasi_newton.begin_substep`, the same incremental potential,
+        :func:`~.kernels_quasi_newton.end_substep`), minimised by
+        :func:`heml_gym.solvers.newton.minimize` from the lower-potential of the explicit
+        predictor and the step's start. The scene's L-BFGS curvature pairs are dropped
+        (its next step starts them afresh)."""
+        m = self.model
+        out = np.zeros((m.n_scenes, 4))
+        for s in np.flatnonzero(run):
+            out[s] = self._newton_scene(a, int(s), h, fraction, first_substep, r_prev[s], contribution[s])
+            self._memory[s] = (0, -1)
+        return out
+
+    def _newton_scene(self, a: dict, s: int, h: float, fraction: float, first_substep: bool,
+                      r_prev: np.ndarray, reaction: np.ndarray) -> tuple:
+        """One sub-step of scene ``s`` by Newton; returns ``(iterations, residual (N),
+        converged, feasible)`` as the L-BFGS kernel reports them."""
+        m = self.model
+        n = m.n_vertices
+        control = a["control"]
+        x, v = a["x"][s], a["v"][s]
+        field = m.fields[s]
+        rest = field.rest
+        law, params, w, psi1 = a["laws"][s], a["params"][s], a["weights"][s], a["psi1"][s]
+        q_t = rest.q_t if a["use_q"] else m.fields[0].q_t
+        x_n, v_n, x_hat, load, jump, f = (np.empty((n, 3)) for _ in range(6))
+        kept = n if self.order == 2 else 0
+        x_m, v_m = np.empty((kept, 3)), np.empty((kept, 3))
+        held = np.empty(n, dtype=bool)
+        alpha = float(m.damping.alpha)
+        field_args = (rest.tets, rest.coef_t, q_t, a["use_q"], law, params, a["split"], w, rest.inv_det)
+        c, _ = kq.begin_substep(x, v, control.targets[s], control.kinematic[s], m.fixed, m.mass, m.gravity,
+                                control.external_forces[s], alpha, h, fraction, self.order, self._x_prev[s],
+                                self._v_prev[s], self._history_h[s:s + 1], first_substep, r_prev, *field_args,
+                                self._vt_ptr, self._vt_tets, x_n, v_n, x_m, v_m, x_hat, load, held, jump, f)
+        planes, grids, values = m.supports.kernel_args()
+        n_supports = planes.shape[0] + grids.shape[0]
+        k_contact = self.contact_stiffness * c
+        potential_args = (m.mass, c, x_hat, load, held, k_contact, rest.tets, rest.coef_t, q_t, a["use_q"], law,
+                          params, a["split"], w, psi1, rest.inv_det, planes, grids, values, n_supports)
+        g = np.zeros((n, 3))
+        dist, normal = np.full(n, math.inf), np.zeros((n, 3))
+
+        def potential(y):
+            return kq.potential_and_gradient(y.reshape(n, 3), False, g, f, dist, normal, *potential_args)
+
+        def gradient(y):
+            kq.potential_and_gradient(y.reshape(n, 3), True, g, f, dist, normal, *potential_args)
+            return g.reshape(-1).copy()
+
+        inertia_diagonal = np.repeat(c * m.mass, 3)
+
+        def hessian(y, project):
+            y = y.reshape(n, 3)
+            hess = self._add_diagonal(field.hessian(y, project=project), inertia_diagonal)
+            if n_supports:
+                kq.potential_and_gradient(y, False, g, f, dist, normal, *potential_args)
+                touching = np.flatnonzero((dist < 0.0) & ~held)
+                if touching.size:
+                    nrm = normal[touching]
+                    blocks = (k_contact * m.mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+                    hess = self._add_blocks(hess, touching, blocks)
+            return hess
+
+        start, best = None, math.inf
+        for candidate in (x_n + h * v_n, x_n.copy()):
+            candidate[held] = x[held]
+            phi = potential(candidate)
+            if phi < best:  # (finite)
+                start, best = candidate, phi
+        if start is None:  # no start without inverted elements
+            x[:] = x_n
+            return 0.0, math.inf, 0.0, 0.0
+        free = np.repeat(~held, 3)
+        linear = self._newton_linear.setdefault(s, LaggedFactorPCG(rtol=1e-2, max_iter=8, factorization="cholesky"))
+        with np.errstate(all="ignore"):
+            result = minimize(start, potential, gradient, hessian, free, float(a["tol"][s]), self.max_newton,
+                              self._free_submatrix, linear, (free.tobytes(), h), stall_limit=10)
+        x[:] = result.x
+        if not result.finite:
+            return float(result.iterations), math.inf, 0.0, 1.0
+        kq.potential_and_gradient(x, True, g, f, dist, normal, *potential_args)  # f, dist, normal at x
+        kq.end_substep(x, v, x_n, v_n, x_m, held, m.mass, load, alpha, h, self.order, dist, normal, n_supports, f,
+                       True, reaction, r_prev, *field_args, self._vt_ptr, self._vt_tets, self._x_prev[s],
+                       self._v_prev[s], self._history_h[s:s + 1])
+        return float(result.iterations), result.residual, float(result.converged), 1.0
 
     @staticmethod
     def _count(stats: StepStats, run: np.ndarray, out: np.ndarray, feasible: np.ndarray) -> None:
