@@ -13,7 +13,19 @@ vector (N = 8), state and point-cloud observations, with these action streams:
 
 It counts env steps, episodes, physics divergences (``info["simulation_diverged"]``),
 unconverged solves, non-finite values anywhere in an observation, reward or ``info``,
-observations outside their space, exceptions, and the slowest step.
+observations outside their space, exceptions, the slowest step, and the steps the solver
+re-took in shorter sub-steps or by its Newton fallback.
+
+Part 1b, the streams (``--stream-steps``): per environment, 20 seeded streams of each of
+``push_release``, ``random`` and ``extreme`` (a 20-scene vector env), each ``--stream-steps``
+env steps long, with the failures of every stream counted: the acceptance check of
+"every step converges, on any CPU".
+
+With ``--targets host,haswell`` the whole run is repeated with the Numba kernels compiled
+for each target (a child process per target, one core each, concurrently; non-host
+targets with ``NUMBA_CPU_NAME=<target> NUMBA_CPU_FEATURES=""`` and their own cache), and
+every row records the target it ran under (``codegen``): rounding, and so the solver's
+convergence, differs between instruction sets.
 
 Part 2, bad inputs: every bad argument of the public entry points this project knows of,
 each run, and the error it gets (the first line of its message).
@@ -21,7 +33,8 @@ each run, and the error it gets (the first line of its message).
 Writes docs/benchmarks/reliability.{json,md} and docs/img/reliability.png.
 
     python benchmarks/reliability.py [--steps 2000]      # env steps per env (split over the streams)
-    python benchmarks/reliability.py --steps 950000,50000   # the published run: 1,000,000 in all
+    python benchmarks/reliability.py --steps 200000,60000 --stream-steps 2000 --targets host,haswell
+                                    # the published run: over 1,000,000 env steps in all
     python benchmarks/reliability.py --envs heml_gym/OrganRetraction-v0 --steps 50000 --merge
                                     # re-soak one env, keeping the stored rows of the others
 """
@@ -47,6 +60,8 @@ from heml_gym.envs.scripted import scripted_policy  # noqa: E402
 ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
 STREAMS = ("random", "extreme", "toggling", "out_of_range", "push_release", "scripted")
 VECTOR_N = 8
+ACCEPTANCE_STREAMS = ("push_release", "random", "extreme")  # part 1b
+ACCEPTANCE_N = 20
 
 
 class Actions:
@@ -154,6 +169,41 @@ def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: 
         rec["exception_messages"].append("".join(traceback.format_exception_only(type(exc), exc)).strip()[:300])
     env.close()
     rec["wall_s"] = time.perf_counter() - t_start
+    return rec
+
+
+def streams(env_id: str, kind: str, steps: int, seed: int) -> dict:
+    """Part 1b: ``ACCEPTANCE_N`` seeded ``kind`` streams of ``steps`` env steps each (one
+    per scene of a vector env, seeds ``seed .. seed + ACCEPTANCE_N - 1``), with the failed
+    steps (diverged, unconverged, non-finite) of each stream."""
+    n = ACCEPTANCE_N
+    env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
+    rng = np.random.default_rng(seed)
+    actions = Actions(kind, n, rng, env.unwrapped.scene)
+    failed = np.zeros(n, dtype=np.int64)
+    fallback = np.zeros(n, dtype=np.int64)
+    refined = np.zeros(n, dtype=np.int64)
+    rec = {"env": env_id, "actions": kind, "streams": n, "steps_per_stream": steps, "seeds": [seed, seed + n - 1],
+           "codegen": codegen_target()["cpu"], "exceptions": 0, "exception_messages": []}
+    t_start = time.perf_counter()
+    try:
+        obs, _ = env.reset(seed=list(range(seed, seed + n)))
+        for _ in range(steps):
+            obs, reward, terminated, truncated, info = env.step(actions(obs))
+            bad = np.asarray(info["simulation_diverged"]) | ~np.asarray(info["solver_converged"])
+            if not (_all_finite(obs) and _all_finite(reward) and _all_finite(info)):
+                bad = np.ones(n, dtype=bool)
+            failed += bad
+            fallback += np.asarray(info["solver_fallback"])
+            refined += np.asarray(info["substep_refinement"]) > 1
+            for i in np.flatnonzero(np.asarray(terminated) | np.asarray(truncated)):
+                actions.reset(i)
+    except Exception as exc:  # noqa: BLE001 - counted and reported, never hidden
+        rec["exceptions"] += 1
+        rec["exception_messages"].append("".join(traceback.format_exception_only(type(exc), exc)).strip()[:300])
+    env.close()
+    rec.update(env_steps=int(n * steps), failed_per_stream=failed.tolist(), fallback_steps=int(fallback.sum()),
+               refined_steps=int(refined.sum()), wall_s=time.perf_counter() - t_start)
     return rec
 
 
@@ -303,52 +353,125 @@ def merged_note(results: dict) -> str:
 def report(results: dict) -> str:
     m = results["machine"]
     soak_rows = results["soak"]
-    total = sum(r["env_steps"] for r in soak_rows)
+    stream_rows = results.get("streams", [])
+    total = sum(r["env_steps"] for r in soak_rows) + sum(r["env_steps"] for r in stream_rows)
+    targets = results.get("targets", ["host"])
+    command = (f"benchmarks/reliability.py --envs {','.join(results['steps_per_env'])} "
+               f"--steps {','.join(str(v) for v in results['steps_per_env'].values())}"
+               + (f" --stream-steps {results['stream_steps']}" if results.get("stream_steps") else "")
+               + (f" --targets {','.join(targets)}" if targets != ["host"] else ""))
     lines = [
         "# Reliability soak",
         "",
-        f"Generated by `benchmarks/reliability.py --envs {','.join(results['steps_per_env'])} "
-        f"--steps {','.join(str(v) for v in results['steps_per_env'].values())}` "
-        f"in {results['wall_s'] / 60:.0f} min "
-        f"on {m['cpu']} ({m['cores']} cores), {m['date']}: {total:,} env steps in all."
-        + merged_note(results),
+        f"Generated by `{command}` in {results['wall_s'] / 60:.0f} min on {m['cpu']} ({m['cores']} cores, "
+        f"{m.get('vector_isa', '?')}), {m['date']}: {total:,} env steps in all"
+        + (f", with the kernels compiled for each of {', '.join(targets)} (column codegen: the LLVM CPU name)"
+           if targets != ["host"] else "") + "." + merged_note(results),
         "",
         "## Soak",
         "",
     ]
-    header = ["env", "mode", "obs", "actions", "env steps", "episodes", "diverged", "unconverged", "non-finite",
-              "outside space", "exceptions", "slowest step (ms)"]
-    rows = [[r["env"].split("/")[-1].replace("-v0", ""), r["mode"], r["obs_mode"], r["actions"], f"{r['env_steps']:,}",
-             r["episodes"], r["diverged"], r["unconverged"], r["non_finite"], r["outside_space"], r["exceptions"],
+    header = ["env", "codegen", "mode", "obs", "actions", "env steps", "episodes", "diverged", "unconverged",
+              "non-finite", "outside space", "exceptions", "re-taken shorter", "Newton fallback", "slowest step (ms)"]
+    rows = [[r["env"].split("/")[-1], r.get("codegen", "?"), r["mode"], r["obs_mode"], r["actions"],
+             f"{r['env_steps']:,}", r["episodes"], r["diverged"], r["unconverged"], r["non_finite"],
+             r["outside_space"], r["exceptions"], r.get("refined_steps", "-"), r.get("fallback_steps", "-"),
              f"{1e3 * r['slowest_step_s']:.0f}"] for r in soak_rows]
     lines.append(markdown_table(header, rows))
     sums = {k: sum(r[k] for r in soak_rows) for k in ("diverged", "unconverged", "non_finite", "outside_space",
                                                        "exceptions")}
-    lines.append("Totals: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sums.items()) + ". (The "
+    lines.append("Totals: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in sums.items())
+                 + f"; re-taken in shorter sub-steps {sum(r.get('refined_steps', 0) for r in soak_rows):,}, "
+                 f"by the Newton fallback {sum(r.get('fallback_steps', 0) for r in soak_rows):,}. (The "
                  "slowest step of the first configurations includes compiling the Numba kernels they first "
                  "use: seconds, once per process.)\n")
     for r in soak_rows:
         for msg in r["exception_messages"][:3]:
             lines.append(f"- exception in {r['env']} {r['mode']} {r['actions']}: `{msg}`")
-    lines += ["", "## Bad inputs", "", "Each input below was tried; the error it got is its first line.", ""]
-    lines.append(markdown_table(["input", "error", "message"],
-                                [[b["input"], b["error"] or "**none**", b["message"].replace("|", "/")]
-                                 for b in results["bad_inputs"]]))
+    if stream_rows:
+        lines += ["", "## Seeded streams", "",
+                  f"Per env and action pattern, {stream_rows[0]['streams']} streams (one per scene of a vector env, "
+                  f"each its own seed) of {stream_rows[0]['steps_per_stream']:,} env steps; a step fails when it "
+                  "diverged, stayed unconverged or put a non-finite value anywhere.", ""]
+        header = ["env", "codegen", "actions", "streams", "env steps", "streams with a failed step", "failed steps",
+                  "re-taken shorter", "Newton fallback", "exceptions", "wall (min)"]
+        lines.append(markdown_table(header, [
+            [r["env"].split("/")[-1], r["codegen"], r["actions"], f"{r['streams']} (seeds {r['seeds'][0]}-"
+             f"{r['seeds'][1]})", f"{r['env_steps']:,}", sum(1 for f in r["failed_per_stream"] if f),
+             sum(r["failed_per_stream"]), r["refined_steps"], r["fallback_steps"], r["exceptions"],
+             f"{r['wall_s'] / 60:.1f}"] for r in stream_rows]))
+        for r in stream_rows:
+            for msg in r["exception_messages"][:3]:
+                lines.append(f"- exception in {r['env']} {r['actions']} streams: `{msg}`")
+    if results["bad_inputs"]:
+        lines += ["", "## Bad inputs", "", "Each input below was tried; the error it got is its first line.", ""]
+        lines.append(markdown_table(["input", "error", "message"],
+                                    [[b["input"], b["error"] or "**none**", b["message"].replace("|", "/")]
+                                     for b in results["bad_inputs"]]))
     lines.append("![reliability soak](../img/reliability.png)")
     return "\n".join(lines) + "\n"
 
 
+def run_target(target: str, budget: dict, stream_steps: int) -> dict:
+    """The soak (and the streams) of every env in ``budget`` in this process: its rows."""
+    env_ids = list(budget)
+    configs = [(e, v, o, k) for e in env_ids for v in (False, True) for o in ("state", "pointcloud") for k in STREAMS]
+    per_env = len(configs) // len(env_ids)
+    soak_rows = []
+    for i, (env_id, vector, obs_mode, kind) in enumerate(tqdm(configs, desc=f"soak ({target})", unit="config")):
+        soak_rows.append(soak(env_id, vector, obs_mode, kind, max(1, budget[env_id] // per_env), seed=1000 + i))
+    stream_rows = []
+    if stream_steps:
+        jobs = [(e, k) for e in env_ids for k in ACCEPTANCE_STREAMS]
+        for j, (env_id, kind) in enumerate(tqdm(jobs, desc=f"streams ({target})", unit="kind")):
+            stream_rows.append(streams(env_id, kind, stream_steps, seed=5000 + 100 * j))
+    return {"soak": soak_rows, "streams": stream_rows}
+
+
+def run_targets(targets: list[str], argv: list[str]) -> dict:
+    """Each target in a child process (concurrently, one Numba thread each); their rows."""
+    import json
+    import os
+    import subprocess
+    import tempfile
+
+    children = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for target in targets:
+            env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
+            if target != "host":
+                env.update(NUMBA_CPU_NAME=target, NUMBA_CPU_FEATURES="",
+                           NUMBA_CACHE_DIR=str(Path(tempfile.gettempdir()) / f"heml-gym-numba-{target}"))
+            part = Path(tmp) / f"{target}.json"
+            cmd = [sys.executable, __file__, *argv, "--part", str(part)]
+            children.append((target, part, subprocess.Popen(cmd, env=env)))
+        rows = {"soak": [], "streams": []}
+        for target, part, child in children:
+            if child.wait() != 0:
+                raise SystemExit(f"reliability: the {target} run failed (exit {child.returncode})")
+            got = json.loads(part.read_text())
+            rows["soak"] += got["soak"]
+            rows["streams"] += got["streams"]
+    return rows
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", default="2000", help="env steps per environment, split over its "
                     "configurations: one number, or one per environment (comma-separated); default 2000, a "
                     "smoke run")
+    ap.add_argument("--stream-steps", type=int, default=0, help="part 1b: env steps per stream of the 20 seeded "
+                    "push_release, random and extreme streams per env (default 0: skipped)")
+    ap.add_argument("--targets", default="host", help="comma-separated Numba codegen targets to repeat the run "
+                    "under (host, haswell, znver3, x86-64, ...), each in its own process; default host")
     ap.add_argument("--envs", default=",".join(ENV_IDS), help="comma-separated environment ids")
     ap.add_argument("--out", default=str(RESULTS), help="folder for reliability.json / .md")
     ap.add_argument("--from-json", action="store_true", help="rewrite the report and chart from the stored run")
     ap.add_argument("--no-bad-inputs", action="store_true", help="the soak only (scripts/cpu_matrix.sh)")
     ap.add_argument("--merge", action="store_true", help="replace only these envs' soak rows in the stored "
                     "reliability.json (the other envs' rows are kept, with the machine they ran on)")
+    ap.add_argument("--part", help=argparse.SUPPRESS)  # internal: one target's rows to this JSON
     args = ap.parse_args(argv)
     if args.merge and not (Path(args.out) / "reliability.json").is_file():
         ap.error(f"--merge: there is no stored {Path(args.out) / 'reliability.json'} to merge into")
@@ -368,14 +491,30 @@ def main(argv=None) -> int:
         steps = steps * len(env_ids)
     if len(steps) != len(env_ids) or min(steps) < 1:
         ap.error(f"--steps: give one number >= 1, or one per environment ({len(env_ids)})")
+    if args.stream_steps < 0:
+        ap.error(f"--stream-steps must be >= 0, got {args.stream_steps}")
+    targets = [t for t in args.targets.split(",") if t]
+    if not targets:
+        ap.error("--targets: name at least one target (host, haswell, ...)")
     budget = dict(zip(env_ids, steps))
-    configs = [(e, v, o, k) for e in env_ids for v in (False, True) for o in ("state", "pointcloud") for k in STREAMS]
-    per_env = len(configs) // len(env_ids)
+    if args.part:
+        import json
+
+        rows = run_target(codegen_target()["cpu"], budget, args.stream_steps)
+        Path(args.part).write_text(json.dumps(rows))
+        return 0
     t0 = time.perf_counter()
-    soak_rows = []
-    for i, (env_id, vector, obs_mode, kind) in enumerate(tqdm(configs, desc="reliability soak", unit="config")):
-        soak_rows.append(soak(env_id, vector, obs_mode, kind, max(1, budget[env_id] // per_env), seed=1000 + i))
-    results = {"machine": machine_info(), "steps_per_env": budget, "soak": soak_rows}
+    if targets == ["host"]:
+        rows = run_target("host", budget, args.stream_steps)
+    else:
+        child_argv = [a for a in argv if not a.startswith("--targets")]
+        if "--targets" in argv:
+            k = argv.index("--targets")
+            child_argv = argv[:k] + argv[k + 2:]
+        rows = run_targets(targets, child_argv)
+    soak_rows = rows["soak"]
+    results = {"machine": machine_info(), "steps_per_env": budget, "targets": targets,
+               "stream_steps": args.stream_steps, "soak": soak_rows, "streams": rows["streams"]}
     results["bad_inputs"] = [] if args.no_bad_inputs else bad_inputs()
     results["wall_s"] = time.perf_counter() - t0
     if args.merge:
@@ -390,6 +529,7 @@ def main(argv=None) -> int:
             r["machine"] = results["machine"]
         soak_rows = kept + soak_rows
         results = {**results, "soak": soak_rows, "steps_per_env": {**earlier, **budget},
+                   "streams": [r for r in stored.get("streams", []) if r["env"] not in budget] + rows["streams"],
                    "merged": stored.get("merged", []) + [{"envs": sorted(budget), "machine": results["machine"],
                                                           "wall_s": results["wall_s"]}],
                    "wall_s": stored["wall_s"] + results["wall_s"]}
@@ -406,11 +546,12 @@ def main(argv=None) -> int:
     (out / "reliability.md").write_text(report(results))
     failures = sum(r["diverged"] + r["unconverged"] + r["non_finite"] + r["outside_space"] + r["exceptions"]
                    for r in soak_rows)
+    failures += sum(sum(r["failed_per_stream"]) + r["exceptions"] for r in results["streams"])
     accepted = [b["input"] for b in results["bad_inputs"] if b["error"] is None or "TRACEBACK" in b["message"]
                 or "LEFT" in b["message"]]
-    print(f"{sum(r['env_steps'] for r in soak_rows):,} env steps: {failures} failures; "
-          f"{len(accepted)} bad inputs not handled cleanly {accepted}")
-    return 0
+    total = sum(r["env_steps"] for r in soak_rows) + sum(r["env_steps"] for r in results["streams"])
+    print(f"{total:,} env steps: {failures} failures; {len(accepted)} bad inputs not handled cleanly {accepted}")
+    return 1 if failures else 0
 
 
 if __name__ == "__main__":
