@@ -133,7 +133,31 @@ def throughput(data: dict) -> str:
     if all(explicit):
         text += (f", {rate(organ, 'single', 1, 1) / explicit[0]:.1f}x and "
                  f"{rate(organ, 'single', 1, 1, 'scripted') / explicit[1]:.1f}x its explicit path in the same run")
-    return text + (f", {ov['median_steps_per_s']:,.0f}/s vectorised ({where(data)}; [envs.md](../envs.md#measured)).")
+    text += f", {ov['median_steps_per_s']:,.0f}/s vectorised ({where(data)}; [envs.md](../envs.md#measured))."
+    avx2 = load("env_throughput_avx2")
+    return text + (" " + throughput_avx2(avx2) if avx2 else "")
+
+
+def throughput_avx2(data: dict) -> str:
+    """The same rates with the kernels compiled for an AVX2-only CPU (``env_throughput.py --avx2``)."""
+    def rate(env_id, env, n, threads, actions="random"):
+        return throughput_rate(data["envs"][env_id]["throughput"], env=env, actions=actions, num_envs=n,
+                               threads=threads)
+
+    def best_vector(env_id):
+        return max(throughput_rows(data["envs"][env_id]["throughput"], env="vector"),
+                   key=lambda r: r["median_steps_per_s"])
+
+    tissue, organ = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+    tv, ov = best_vector(tissue), best_vector(organ)
+    m = data["machine"]
+    machine = (f"{m['cpu']}, {m['cores']} cores, {m['vector_isa']}, kernels compiled for "
+               f"{m.get('codegen', {}).get('cpu', data.get('compiled_for', '?'))}, {m['date']}")
+    return (f"On an AVX2-only CPU ({machine}; [env_throughput_avx2.md](env_throughput_avx2.md)): "
+            f"TissueRetraction {rate(tissue, 'single', 1, 1):,.0f}/s single (random actions), "
+            f"{tv['median_steps_per_s']:,.0f}/s vectorised; OrganRetraction {rate(organ, 'single', 1, 1):,.0f}/s "
+            f"single with random actions and {rate(organ, 'single', 1, 1, 'scripted'):,.0f}/s on the scripted "
+            f"retraction, {ov['median_steps_per_s']:,.0f}/s vectorised.")
 
 
 def forces(data: dict) -> str:
