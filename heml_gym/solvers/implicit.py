@@ -70,11 +70,17 @@ class ImplicitSolver(Solver):
         less than 1 % (the round-off floor); None: only ``max_newton`` stops it.
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
+    refinements : sequence of int
+        A sub-step that does not converge, goes non-finite or has no start (its held
+        vertices invert elements within one step) is taken again in this many shorter
+        steps, then the next number of them (``()``: never). Whether Newton finds a start
+        can depend on the CPU's rounding: on the lobe with Demiray's law, one of 50 random
+        steps had none when compiled for plain x86-64 (SSE2), and converged re-taken in 4.
     """
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_newton: int = 20,
                  linear_solver: str = "pcg", contact_stiffness: float = 100.0, stall_limit: int | None = 5,
-                 max_speed: float = 1e3):
+                 max_speed: float = 1e3, refinements=(4, 16)):
         super().__init__(model, max_speed)
         for f in model.fields:
             if not f.has_hessian:
@@ -89,6 +95,11 @@ class ImplicitSolver(Solver):
         contact_stiffness = float(contact_stiffness)
         if not (math.isfinite(contact_stiffness) and contact_stiffness > 0):
             raise ValueError(f"contact_stiffness must be a positive number, got {contact_stiffness}")
+        refinements = tuple(refinements)
+        if not all(isinstance(r, (int, np.integer)) and not isinstance(r, bool) and r > 1 for r in refinements):
+            raise ValueError(f"refinements must be integers > 1 (sub-steps to split a failed one into), "
+                             f"got {refinements!r}")
+        self.refinements = tuple(int(r) for r in refinements)
         self.newton_tol = newton_tol
         self.max_newton = int(max_newton)
         self.linear_solver = linear_solver
@@ -108,10 +119,13 @@ class ImplicitSolver(Solver):
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
         """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
-        backward Euler steps. A scene whose solve goes non-finite, explodes or cannot
-        start (its held vertices invert elements within one step) is flagged
-        ``diverged`` and keeps its state; one whose Newton solve stops above tolerance is
-        flagged ``converged = False`` (its state is the last iterate)."""
+        backward Euler steps. A sub-step whose Newton solve stops above tolerance, goes
+        non-finite or cannot start (its held vertices invert elements within one step) is
+        taken again from its start in ``refinements[0]`` shorter steps, then
+        ``refinements[1]``, ... (``StepStats.refinement``). A scene that still goes
+        non-finite, explodes or cannot start is flagged ``diverged`` and keeps its state;
+        one whose Newton solve still stops above tolerance is flagged ``converged = False``
+        (its state is the last iterate)."""
         dt, active = self._check(state_in, state_out, control, dt, active)
         substeps = int(substeps)
         if substeps < 1:
@@ -127,16 +141,12 @@ class ImplicitSolver(Solver):
             try:
                 with np.errstate(all="ignore"):
                     for k in range(1, substeps + 1):
-                        targets = x0 + (control.targets[s] - x0) * (k / substeps)
-                        reaction, result = self._substep(s, state_out, control, h, targets, tol)
-                        stats.newton_iterations[s] += result.iterations
-                        stats.residual[s] = max(stats.residual[s], result.residual)
-                        if not result.converged:
+                        # the held vertices' path over this sub-step (x0: the step's start)
+                        path = (x0 + (control.targets[s] - x0) * ((k - 1) / substeps),
+                                x0 + (control.targets[s] - x0) * (k / substeps))
+                        converged = self._retaken_substep(s, state_out, control, h, path, tol, stats)
+                        if not converged:
                             stats.converged[s] = False
-                        stats.reaction[s] += reaction / substeps
-                        reason, elements = self.divergence(state_out.x[s], state_out.v[s])
-                        if reason:
-                            raise _Diverged(reason, elements)
             except _Diverged as exc:
                 state_out.x[s], state_out.v[s] = x0, v0
                 stats.diverged[s] = True
@@ -145,10 +155,48 @@ class ImplicitSolver(Solver):
                 stats.messages[s] = exc.reason
                 stats.elements[s] = exc.elements
                 continue
+            stats.reaction[s] /= substeps
             if not stats.converged[s]:
                 stats.messages[s] = (f"Newton stopped at a force residual of {stats.residual[s]:.3g} N, above its "
-                                     f"tolerance of {tol:.3g} N, after {stats.newton_iterations[s]} iterations")
+                                     f"tolerance of {tol:.3g} N, after {stats.newton_iterations[s]} iterations "
+                                     f"(sub-steps refined {stats.refinement[s]}x)")
         return stats
+
+    def _retaken_substep(self, s, state, control, h, path, tol, stats) -> bool:
+        """One sub-step of scene ``s`` (the held vertices from ``path[0]`` to ``path[1]``),
+        taken again in ``refinements`` shorter steps while it fails; its step-mean reaction
+        added into ``stats.reaction[s]``. True when it converged; raises :class:`_Diverged`
+        when even the last re-take diverged or found no start."""
+        x_start, v_start = state.x[s].copy(), state.v[s].copy()
+        residual_before = stats.residual[s]
+        for attempt, factor in enumerate((1, *self.refinements)):
+            last = attempt == len(self.refinements)
+            state.x[s], state.v[s] = x_start, v_start
+            stats.residual[s] = residual_before
+            reaction = np.zeros_like(x_start)
+            converged = True
+            try:
+                for j in range(1, factor + 1):
+                    targets = path[0] + (path[1] - path[0]) * (j / factor)
+                    r, result = self._substep(s, state, control, h / factor, targets, tol)
+                    stats.newton_iterations[s] += result.iterations
+                    stats.residual[s] = max(stats.residual[s], result.residual)
+                    converged &= result.converged
+                    reaction += r / factor
+                    reason, elements = self.divergence(state.x[s], state.v[s])
+                    if reason:
+                        raise _Diverged(reason, elements)
+                    if not (converged or last):
+                        break
+            except _Diverged:
+                if last:
+                    raise
+                continue
+            stats.refinement[s] = max(stats.refinement[s], factor)
+            if converged or last:
+                stats.reaction[s] += reaction
+                return converged
+        return False  # (not reached: the last attempt returns or raises)
 
     # ----------------------------------------------------------------- helpers
     def _constrain(self, s, x, v, control, targets, h, x_prev):

@@ -209,15 +209,17 @@ class QuasiNewtonSolver(Solver):
         return (sp.diags(self._lap_diag) - off).tocsr()
 
     def forget(self, scenes) -> None:
-        """Drop the initial Hessians, curvature pairs and (BDF2) the state one step back of
-        ``scenes`` (see :meth:`Solver.forget`): their next step factorises afresh and
-        starts BDF2 from the expansion of its start (see :mod:`.kernels_quasi_newton`)."""
+        """Drop the initial Hessians, curvature pairs, the Newton fallback's lagged
+        factorisation and (BDF2) the state one step back of ``scenes`` (see
+        :meth:`Solver.forget`): their next step factorises afresh and starts BDF2 from the
+        expansion of its start (see :mod:`.kernels_quasi_newton`)."""
         for s in np.atleast_1d(scenes):
             s = int(s)
             self._factor_key[s] = [None, None]
             self._factor_contact[s] = False
             self._memory[s] = (0, -1)
             self._history_h[s] = 0.0
+            self._newton_linear.pop(s, None)  # the fallback's lagged factorisation
 
     def inertia(self, h: float) -> float:
         """The weight ``c`` (1/s^2) of the mass matrix in a step of ``h`` s: ``1/h^2 +
