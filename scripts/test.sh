@@ -8,4 +8,6 @@ HEML_EXTRAS="${HEML_EXTRAS:-test}" source scripts/setup_env.sh
 set -euo pipefail
 # idle OpenMP workers sleep rather than spin: two test processes share the cores
 export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
-python -m pytest -q -n "${HEML_TEST_WORKERS:-auto}" --dist loadgroup "$@"
+# one worker per core, at most 4 (each holds its own compiled kernels, about 1.5 GB)
+workers="${HEML_TEST_WORKERS:-$(python -c 'import os; print(min(len(os.sched_getaffinity(0)), 4))')}"
+python -m pytest -q -n "$workers" --dist loadgroup "$@"
