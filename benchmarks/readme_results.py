@@ -56,7 +56,8 @@ def quickstart(data: dict) -> str:
     wall = sorted(s["wall_s"] / 60 for s in done)
     misses = [f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done if s["success_rate"] < 0.9]
     m = data["machine"]
-    text = (f"Measured on a {m['cores']}-core {m['cpu']} ({m['date']}), {len(done)} seeds: training took "
+    isa = f", {m['vector_isa']}" if "vector_isa" in m else ""
+    text = (f"Measured on a {m['cores']}-core {m['cpu']} ({m['date']}{isa}), {len(done)} seeds: training took "
             f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed (one core each, two seeds at a time"
             f"{beside_other_work(data)}), and "
             f"**{data['seeds_at_90_percent']} of {data['seeds_finished']} seeds** reached >= 90 % success on 20 fresh "
@@ -85,8 +86,26 @@ def quickstart_quiet(data: dict) -> str:
         return ""
     runs = ", ".join(f"seed {s['seed']} took {s['wall_s'] / 60:.1f} min and ended at {s['success_rate']:.0%}"
                      for s in done)
-    return (f" Alone on the machine with both cores, as `scripts/main.sh` runs it, {runs} "
-            f"([quiet run](quick_sweep_quiet.md)).")
+    isa = data["machine"].get("vector_isa")
+    on = f" (the same {isa} machine type)" if isa else ""
+    return (f" Alone on the machine with both cores, as `scripts/main.sh` runs it{on}, {runs} "
+            f"([quiet run](quick_sweep_quiet.md)).{avx2_slowdown()}")
+
+
+def avx2_slowdown() -> str:
+    """How much slower the main job's env (16 flap scenes, 2 threads) steps on an AVX2-only
+    CPU than in the AVX-512 run, from the two stored env_throughput runs ("" without both)."""
+    native, avx2 = load("env_throughput"), load("env_throughput_avx2")
+    if not (native and avx2) or native["machine"].get("vector_isa") != "AVX-512":
+        return ""
+    tissue = "heml_gym/TissueRetraction-v0"
+    rates = [throughput_rate(d["envs"][tissue]["throughput"], env="vector", actions="random", num_envs=16,
+                             threads=2) for d in (native, avx2)]
+    if None in rates:
+        return ""
+    return (f" On an AVX2-only CPU the main job's 16 flap scenes step {rates[0] / rates[1]:.1f}x slower "
+            f"({rates[1]:,.0f} against {rates[0]:,.0f} env steps/s, Results); PPO's own updates run slower "
+            "there too, and the main job's wall time on such a machine is not on record for today's code.")
 
 
 def pixels(data: dict) -> str:
