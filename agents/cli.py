@@ -48,7 +48,8 @@ def _train(args) -> int:
 
 
 def _eval(args) -> int:
-    from .train import evaluate_policy, load_policy
+    from .evaluation import evaluate_policy
+    from .train import load_policy
 
     policy, _, cfg = load_policy(args.run_or_model)
     env_id = args.env or (cfg.env.id if cfg else "heml_gym/TissueRetraction-v0")

@@ -37,6 +37,7 @@ algorithm's constructor, all before anything is written.
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
@@ -160,13 +161,40 @@ def validate(cfg: RunConfig) -> RunConfig:
     return cfg
 
 
+#: hyperparameters of the RLlib path that are not PPOConfig.training arguments
+RLLIB_OPTIONS = ("num_env_runners", "num_cpus_per_env_runner", "fcnet_hiddens")
+
+
+def import_rllib():
+    """``(ray, PPOConfig)``, or an ImportError that says how to install them."""
+    try:
+        import ray
+        from ray.rllib.algorithms.ppo import PPOConfig
+    except ImportError:
+        raise ImportError("RLlibPPO runs on Ray RLlib: pip install -e '.[ray]'") from None
+    return ray, PPOConfig
+
+
+def check_rllib_hyperparameters(cfg: RunConfig) -> None:
+    """Every hyperparameter is an RLlib option or a ``PPOConfig.training`` argument."""
+    _, PPOConfig = import_rllib()
+    accepted = set(RLLIB_OPTIONS)
+    for klass in PPOConfig.__mro__:  # PPOConfig.training passes **kwargs on to its bases'
+        if "training" in vars(klass):
+            accepted |= set(inspect.signature(vars(klass)["training"]).parameters) - {"self", "kwargs"}
+    for key, value in cfg.algorithm.hyperparameters.items():
+        if key not in accepted:
+            raise ConfigError(f"config key 'algorithm.hyperparameters.{key}': not an RLlibPPO argument "
+                              f"(known: {', '.join(sorted(accepted))})")
+        if key in ("num_env_runners",) and (not isinstance(value, int) or isinstance(value, bool) or value < 0):
+            raise ConfigError(f"config key 'algorithm.hyperparameters.{key}' must be an integer >= 0, got {value!r}")
+
+
 def _check_hyperparameters(cfg: RunConfig) -> None:
     """Every hyperparameter must be an argument of the algorithm's constructor."""
     import inspect
 
     if BACKENDS[cfg.algorithm.name] == "rllib":
-        from .rllib_backend import check_rllib_hyperparameters
-
         check_rllib_hyperparameters(cfg)
         return
     cls = algorithm_class(cfg.algorithm.name)

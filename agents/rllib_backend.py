@@ -11,7 +11,7 @@ env; runner 0's statistics are saved with every checkpoint, as ``obs_stats.json`
 
 The run folder matches the SB3 one where it can: ``config.yaml``, ``evaluations.json``
 (success rate, exposure, strain, wall time at each evaluation, by the same
-:func:`~heml_gym.agents.train.evaluate_policy`), ``checkpoints/rllib_<steps>_steps/``
+:func:`~heml_gym.agents.evaluation.evaluate_policy`), ``checkpoints/rllib_<steps>_steps/``
 and ``rllib_checkpoint/`` (RLlib checkpoints, each with its ``obs_stats.json``).
 ``heml-gym eval`` and ``rollout`` load the policy from the RLModule in a checkpoint and
 those statistics; what differs from the SB3 path: the checkpoints are RLlib folders, not
@@ -25,7 +25,6 @@ Hyperparameters: ``num_env_runners`` (default 1), ``num_cpus_per_env_runner`` (d
 
 from __future__ import annotations
 
-import inspect
 import json
 import time
 from pathlib import Path
@@ -33,41 +32,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .config import ConfigError, RunConfig
+from .config import ConfigError, RunConfig, check_rllib_hyperparameters, import_rllib
+from .evaluation import evaluate_policy
 
-__all__ = ["RLLIB_OPTIONS", "check_rllib_hyperparameters", "train_rllib", "load_rllib_policy", "is_rllib_run"]
+__all__ = ["train_rllib", "load_rllib_policy", "is_rllib_run"]
 
-#: hyperparameters of the RLlib path that are not PPOConfig.training arguments
-RLLIB_OPTIONS = ("num_env_runners", "num_cpus_per_env_runner", "fcnet_hiddens")
 STATS_FILE = "obs_stats.json"
 #: the gymnasium id RLlib's env runners make: ``"<this module>:<id>"`` imports this module
 #: (and so registers the id) in every runner process, on any node
 VECTOR_ENV_ID = "heml_gym_rllib/NormalizedRetraction-v0"
 RUNNER_ENV = f"{__name__}:{VECTOR_ENV_ID}"
-
-
-def _import_rllib():
-    try:
-        import ray
-        from ray.rllib.algorithms.ppo import PPOConfig
-    except ImportError:
-        raise ImportError("RLlibPPO runs on Ray RLlib: pip install -e '.[ray]'") from None
-    return ray, PPOConfig
-
-
-def check_rllib_hyperparameters(cfg: RunConfig) -> None:
-    """Every hyperparameter is an RLlib option or a ``PPOConfig.training`` argument."""
-    _, PPOConfig = _import_rllib()
-    accepted = set(RLLIB_OPTIONS)
-    for klass in PPOConfig.__mro__:  # PPOConfig.training passes **kwargs on to its bases'
-        if "training" in vars(klass):
-            accepted |= set(inspect.signature(vars(klass)["training"]).parameters) - {"self", "kwargs"}
-    for key, value in cfg.algorithm.hyperparameters.items():
-        if key not in accepted:
-            raise ConfigError(f"config key 'algorithm.hyperparameters.{key}': not an RLlibPPO argument "
-                              f"(known: {', '.join(sorted(accepted))})")
-        if key in ("num_env_runners",) and (not isinstance(value, int) or isinstance(value, bool) or value < 0):
-            raise ConfigError(f"config key 'algorithm.hyperparameters.{key}' must be an integer >= 0, got {value!r}")
 
 
 def make_vector_env(num_envs: int, env_id: str, **kwargs):
@@ -139,7 +113,7 @@ def _module_path(checkpoint: Path) -> Path:
 
 def load_rllib_policy(checkpoint: str | Path) -> RLlibPolicy:
     """The policy of an RLlib checkpoint folder written by :func:`train_rllib`."""
-    _import_rllib()
+    import_rllib()
     from ray.rllib.core.rl_module.rl_module import RLModule
 
     checkpoint = Path(checkpoint)
@@ -164,9 +138,8 @@ def train_rllib(cfg: RunConfig, run_dir: str | Path, resume: str | Path | None =
                 progress_bar: bool = True) -> dict:
     """Train ``cfg`` (``algorithm.name: RLlibPPO``) into ``run_dir``; ``resume``: an RLlib
     checkpoint folder to continue from (its step count kept)."""
-    from .train import evaluate_policy
 
-    ray, PPOConfig = _import_rllib()
+    ray, PPOConfig = import_rllib()
 
     check_rllib_hyperparameters(cfg)
     run_dir = Path(run_dir)

@@ -12,7 +12,6 @@ alone.
 from __future__ import annotations
 
 import json
-import math
 import pickle
 import re
 import shutil
@@ -20,7 +19,6 @@ import time
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 import torch
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
@@ -30,6 +28,7 @@ import heml_gym.envs  # noqa: F401  (registers the environments)
 
 from .algorithms import ALGORITHMS, BACKENDS, algorithm_class
 from .config import ConfigError, RunConfig, load_config
+from .evaluation import evaluate_policy, wilson_interval  # noqa: F401  (wilson_interval: for callers)
 from .vec_env import RetractionSb3VecEnv
 
 NORMALIZER_FILE = "vecnormalize.pkl"
@@ -49,48 +48,6 @@ def make_env(cfg: RunConfig | None, env_id: str | None = None, **extra):
     if cfg is None:
         return gym.make(env_id or "heml_gym/TissueRetraction-v0", **extra)
     return gym.make(env_id or cfg.env.id, obs_mode=cfg.env.obs_mode, **{**cfg.env.kwargs, **extra})
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a success rate."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
-                    obs_mode: str = "state", env_kwargs: dict | None = None) -> dict:
-    """Success rate (with its 95 % Wilson interval), mean final exposure and max strain.
-
-    ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``;
-    the env is ``gym.make(env_id, obs_mode=obs_mode, **env_kwargs)`` (the run's scene,
-    physics and settings).
-    """
-    env = gym.make(env_id, obs_mode=obs_mode, **(env_kwargs or {}))
-    successes, exposures, strains, lengths = 0, [], [], []
-    for k in range(episodes):
-        obs, _ = env.reset(seed=seed + k)
-        if hasattr(policy, "reset"):
-            policy.reset()
-        done, steps, worst = False, 0, 0.0
-        while not done:
-            obs, _, terminated, truncated, info = env.step(policy(obs))
-            done = terminated or truncated
-            steps += 1
-            worst = max(worst, info["max_strain"])
-        successes += bool(info["is_success"])
-        exposures.append(info["exposure"])
-        strains.append(worst)
-        lengths.append(steps)
-    env.close()
-    lo, hi = wilson_interval(successes, episodes)
-    return {"episodes": episodes, "success_rate": successes / episodes, "success_ci95": [lo, hi],
-            "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
-            "mean_episode_length": float(np.mean(lengths))}
 
 
 def model_policy(model, normalizer: VecNormalize | None = None):

@@ -45,7 +45,7 @@ def measure(env_id: str, level: int, episodes: int, variant: str | None = None, 
     import gymnasium as gym
 
     import heml_gym.envs  # noqa: F401
-    from heml_gym.agents.train import wilson_interval
+    from heml_gym.agents.evaluation import wilson_interval
     from heml_gym.envs.scripted import run_episodes, scripted_policy
 
     env = gym.make(env_id, difficulty=level, **(kwargs or {}))  # scene: changes to the default scene

@@ -129,22 +129,3 @@ class ForceField:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.mesh!r}, {self.material!r})"
-
-
-class SameEnergyAsHeml:
-    """Mixin for fields that compute HEML's P1 energy another way (F-FEM, mass-tensor).
-
-    Their Hessian is HEML's analytic one, so the implicit integrator can run with their
-    forces.
-    """
-
-    has_hessian = True
-    _hessian_field = None
-
-    def hessian(self, x, project=True):
-        """Stiffness matrix ``d2W/dx2`` (N/m), a ``3n x 3n`` scipy CSR matrix (HEML's)."""
-        if self._hessian_field is None:
-            from .heml import HemlForce
-
-            self._hessian_field = HemlForce(self.mesh, self.material)
-        return self._hessian_field.hessian(x, project)

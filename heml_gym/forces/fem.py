@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels_fem
-from .base import ForceField, SameEnergyAsHeml
+from .base import ForceField
+from .heml import SameEnergyAsHeml
 
 
 class FemForce(SameEnergyAsHeml, ForceField):

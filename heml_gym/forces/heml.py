@@ -16,6 +16,7 @@ import numpy as np
 from ..mesh import EDGE_PAIRS
 from . import kernels_heml
 from .base import ForceField
+from .hessian import HessianCache, heml_hessian
 
 # Upper-triangle (k <= l) index pairs of a 6x6 symmetric matrix, row by row: 21 entries.
 Q_UPPER = np.array([(k, l) for k in range(6) for l in range(k, 6)], dtype=np.int64)
@@ -100,7 +101,15 @@ class HemlRestData:
         self.inv_det = np.ascontiguousarray(self.coef[:, 1])
         self.edge_weights = np.ascontiguousarray((2.0 * self.coef[:, 0:1] * self.coef[:, 2:]).T)
         self._q = None
-        self.hessian_cache = None  # set by heml_gym.forces.hessian on first use
+        self._hessian_cache = None
+
+    @property
+    def hessian_cache(self) -> HessianCache:
+        """The Hessian's sparsity pattern and element block positions (built on first
+        use; shared by the fields of this rest data, i.e. of one mesh)."""
+        if self._hessian_cache is None:
+            self._hessian_cache = HessianCache(self.mesh.n_vertices, self.mesh.tets, self.mesh.edges)
+        return self._hessian_cache
 
     @property
     def q(self) -> np.ndarray:
@@ -204,6 +213,34 @@ class HemlForce(ForceField):
         ``d2Psi/dF2`` clamped to zero, in closed form); ``project=False`` gives the
         exact Hessian. See :mod:`heml_gym.forces.hessian`.
         """
-        from .hessian import heml_hessian
-
         return heml_hessian(self, x, project)
+
+    @property
+    def hessian_cache(self) -> HessianCache:
+        """The Hessian's pattern and block positions (its rest data's: one per mesh)."""
+        return self.rest.hessian_cache
+
+
+class SameEnergyAsHeml:
+    """Mixin for fields that compute HEML's P1 energy another way (F-FEM, mass-tensor).
+
+    Their Hessian is HEML's analytic one, so the implicit integrator can run with their
+    forces.
+    """
+
+    has_hessian = True
+    _hessian_field = None
+
+    def _heml(self) -> HemlForce:
+        if self._hessian_field is None:
+            self._hessian_field = HemlForce(self.mesh, self.material)
+        return self._hessian_field
+
+    def hessian(self, x, project=True):
+        """Stiffness matrix ``d2W/dx2`` (N/m), a ``3n x 3n`` scipy CSR matrix (HEML's)."""
+        return self._heml().hessian(x, project)
+
+    @property
+    def hessian_cache(self) -> HessianCache:
+        """HEML's Hessian pattern and block positions for this mesh."""
+        return self._heml().hessian_cache

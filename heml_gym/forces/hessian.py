@@ -6,8 +6,9 @@
 vertices sharing a mesh edge plus the diagonal blocks.
 
 The sparsity pattern (:class:`HessianPattern`) and, per element, the position of each of
-its 3x3 blocks in the CSR ``data`` array are computed once per mesh and cached on the
-force field, so an assembly is one Numba pass that adds element blocks into ``data``.
+its 3x3 blocks in the CSR ``data`` array (a :class:`HessianCache`) are computed once per
+mesh and owned by the force field (``field.hessian_cache``, built on first use), so an
+assembly is one Numba pass that adds element blocks into ``data``.
 
 ``project=True`` makes every element contribution positive semi-definite (the
 definiteness fix of a Newton solver); ``project=False`` gives the exact Hessian. For HEML
@@ -138,23 +139,10 @@ class HessianCache:
         self.blk = self.pattern.element_blocks(cells)
 
 
-def _heml_cache(force) -> HessianCache:
-    rest = force.rest
-    if rest.hessian_cache is None:
-        if len(force.params) > 4:  # the kernels read at most 4 law parameters
-            raise ValueError(f"law with {len(force.params)} parameters: at most 4 supported")
-        mesh = force.mesh
-        rest.hessian_cache = HessianCache(mesh.n_vertices, mesh.tets, mesh.edges)
-    return rest.hessian_cache
-
-
 def hessian_pattern(force) -> HessianPattern:
-    """The (cached) sparsity pattern of ``force.hessian``: HEML or mass-spring."""
-    from .heml import HemlForce
-
-    if isinstance(force, HemlForce):
-        return _heml_cache(force).pattern
-    return _spring_cache(force).pattern
+    """The sparsity pattern of ``force.hessian`` (HEML, the fields that share HEML's
+    energy, mass-spring): the field's own, built once per mesh."""
+    return force.hessian_cache.pattern
 
 
 def _mode(project: bool, method: str) -> int:
@@ -174,7 +162,9 @@ def heml_hessian_data(force, x, project: bool = True, method: str = "analytic",
     After a projected assembly ``force.n_clamped`` holds the number of negative F-space
     modes that were clamped.
     """
-    hd = _heml_cache(force)
+    if len(force.params) > 4:  # the kernels read at most 4 law parameters
+        raise ValueError(f"law with {len(force.params)} parameters: at most 4 supported")
+    hd = force.hessian_cache
     x = force.check_positions(x)
     mode = _mode(project, method)
     if out is None:
@@ -203,12 +193,12 @@ def heml_hessian(force, x, project: bool = True, method: str = "analytic") -> sp
     undefined (``J <= 0`` for ln J laws) give NaN entries.
     """
     data = heml_hessian_data(force, x, project, method)
-    return _heml_cache(force).pattern.matrix(data)
+    return force.hessian_cache.pattern.matrix(data)
 
 
 def heml_element_hessians(force, x, project: bool = True, method: str = "analytic") -> np.ndarray:
     """Per-tet Hessians ``(m, 12, 12)`` (J/m^2; local dof ``3 a + d``)."""
-    hd = _heml_cache(force)
+    hd = force.hessian_cache
     x = force.check_positions(x)
     m = force.mesh
     out = np.empty((m.n_tets, 12, 12))
@@ -232,17 +222,11 @@ def heml_f_eigensystems(force, x):
     return lam, b
 
 
-def _spring_cache(force) -> HessianCache:
-    if force.hessian_cache is None:
-        force.hessian_cache = HessianCache(force.mesh.n_vertices, force.edges, force.edges)
-    return force.hessian_cache
-
-
 def spring_hessian(force, x, project: bool = True) -> sp.csr_matrix:
     """Stiffness matrix (N/m) of a :class:`MassSpringForce`: per edge
     ``k [(1 - L/l)(I - n n^T) + n n^T]``, with ``1 - L/l`` clamped at 0 if ``project``
     (then PSD: a compressed spring keeps only its axial stiffness)."""
-    hd = _spring_cache(force)
+    hd = force.hessian_cache
     x = force.check_positions(x)
     data = hd.pattern.zeros()
     kh.spring_hessian_assemble(x, force.edges, force.stiffness, force.rest_length, bool(project),

@@ -7,6 +7,7 @@ import numpy as np
 from . import kernels_mass_spring
 from .base import ForceField
 from .heml import assembled_edge_weights
+from .hessian import HessianCache, spring_hessian
 
 #: Stiffness calibration: ``k_e = SPRING_CALIBRATION * E * (sum of adjacent tet volumes) / L_e^2``.
 #: Averaging ``(n . eps n)^2`` over isotropic edge directions gives 1/5, and each tet's
@@ -46,13 +47,12 @@ class MassSpringForce(ForceField):
         return MassSpringForce(self.mesh, material, _shared=self._shared)
 
     @property
-    def hessian_cache(self):
-        """The Hessian's pattern and block positions, shared by the fields of one mesh."""
+    def hessian_cache(self) -> HessianCache:
+        """The Hessian's pattern and block positions, shared by the fields of one mesh
+        (built on first use)."""
+        if self._shared[3][0] is None:
+            self._shared[3][0] = HessianCache(self.mesh.n_vertices, self.edges, self.edges)
         return self._shared[3][0]
-
-    @hessian_cache.setter
-    def hessian_cache(self, value):
-        self._shared[3][0] = value
 
     @property
     def n_elements(self) -> int:
@@ -79,6 +79,4 @@ class MassSpringForce(ForceField):
         Per edge ``k [(1 - L/l)(I - n n^T) + n n^T]``; ``project=True`` clamps
         ``1 - L/l`` at 0 (a compressed spring's transverse part), which makes it PSD.
         """
-        from .hessian import spring_hessian
-
         return spring_hessian(self, x, project)

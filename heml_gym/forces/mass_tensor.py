@@ -33,7 +33,8 @@ import numpy as np
 
 from ..materials import StVenantKirchhoff
 from . import kernels_mass_tensor
-from .base import ForceField, SameEnergyAsHeml
+from .base import ForceField
+from .heml import SameEnergyAsHeml
 
 
 def shape_gradients(mesh) -> np.ndarray:

@@ -1,0 +1,56 @@
+"""Evaluation of a policy on fresh seeded episodes: success rate with its Wilson
+interval, final exposure, worst strain, episode length. Shared by the SB3 and RLlib
+backends and the CLI (``heml-gym eval``)."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+
+import heml_gym.envs  # noqa: F401  (registers the environments)
+
+__all__ = ["evaluate_policy", "wilson_interval"]
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
+                    obs_mode: str = "state", env_kwargs: dict | None = None) -> dict:
+    """Success rate (with its 95 % Wilson interval), mean final exposure and max strain.
+
+    ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``;
+    the env is ``gym.make(env_id, obs_mode=obs_mode, **env_kwargs)`` (the run's scene,
+    physics and settings).
+    """
+    env = gym.make(env_id, obs_mode=obs_mode, **(env_kwargs or {}))
+    successes, exposures, strains, lengths = 0, [], [], []
+    for k in range(episodes):
+        obs, _ = env.reset(seed=seed + k)
+        if hasattr(policy, "reset"):
+            policy.reset()
+        done, steps, worst = False, 0, 0.0
+        while not done:
+            obs, _, terminated, truncated, info = env.step(policy(obs))
+            done = terminated or truncated
+            steps += 1
+            worst = max(worst, info["max_strain"])
+        successes += bool(info["is_success"])
+        exposures.append(info["exposure"])
+        strains.append(worst)
+        lengths.append(steps)
+    env.close()
+    lo, hi = wilson_interval(successes, episodes)
+    return {"episodes": episodes, "success_rate": successes / episodes, "success_ci95": [lo, hi],
+            "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
+            "mean_episode_length": float(np.mean(lengths))}
