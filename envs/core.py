@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from heml_gym import Model
-from heml_gym.solvers import ExplicitSolver, ImplicitSolver, QuasiNewtonSolver
+from heml_gym.solvers import make_solver
 
 from .geometry import fibonacci_sphere, nearest_triangle_distance, visible_fraction, visible_fraction_batch
 from .scene import BuiltScene
@@ -134,17 +134,13 @@ class BatchedRetraction:
         self.model = Model(s.mesh, ph.material_for(E_high), n_scenes=self.n, field=ph.field, density=ph.density,
                            fixed=s.fixed, gravity=ph.gravity, damping=ph.damping, supports=s.supports)
         dt = self.settings.control_dt
+        self.solver = make_solver(self.model, ph.integrator, scheme=ph.scheme, safety=ph.safety,
+                                  newton_tol=ph.newton_tol, max_iterations=ph.max_newton)
         if ph.integrator == "explicit":
-            self.solver = ExplicitSolver(self.model, safety=ph.safety)
             # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
             # scene and batch, so a scene's trajectory does not depend on its neighbours
             self.substeps = self.solver.substeps(dt, self.model.critical_dt(material=ph.material_for(E_high)))
-        elif ph.integrator == "quasi_newton":
-            self.solver = QuasiNewtonSolver(self.model, newton_tol=ph.newton_tol, max_iter=ph.max_newton,
-                                            scheme=ph.scheme)
-            self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))
         else:
-            self.solver = ImplicitSolver(self.model, newton_tol=ph.newton_tol, max_newton=ph.max_newton)
             self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))
         if self.substeps > 1_000_000:
             raise SpecError(f"settings.control_dt: {dt} s needs {self.substeps} explicit sub-steps per env step; "

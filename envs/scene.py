@@ -27,7 +27,7 @@ from heml_gym import box_mesh, load_mesh, materials, organs
 from heml_gym.contact import MeshSupport, PlaneSupport
 from heml_gym.mesh import TetMesh
 from heml_gym.model import FORCE_FIELDS
-from heml_gym.solvers import INTEGRATORS, QuasiNewtonSolver
+from heml_gym.solvers import SolverChoiceError, check_solver_choice
 
 from .spec import SpecError, from_mapping, invalid, merge, to_mapping
 
@@ -36,7 +36,6 @@ __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "Adhe
 
 #: Material laws by class name (``physics.material``).
 LAWS = {cls.__name__: cls for cls in materials.ALL_MATERIALS}
-SCHEMES = tuple(QuasiNewtonSolver.SCHEMES)  # the implicit steps' time discretisations
 #: Procedural organs (``tissue.organ``): name -> mesher in :mod:`heml_gym.organs`.
 ORGANS = {"liver_lobe": organs.liver_lobe_mesh, "kidney": organs.kidney_mesh, "uterus": organs.uterus_mesh,
           "fat_flap": organs.fat_flap_mesh, "irregular_cube": organs.irregular_cube_mesh}
@@ -148,10 +147,10 @@ class PhysicsSpec:
             raise invalid(self, "field", f"must be one of {sorted(FORCE_FIELDS)}, got {self.field!r}")
         if self.field == "mass_tensor" and self.material != "StVenantKirchhoff":
             raise invalid(self, "field", "'mass_tensor' needs material 'StVenantKirchhoff'")
-        if self.integrator not in INTEGRATORS:
-            raise invalid(self, "integrator", f"must be one of {sorted(INTEGRATORS)}, got {self.integrator!r}")
-        if self.integrator == "quasi_newton" and self.field != "heml":
-            raise invalid(self, "integrator", "'quasi_newton' needs field 'heml'")
+        try:  # which integrator goes with which field and scheme: the solvers' own rules
+            check_solver_choice(self.integrator, self.field, self.scheme)
+        except SolverChoiceError as exc:
+            raise invalid(self, exc.argument, exc.message) from None
         if not (0 < self.safety <= 1):
             raise invalid(self, "safety", f"must lie in (0, 1], got {self.safety}")
         if not (math.isfinite(self.max_dt) and self.max_dt > 0):
@@ -160,10 +159,6 @@ class PhysicsSpec:
             raise invalid(self, "newton_tol", f"must be a positive number, got {self.newton_tol}")
         if self.max_newton < 1:
             raise invalid(self, "max_newton", f"must be >= 1, got {self.max_newton}")
-        if self.scheme not in SCHEMES:
-            raise invalid(self, "scheme", f"must be one of {sorted(SCHEMES)}, got {self.scheme!r}")
-        if self.scheme == "bdf2" and self.integrator != "quasi_newton":
-            raise invalid(self, "scheme", f"'bdf2' needs integrator 'quasi_newton', got {self.integrator!r}")
 
     def material_for(self, young_modulus: float) -> materials.Material:
         """The scene's law with Young's modulus ``young_modulus`` (Pa)."""

@@ -32,8 +32,7 @@ import numpy as np
 from .contact import Support
 from .forces.base import ForceField
 from .model import Damping, Model
-from .solvers import (INTEGRATORS, ExplicitSolver, ImplicitSolver, QuasiNewtonSolver, SceneStepStats,
-                      SimulationDiverged, StaticSolver)
+from .solvers import INTEGRATORS, SceneStepStats, SimulationDiverged, StaticSolver, make_solver
 
 __all__ = ["Simulation", "SimulationDiverged", "Damping", "StepStats", "NotConverged", "NotConvergedWarning"]
 
@@ -69,10 +68,13 @@ class Simulation:
         Explicit sub-steps are at most ``safety * critical_dt()`` seconds (see
         :class:`~heml_gym.solvers.ExplicitSolver`).
     refinements : sequence of int
-        Explicit: a step that goes bad is taken again with this many times more sub-steps,
-        in turn, before :class:`SimulationDiverged` is raised (``()``: never).
+        A step that goes bad (explicit) or fails to converge or start (implicit,
+        quasi-Newton) is taken again with this many times more or shorter sub-steps, in
+        turn, before it is reported (``()``: never).
     newton_tol, max_newton, linear_solver
-        Implicit steps (see :class:`~heml_gym.solvers.ImplicitSolver`).
+        Implicit steps: the force tolerance relative to the load, the iterations per step
+        at most (Newton's, default 20; L-BFGS's with ``"quasi_newton"``, default 50) and
+        Newton's linear solver; the settings of :func:`heml_gym.solvers.make_solver`.
     max_speed : float
         A state with a vertex faster than this (m/s) counts as exploded.
     supports : sequence of PlaneSupport / MeshSupport
@@ -88,7 +90,7 @@ class Simulation:
 
     def __init__(self, field: ForceField, density: float, gravity=(0.0, 0.0, -9.81), fixed=None,
                  damping: Damping | float | None = None, integrator: str = "implicit", safety: float = 0.5,
-                 newton_tol: float = 1e-3, max_newton: int = 20, max_speed: float = 1e3,
+                 newton_tol: float = 1e-3, max_newton: int | None = None, max_speed: float = 1e3,
                  linear_solver: str = "pcg", supports=(), strict: bool = False, refinements=(4, 16)):
         if not isinstance(field, ForceField):
             raise TypeError(f"field must be a heml_gym ForceField, got {type(field).__name__}")
@@ -98,16 +100,11 @@ class Simulation:
             supports = (supports,)
         self.model = Model(field=field, density=density, fixed=fixed, gravity=gravity, damping=damping,
                            supports=supports)
-        if integrator == "explicit":
-            self.solver = ExplicitSolver(self.model, safety=safety, max_speed=max_speed, refinements=refinements)
-        elif integrator == "quasi_newton":
-            self.solver = QuasiNewtonSolver(self.model, newton_tol=newton_tol, max_iter=max(max_newton, 50),
-                                            max_speed=max_speed)
-        else:
-            if not field.has_hessian:
-                raise ValueError(f"{type(field).__name__} has no Hessian: use integrator='explicit'")
-            self.solver = ImplicitSolver(self.model, newton_tol=newton_tol, max_newton=max_newton,
-                                         linear_solver=linear_solver, max_speed=max_speed)
+        if integrator == "implicit" and not field.has_hessian:
+            raise ValueError(f"{type(field).__name__} has no Hessian: use integrator='explicit'")
+        self.solver = make_solver(self.model, integrator, safety=safety, newton_tol=newton_tol,
+                                  max_iterations=max_newton, max_speed=max_speed, linear_solver=linear_solver,
+                                  refinements=refinements)
         self.integrator = integrator
         self.safety = float(safety)
         self.strict = bool(strict)

@@ -225,3 +225,38 @@ def test_quasi_newton_reaches_the_newton_solution(supports):
         results.append(np.array(xs))
     assert np.abs(results[0] - results[1]).max() < 1e-7
     assert np.abs(results[0][-1] - MESH.vertices).max() > 1e-3
+
+
+def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
+    """``make_solver`` is what Simulation and the envs build their solvers with:
+    ``max_iterations`` is Newton's cap for "implicit" and L-BFGS's for "quasi_newton"
+    (defaults 20 and 50), and the compatibility rules raise errors naming the setting."""
+    import gymnasium as gym
+
+    import heml_gym.envs  # noqa: F401
+    from heml_gym.solvers import SolverChoiceError, check_solver_choice, make_solver
+
+    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.02), 2), M.NeoHookean(E=5e3, nu=0.45))
+    qn = make_solver(model, "quasi_newton", max_iterations=70, newton_tol=2e-3, scheme="bdf2")
+    assert isinstance(qn, hg.QuasiNewtonSolver) and (qn.max_iter, qn.newton_tol, qn.scheme) == (70, 2e-3, "bdf2")
+    newton = make_solver(model, "implicit", max_iterations=7, linear_solver="direct", refinements=(3,))
+    assert isinstance(newton, hg.ImplicitSolver)
+    assert (newton.max_newton, newton.linear_solver, newton.refinements) == (7, "direct", (3,))
+    assert make_solver(model, "quasi_newton").max_iter == 50 and make_solver(model, "implicit").max_newton == 20
+    assert isinstance(make_solver(model, "explicit", safety=0.3), hg.ExplicitSolver)
+    for args, argument in ((("rk4",), "integrator"), (("implicit", "heml", "bdf2"), "scheme"),
+                           (("quasi_newton", "fem"), "integrator"), (("explicit", "springs"), "field"),
+                           (("quasi_newton", "heml", "rk2"), "scheme")):
+        with pytest.raises(SolverChoiceError) as err:
+            check_solver_choice(*args)
+        assert err.value.argument == argument and str(err.value).startswith(argument)
+    # the two users build the same solvers from the same settings
+    sim = hg.Simulation(hg.HemlForce(model.mesh, M.NeoHookean(E=5e3, nu=0.45)), 1000.0, integrator="quasi_newton")
+    assert sim.solver.max_iter == 50 and sim.solver.refinements == (4, 16)
+    env = gym.make("heml_gym/TissueRetraction-v0")
+    physics = env.unwrapped.scene.physics
+    solver = env.unwrapped.task.solver
+    assert (solver.max_iter, solver.newton_tol, solver.scheme) == (physics.max_newton, physics.newton_tol,
+                                                                 physics.scheme)
+    with pytest.raises(Exception, match="PhysicsSpec.scheme|physics.scheme"):
+        gym.make("heml_gym/TissueRetraction-v0", physics={"integrator": "implicit", "scheme": "bdf2"})

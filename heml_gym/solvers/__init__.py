@@ -7,16 +7,18 @@ iterations, residual against tolerance, converged, diverged, constraint reaction
 * :class:`ImplicitSolver`: backward Euler, Newton with the analytic Hessian;
 * :class:`QuasiNewtonSolver`: backward Euler (or BDF2), L-BFGS from a constant factorised Hessian;
 * :class:`StaticSolver`: equilibrium (``solve(state, control)``).
+
+:func:`make_solver` builds a time-stepping one from its name and settings (the one place
+that knows which integrator goes with which field and scheme).
 """
 
 from .base import SceneStepStats, SimulationDiverged, Solver, StepStats
 from .explicit import ExplicitSolver
 from .implicit import ImplicitSolver
 from .quasi_newton import QuasiNewtonSolver
+from .factory import INTEGRATORS, SCHEMES, SolverChoiceError, check_solver_choice, make_solver
 from .statics import StaticSolver
 
-#: Solvers of a time step by name (``Simulation(integrator=...)``, the envs' physics).
-INTEGRATORS = {"explicit": ExplicitSolver, "implicit": ImplicitSolver, "quasi_newton": QuasiNewtonSolver}
-
 __all__ = ["ExplicitSolver", "ImplicitSolver", "QuasiNewtonSolver", "StaticSolver", "StepStats", "SceneStepStats",
-           "SimulationDiverged", "Solver", "INTEGRATORS"]
+           "SimulationDiverged", "Solver", "INTEGRATORS", "SCHEMES", "SolverChoiceError", "check_solver_choice",
+           "make_solver"]

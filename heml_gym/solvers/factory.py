@@ -1,0 +1,80 @@
+"""One place that builds a time-stepping solver from settings: the integrator registry,
+the rules of which integrator goes with which force field and time scheme, and the
+meaning of every setting. Used by :class:`heml_gym.Simulation`, the environments
+(``physics=``) and their scene validation.
+
+    solver = make_solver(model, "quasi_newton", newton_tol=3e-3, max_iterations=100)
+"""
+
+from __future__ import annotations
+
+from ..model import FORCE_FIELDS, Model
+from .base import Solver
+from .explicit import ExplicitSolver
+from .implicit import ImplicitSolver
+from .quasi_newton import QuasiNewtonSolver
+
+__all__ = ["INTEGRATORS", "SCHEMES", "SolverChoiceError", "check_solver_choice", "make_solver"]
+
+#: Solvers of a time step by name.
+INTEGRATORS = {"explicit": ExplicitSolver, "implicit": ImplicitSolver, "quasi_newton": QuasiNewtonSolver}
+#: The implicit steps' time discretisations (``quasi_newton`` only: ``bdf2``).
+SCHEMES = tuple(QuasiNewtonSolver.SCHEMES)
+
+
+class SolverChoiceError(ValueError):
+    """A setting that no solver accepts, or two that do not go together; ``argument``
+    names the setting at fault."""
+
+    def __init__(self, argument: str, message: str):
+        super().__init__(f"{argument} {message}")
+        self.argument = argument
+        self.message = message
+
+
+def check_solver_choice(integrator: str, field: str | None = None, scheme: str = "backward_euler") -> None:
+    """Raise :class:`SolverChoiceError` unless ``integrator`` (a name of
+    :data:`INTEGRATORS`), the force ``field`` (a name of ``heml_gym.FORCE_FIELDS``, or None:
+    not known yet) and the time ``scheme`` go together: ``quasi_newton`` needs HEML,
+    ``bdf2`` needs ``quasi_newton``, ``implicit`` needs a field with a Hessian (all but
+    none: mass-spring has its own)."""
+    if integrator not in INTEGRATORS:
+        raise SolverChoiceError("integrator", f"must be one of {sorted(INTEGRATORS)}, got {integrator!r}")
+    if field is not None and field not in FORCE_FIELDS:
+        raise SolverChoiceError("field", f"must be one of {sorted(FORCE_FIELDS)}, got {field!r}")
+    if scheme not in SCHEMES:
+        raise SolverChoiceError("scheme", f"must be one of {sorted(SCHEMES)}, got {scheme!r}")
+    if integrator == "quasi_newton" and field not in (None, "heml"):
+        raise SolverChoiceError("integrator", f"'quasi_newton' needs field 'heml', got {field!r}")
+    if scheme == "bdf2" and integrator != "quasi_newton":
+        raise SolverChoiceError("scheme", f"'bdf2' needs integrator 'quasi_newton', got {integrator!r}")
+
+
+def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str = "backward_euler",
+                safety: float = 0.5, newton_tol: float = 1e-3, max_iterations: int | None = None,
+                max_speed: float = 1e3, linear_solver: str = "pcg", refinements=(4, 16)) -> Solver:
+    """The solver ``integrator`` for ``model``, every setting with one meaning:
+
+    * ``safety``: explicit sub-steps are at most this fraction of the critical step;
+    * ``newton_tol``: an implicit (sub-)step stops at a force residual below this
+      times the scene's load (weight plus external forces);
+    * ``max_iterations``: iterations per implicit (sub-)step at most: Newton's
+      (``implicit``, default 20) or L-BFGS's (``quasi_newton``, default 50); a solve that
+      stops above its tolerance is re-taken, then reported, never silent;
+    * ``refinements``: a (sub-)step that fails is taken again in this many times more
+      (explicit) or shorter (implicit, quasi-Newton) sub-steps, in turn;
+    * ``scheme``: ``"backward_euler"`` or (``quasi_newton`` only) ``"bdf2"``;
+    * ``linear_solver``: Newton's linear solves (``implicit``): ``"pcg"`` or ``"direct"``;
+    * ``max_speed`` (m/s): a vertex faster than this counts as exploded.
+
+    Errors name the setting (:class:`SolverChoiceError`, or the solver's own ValueError
+    for a field it cannot step, e.g. mass-spring with ``quasi_newton``).
+    """
+    check_solver_choice(integrator, scheme=scheme)
+    if integrator == "explicit":
+        return ExplicitSolver(model, safety=safety, max_speed=max_speed, refinements=refinements)
+    if integrator == "quasi_newton":
+        return QuasiNewtonSolver(model, newton_tol=newton_tol, max_iter=50 if max_iterations is None else max_iterations,
+                                 refinements=refinements, max_speed=max_speed, scheme=scheme)
+    return ImplicitSolver(model, newton_tol=newton_tol, max_newton=20 if max_iterations is None else max_iterations,
+                          linear_solver=linear_solver, max_speed=max_speed, refinements=refinements)
