@@ -23,6 +23,21 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
+DEFAULT_ENV = "heml_gym/TissueRetraction-v0"
+
+
+def _known_env(env_id: str, argument: str = "--env") -> str:
+    """``env_id`` if it is a registered heml_gym environment, else a user error naming it."""
+    import gymnasium as gym
+
+    import heml_gym.envs  # noqa: F401  (registers the ids)
+
+    if env_id not in gym.registry:
+        known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
+        raise ValueError(f"{argument}: unknown environment {env_id!r} (known: {', '.join(known)})")
+    return env_id
+
+
 def _train(args) -> int:
     from .config import load_config
     from .train import train
@@ -51,8 +66,10 @@ def _eval(args) -> int:
     from .evaluation import evaluate_policy
     from .train import load_policy
 
+    if args.env:
+        _known_env(args.env)
     policy, _, cfg = load_policy(args.run_or_model)
-    env_id = args.env or (cfg.env.id if cfg else "heml_gym/TissueRetraction-v0")
+    env_id = args.env or (cfg.env.id if cfg else DEFAULT_ENV)
     obs_mode = cfg.env.obs_mode if cfg else "state"
     kwargs = cfg.env.kwargs if cfg and env_id == cfg.env.id else {}
     result = evaluate_policy(policy, env_id, args.episodes, seed=args.seed, obs_mode=obs_mode, env_kwargs=kwargs)
@@ -70,16 +87,21 @@ def _rollout(args) -> int:
 
     from .recording import record_rollouts
 
+    if args.env:
+        _known_env(args.env)
     if args.policy == "scripted":
         from heml_gym.envs.scripted import scripted_policy
 
-        env = gym.make(args.env)
+        env = gym.make(args.env or DEFAULT_ENV)
         policy = scripted_policy(env.unwrapped.scene)
     else:
         from .train import load_policy, make_env
 
         policy, _, cfg = load_policy(args.policy)
-        env = make_env(cfg, None if cfg else args.env)
+        if cfg and args.env and args.env != cfg.env.id:
+            raise ValueError(f"--env {args.env}: the policy was trained on {cfg.env.id} (its observations and "
+                             "actions are that env's); omit --env to roll it out there")
+        env = make_env(cfg, None if cfg else (args.env or DEFAULT_ENV))
     summary = record_rollouts(env, policy, path=args.rrd, episodes=args.episodes, seed=args.seed,
                               spawn=args.spawn)
     print(json.dumps(summary, indent=1, default=str))
@@ -89,15 +111,12 @@ def _rollout(args) -> int:
 
 
 def _scene(args) -> int:
-    import gymnasium as gym
     import yaml
 
     import heml_gym.envs  # noqa: F401
     from heml_gym.envs import check_env_kwargs
 
-    if args.env not in gym.registry:
-        known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
-        raise ValueError(f"unknown environment {args.env!r} (known: {', '.join(known)})")
+    _known_env(args.env, "env")
     scene = check_env_kwargs(args.env, {}, "scene")
     text = f"# the default scene of {args.env} (heml_gym.envs.Scene); pass an edited copy as\n" \
            f"# gym.make({args.env!r}, scene='this.yaml') or a run config's env.kwargs.scene\n" \
@@ -186,7 +205,7 @@ def main(argv=None) -> int:
 
     r = sub.add_parser("rollout", help="roll a policy out and record it to rerun")
     r.add_argument("--policy", default="scripted", help="'scripted', a model .zip or a run folder")
-    r.add_argument("--env", default="heml_gym/TissueRetraction-v0")
+    r.add_argument("--env", help=f"environment id (default: the run's; {DEFAULT_ENV} for 'scripted')")
     r.add_argument("--episodes", type=int, default=2)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--rrd", help="write the recording to this .rrd file")
@@ -207,7 +226,7 @@ def main(argv=None) -> int:
     w.set_defaults(func=_sweep)
 
     s = sub.add_parser("scene", help="print (or write) an environment's default scene as YAML")
-    s.add_argument("env", nargs="?", default="heml_gym/TissueRetraction-v0")
+    s.add_argument("env", nargs="?", default=DEFAULT_ENV)
     s.add_argument("--out", help="write it to this file")
     s.set_defaults(func=_scene)
 

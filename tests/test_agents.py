@@ -93,7 +93,7 @@ def test_missing_config_file_and_model_are_clear_errors(tmp_path, capsys):
     assert main(["train", str(tmp_path / "nope.yaml")]) == 2
 
 
-def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path):
+def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path, capsys):
     config = tiny_config(tmp_path)
     run = tmp_path / "run"
     assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 0
@@ -109,6 +109,12 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path):
     assert main(["eval", str(run), "--episodes", "2", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["episodes"] == 2 and len(result["success_ci95"]) == 2
+    # a rollout on another env than the run's is refused, one line, nothing written
+    rrd = tmp_path / "other.rrd"
+    assert main(["rollout", "--policy", str(run), "--env", "heml_gym/OrganRetraction-v0", "--rrd", str(rrd)]) == 2
+    err = capsys.readouterr().err
+    assert "--env heml_gym/OrganRetraction-v0: the policy was trained on" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and not rrd.exists()
     # observation statistics: saved with the model and with every checkpoint, learned from
     # the training observations, and applied by the loaded policy
     stats = load_normalizer(run / "vecnormalize.pkl")
@@ -169,3 +175,18 @@ def test_bad_env_kwargs_fail_before_a_run_folder_is_made(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "env.kwargs.physics.integrator" in err and "Traceback" not in err
     assert not run.exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["rollout", "--env", "heml_gym/Nope-v0"],
+    ["rollout", "--policy", "scripted", "--env", "Nope-v0", "--rrd", "{tmp}/r.rrd"],
+    ["eval", "{tmp}/no-run", "--env", "heml_gym/Nope-v0"],
+    ["scene", "heml_gym/Nope-v0", "--out", "{tmp}/scene.yaml"],
+])
+def test_an_unknown_env_is_one_line_exit_2_and_nothing_written(tmp_path, capsys, argv):
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "unknown environment" in err and "heml_gym/TissueRetraction-v0" in err  # (the known ones listed)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
