@@ -37,9 +37,10 @@ def test_heml_equals_textbook_fem(law, jacobian, mesh_kind, small_box, irregular
     heml, fem = hg.HemlForce(mesh, mat), hg.FemForce(mesh, mat)
     f_heml, f_fem = heml.forces(x), fem.forces(x)
     assert np.all(np.isfinite(f_fem))
-    assert rel_diff(f_heml, f_fem) <= 1e-10
+    # to rounding: at most 2.6e-15 measured over these cases, compiled for AVX2 and for SSE2
+    assert rel_diff(f_heml, f_fem) <= 1e-13
     w_heml, w_fem = heml.energy(x), fem.energy(x)
-    assert abs(w_heml - w_fem) <= 1e-10 * abs(w_fem)
+    assert abs(w_heml - w_fem) <= 1e-13 * abs(w_fem)
 
 
 def all_fields(mesh):
@@ -234,6 +235,8 @@ def test_force_field_rejects_bad_positions(small_box):
 def test_parallel_kernels_match_serial(make, irregular_box):
     import numba
 
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one Numba thread: the chunked kernels would run serially, compared with themselves")
     field = make(irregular_box)
     x = random_deformation(irregular_box, seed=5, jacobian=1.2)
     serial_f, serial_w = field.forces(x), field.energy(x)
@@ -242,7 +245,7 @@ def test_parallel_kernels_match_serial(make, irregular_box):
     try:
         numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
         threads = numba.get_num_threads()
-        assert field.kernel_threads() == threads
+        assert threads >= 2 and field.kernel_threads() == threads
         par_f, par_w = field.forces(x), field.energy(x)
     finally:
         numba.set_num_threads(old)
