@@ -81,17 +81,25 @@ def _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_
             image[i, j, 2] = background[2]
             labels[i, j] = 0
     eye, rot = eyes[s], rots[s]
+    # the support first, into a depth buffer of its own: it lies behind everything else
+    # (the target sits below the organ's surface, and exposure counts what the tissue hides,
+    # so the image shows the target wherever the tissue does not cover it)
+    inv_support = np.zeros((height, width))
+    draw_triangles(support_v, support_f, support_colour, 0.0, 0.0, 0.0, np.uint8(4), eye, rot, focal, cx, cy, near,
+                   ambient, image, inv_support, labels)
     draw_triangles(x[s], faces, tissue_colour, 0.0, 0.0, 0.0, np.uint8(1), eye, rot, focal, cx, cy, near, ambient,
                    image, inv, labels)
     draw_triangles(sphere_v, sphere_f, target_colour, targets[s, 0], targets[s, 1], targets[s, 2], np.uint8(2), eye,
                    rot, focal, cx, cy, near, ambient, image, inv, labels)
     draw_triangles(box_v, box_f, jaw_colours[s:s + 1], grippers[s, 0], grippers[s, 1], grippers[s, 2], np.uint8(3),
                    eye, rot, focal, cx, cy, near, ambient, image, inv, labels)
-    draw_triangles(support_v, support_f, support_colour, 0.0, 0.0, 0.0, np.uint8(4), eye, rot, focal, cx, cy, near,
-                   ambient, image, inv, labels)
     for i in range(height):
         for j in range(width):
-            z = 1.0 / inv[i, j] if inv[i, j] > 0.0 else far
+            z = far
+            if inv[i, j] > 0.0:
+                z = 1.0 / inv[i, j]
+            elif inv_support[i, j] > 0.0:
+                z = 1.0 / inv_support[i, j]
             depth[s, i, j, 0] = min(z, far)
 
 

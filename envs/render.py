@@ -105,14 +105,15 @@ def draw_triangles(x, faces, colours, ox, oy, oz, seg_id, eye, rot, focal, cx, c
     """Draw triangles ``faces`` of ``x + (ox, oy, oz)`` (m) with per-face ``colours`` (f, 3)
     in [0, 1] (one row: every face that colour) into ``image`` (H, W, 3) uint8, keeping
     the nearest surface in ``inv_depth`` (H, W) (``1/z_cam``, 0 = empty) and writing
-    ``seg_id`` into ``seg`` (H, W) where drawn (``seg`` may be empty: not written)."""
-    height = image.shape[0]
-    width = image.shape[1]
-    write_seg = seg.shape[0] == height
+    ``seg_id`` into ``seg`` (H, W) where drawn (``seg`` may be empty: not written).
+    A triangle that crosses the near plane (``z_cam = near``) is clipped to its part in
+    front of it (a triangle or a quadrilateral): a large one, such as a support plane
+    reaching behind the camera, is drawn where it is seen, not dropped."""
     one_colour = colours.shape[0] == 1
     cam = np.empty((3, 3))  # rows: vertices in camera coordinates
+    poly = np.empty((4, 3))  # the clipped polygon
     for t in range(faces.shape[0]):
-        behind = False
+        n_front = 0
         for c in range(3):
             vi = faces[t, c]
             wx = x[vi, 0] + ox - eye[0]
@@ -120,9 +121,9 @@ def draw_triangles(x, faces, colours, ox, oy, oz, seg_id, eye, rot, focal, cx, c
             wz = x[vi, 2] + oz - eye[2]
             for r in range(3):
                 cam[c, r] = rot[r, 0] * wx + rot[r, 1] * wy + rot[r, 2] * wz
-            if not (cam[c, 2] > near):
-                behind = True
-        if behind:
+            if cam[c, 2] > near:
+                n_front += 1
+        if n_front == 0:
             continue
         # flat headlight shading
         e1x = cam[1, 0] - cam[0, 0]
@@ -136,68 +137,98 @@ def draw_triangles(x, faces, colours, ox, oy, oz, seg_id, eye, rot, focal, cx, c
         nz = e1x * e2y - e1y * e2x
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         if not (nn > 0.0):
-            continue  # degenerate triangle
+            continue  # degenerate triangle (or not finite)
         shade = ambient + (1.0 - ambient) * abs(nz) / nn  # |n . optical axis|
         k = 0 if one_colour else t
         cr = min(255, int(colours[k, 0] * shade * 255.0 + 0.5))
         cg = min(255, int(colours[k, 1] * shade * 255.0 + 0.5))
         cb = min(255, int(colours[k, 2] * shade * 255.0 + 0.5))
-        # screen coordinates
-        iz0 = 1.0 / cam[0, 2]
-        iz1 = 1.0 / cam[1, 2]
-        iz2 = 1.0 / cam[2, 2]
-        u0 = cx + focal * cam[0, 0] * iz0
-        v0 = cy + focal * cam[0, 1] * iz0
-        u1 = cx + focal * cam[1, 0] * iz1
-        v1 = cy + focal * cam[1, 1] * iz1
-        u2 = cx + focal * cam[2, 0] * iz2
-        v2 = cy + focal * cam[2, 1] * iz2
-        area = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
-        if not (abs(area) > 1e-12):
-            continue  # edge-on or not finite
-        if area < 0.0:  # make the winding positive: swap vertices 1 and 2
-            u1, u2 = u2, u1
-            v1, v2 = v2, v1
-            iz1, iz2 = iz2, iz1
-            area = -area
-        # pixel-centre bounding box, clamped in floating point before any int conversion
-        jlo = max(0.0, math.ceil(min(u0, u1, u2) - 0.5))
-        jhi = min(width - 1.0, math.floor(max(u0, u1, u2) - 0.5))
-        ilo = max(0.0, math.ceil(min(v0, v1, v2) - 0.5))
-        ihi = min(height - 1.0, math.floor(max(v0, v1, v2) - 0.5))
-        if jlo > jhi or ilo > ihi:
+        if n_front == 3:
+            _fill_triangle(cam[0], cam[1], cam[2], cr, cg, cb, seg_id, focal, cx, cy, image, inv_depth, seg)
             continue
-        j0 = int(jlo)
-        j1 = int(jhi)
-        i0 = int(ilo)
-        i1 = int(ihi)
-        # edge functions w_k(u, v) = A_k u + B_k v + C_k, w_k >= 0 inside, sum = area
-        a0 = v1 - v2
-        b0 = u2 - u1
-        c0 = u1 * v2 - u2 * v1
-        a1 = v2 - v0
-        b1 = u0 - u2
-        c1 = u2 * v0 - u0 * v2
-        a2 = v0 - v1
-        b2 = u1 - u0
-        c2 = u0 * v1 - u1 * v0
-        inv_area = 1.0 / area
-        for i in range(i0, i1 + 1):
-            vc = i + 0.5
-            for j in range(j0, j1 + 1):
-                uc = j + 0.5
-                w0 = a0 * uc + b0 * vc + c0
-                w1 = a1 * uc + b1 * vc + c1
-                w2 = a2 * uc + b2 * vc + c2
-                if w0 >= 0.0 and w1 >= 0.0 and w2 >= 0.0:
-                    iz = (w0 * iz0 + w1 * iz1 + w2 * iz2) * inv_area
-                    if iz > inv_depth[i, j]:
-                        inv_depth[i, j] = iz
-                        image[i, j, 0] = cr
-                        image[i, j, 1] = cg
-                        image[i, j, 2] = cb
-                        if write_seg:
-                            seg[i, j] = seg_id
+        # clip to z > near (Sutherland-Hodgman against one plane: 3 or 4 vertices)
+        m = 0
+        for c in range(3):
+            d = (c + 1) % 3
+            zc = cam[c, 2]
+            zd = cam[d, 2]
+            if zc > near:
+                poly[m] = cam[c]
+                m += 1
+            if (zc > near) != (zd > near):
+                f = (near - zc) / (zd - zc)
+                for r in range(3):
+                    poly[m, r] = cam[c, r] + f * (cam[d, r] - cam[c, r])
+                poly[m, 2] = near  # exactly on the plane, not a hair behind it
+                m += 1
+        for q in range(1, m - 1):  # a fan: one or two triangles
+            _fill_triangle(poly[0], poly[q], poly[q + 1], cr, cg, cb, seg_id, focal, cx, cy, image, inv_depth, seg)
+
+
+@nb.njit(cache=True)
+def _fill_triangle(p0, p1, p2, cr, cg, cb, seg_id, focal, cx, cy, image, inv_depth, seg):
+    """Rasterise one triangle given in camera coordinates (every ``z > 0``, m): the
+    pixels whose centres it covers get the colour ``(cr, cg, cb)`` and ``seg_id`` where
+    it is nearer than what is there (``inv_depth``: ``1/z``, interpolated linearly in
+    screen space, as perspective-correct depth is)."""
+    height = image.shape[0]
+    width = image.shape[1]
+    write_seg = seg.shape[0] == height
+    iz0 = 1.0 / p0[2]
+    iz1 = 1.0 / p1[2]
+    iz2 = 1.0 / p2[2]
+    u0 = cx + focal * p0[0] * iz0
+    v0 = cy + focal * p0[1] * iz0
+    u1 = cx + focal * p1[0] * iz1
+    v1 = cy + focal * p1[1] * iz1
+    u2 = cx + focal * p2[0] * iz2
+    v2 = cy + focal * p2[1] * iz2
+    area = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
+    if not (abs(area) > 1e-12):
+        return  # edge-on or not finite
+    if area < 0.0:  # make the winding positive: swap vertices 1 and 2
+        u1, u2 = u2, u1
+        v1, v2 = v2, v1
+        iz1, iz2 = iz2, iz1
+        area = -area
+    # pixel-centre bounding box, clamped in floating point before any int conversion
+    jlo = max(0.0, math.ceil(min(u0, u1, u2) - 0.5))
+    jhi = min(width - 1.0, math.floor(max(u0, u1, u2) - 0.5))
+    ilo = max(0.0, math.ceil(min(v0, v1, v2) - 0.5))
+    ihi = min(height - 1.0, math.floor(max(v0, v1, v2) - 0.5))
+    if jlo > jhi or ilo > ihi:
+        return
+    j0 = int(jlo)
+    j1 = int(jhi)
+    i0 = int(ilo)
+    i1 = int(ihi)
+    # edge functions w_k(u, v) = A_k u + B_k v + C_k, w_k >= 0 inside, sum = area
+    a0 = v1 - v2
+    b0 = u2 - u1
+    c0 = u1 * v2 - u2 * v1
+    a1 = v2 - v0
+    b1 = u0 - u2
+    c1 = u2 * v0 - u0 * v2
+    a2 = v0 - v1
+    b2 = u1 - u0
+    c2 = u0 * v1 - u1 * v0
+    inv_area = 1.0 / area
+    for i in range(i0, i1 + 1):
+        vc = i + 0.5
+        for j in range(j0, j1 + 1):
+            uc = j + 0.5
+            w0 = a0 * uc + b0 * vc + c0
+            w1 = a1 * uc + b1 * vc + c1
+            w2 = a2 * uc + b2 * vc + c2
+            if w0 >= 0.0 and w1 >= 0.0 and w2 >= 0.0:
+                iz = (w0 * iz0 + w1 * iz1 + w2 * iz2) * inv_area
+                if iz > inv_depth[i, j]:
+                    inv_depth[i, j] = iz
+                    image[i, j, 0] = cr
+                    image[i, j, 1] = cg
+                    image[i, j, 2] = cb
+                    if write_seg:
+                        seg[i, j] = seg_id
 
 
 _NO_SEG = np.zeros((0, 0), dtype=np.uint8)
