@@ -81,7 +81,7 @@ def test_env_kwargs_check_rejects_unknown_and_reserved_arguments():
 
 @pytest.mark.parametrize("env_id", [TISSUE, ORGAN])
 @pytest.mark.parametrize("law", LAWS)
-@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+@pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
 def test_every_law_and_integrator_runs_in_both_envs(env_id, law, integrator):
     """50 random env steps (grasps, releases, pulls) with finite observations and rewards;
     the organ on a 12 mm mesh to keep the suite short."""
@@ -89,7 +89,8 @@ def test_every_law_and_integrator_runs_in_both_envs(env_id, law, integrator):
     env = gym.make(env_id, physics={"material": law, "integrator": integrator}, **size)
     task = env.unwrapped.task
     assert type(task.model.materials[0]).__name__ == law
-    assert type(task.solver).__name__ == ("ExplicitSolver" if integrator == "explicit" else "ImplicitSolver")
+    assert type(task.solver).__name__ == {"explicit": "ExplicitSolver", "implicit": "ImplicitSolver",
+                                          "quasi_newton": "QuasiNewtonSolver"}[integrator]
     obs, _ = env.reset(seed=0)
     rng = np.random.default_rng(0)
     moved = 0.0
@@ -117,6 +118,30 @@ def test_a_vector_env_equals_single_envs_for_another_law_and_integrator():
     for i in range(3):
         env = TissueRetractionEnv(physics=physics)
         obs, _ = env.reset(seed=20 + i)
+        np.testing.assert_allclose(obs, trajectory[0][i], atol=1e-6)
+        for k, a in enumerate(actions):
+            obs, _, terminated, truncated, _ = env.step(a[i])
+            np.testing.assert_allclose(obs, trajectory[k + 1][i], atol=1e-6)
+            if terminated or truncated:
+                break
+
+
+def test_the_organ_vector_env_equals_single_envs_on_its_default_physics():
+    """Three lobes stepped together (L-BFGS, scenes over threads) equal three single envs
+    (the serial kernel), step for step, through grasps and pulls."""
+    from heml_gym.envs.organ_retraction import OrganRetractionEnv
+
+    vec = gym.make_vec(ORGAN, num_envs=3, vectorization_mode="vector_entry_point", mesh_size=0.012)
+    obs, _ = vec.reset(seed=40)
+    rng = np.random.default_rng(5)
+    actions = rng.uniform(-1, 1, (12, 3, 4)).astype(np.float32)
+    actions[:, :, 3] = 1.0
+    trajectory = [obs]
+    for a in actions:
+        trajectory.append(vec.step(a)[0])
+    for i in range(3):
+        env = OrganRetractionEnv(mesh_size=0.012)
+        obs, _ = env.reset(seed=40 + i)
         np.testing.assert_allclose(obs, trajectory[0][i], atol=1e-6)
         for k, a in enumerate(actions):
             obs, _, terminated, truncated, _ = env.step(a[i])
