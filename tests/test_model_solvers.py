@@ -260,3 +260,36 @@ def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
                                                                  physics.scheme)
     with pytest.raises(Exception, match="PhysicsSpec.scheme|physics.scheme"):
         gym.make("heml_gym/TissueRetraction-v0", physics={"integrator": "implicit", "scheme": "bdf2"})
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
+def test_one_broken_scene_in_a_batch_leaves_the_others_as_single_runs(integrator):
+    """Three scenes in one batch, the middle one broken (a NaN position): it is flagged
+    diverged, says why and keeps its state; the other two step exactly as they do in the
+    same batch with the middle scene healthy (and, but for the explicit solver, whose
+    sub-steps follow the batch's stiffest material, as each does alone)."""
+    from heml_gym.solvers import make_solver
+
+    materials = [M.NeoHookean(E=E, nu=0.45) for E in (2e3, 3e3, 4e3)]
+
+    def run(mats, broken=None):
+        model = hg.Model(MESH, mats, density=DENSITY, gravity=GRAVITY, fixed=FIXED, damping=DAMPING)
+        solver = make_solver(model, integrator)
+        state, control = model.state(), model.control()
+        if broken is not None:
+            state.x[broken, 5] = np.nan
+        before = state.copy()
+        for _ in range(3):
+            stats = solver.step(state, state, control, 1 / 30)
+        return state, before, stats
+
+    state, before, stats = run(materials, broken=1)
+    assert stats.diverged.tolist() == [False, True, False] and not stats.converged[1]
+    assert stats.messages[1] and not stats.messages[0] and not stats.messages[2]  # (why: non-finite, no start)
+    np.testing.assert_array_equal(state.x[1], before.x[1])
+    healthy, _, healthy_stats = run(materials)
+    assert healthy_stats.converged.all() and stats.converged[[0, 2]].all()
+    np.testing.assert_array_equal(state.x[[0, 2]], healthy.x[[0, 2]])
+    if integrator != "explicit":
+        for s in (0, 2):
+            np.testing.assert_array_equal(state.x[s], run([materials[s]])[0].x[0])
