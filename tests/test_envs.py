@@ -98,6 +98,32 @@ def test_diverged_simulation_ends_episode_with_flag_and_finite_obs():
     assert sum(v for key, v in info.items() if key.startswith("reward_")) == 0.0
 
 
+@pytest.mark.parametrize("integrator", ["quasi_newton", "implicit"])
+def test_an_unconverged_step_ends_the_episode_unpaid_and_the_vector_env_starts_it_afresh(integrator):
+    """The failure path of the implicit integrators (the default, L-BFGS, and Newton): a
+    solver held to one iteration below an unreachable tolerance, without re-takes, cannot
+    converge the first step. The step reports it (``solver_converged`` False, not
+    diverged), ends the episode, pays nothing, and the observation stays finite and in
+    space; the vector env's next step starts that scene afresh (a fresh episode's info)."""
+    vec = TissueRetractionVectorEnv(num_envs=2, physics={"integrator": integrator})
+    solver = vec.task.solver
+    solver.newton_tol = 1e-16
+    solver.refinements = ()
+    if integrator == "quasi_newton":
+        solver.max_iter, solver.fallback = 1, ()
+    else:
+        solver.max_newton = 1
+    vec.reset(seed=0)
+    obs, reward, terminated, truncated, info = vec.step(np.zeros((2, 4), dtype=np.float32))
+    assert not info["solver_converged"].any() and not info["simulation_diverged"].any()
+    assert terminated.all() and not truncated.any() and np.all(reward == 0.0)
+    assert all(np.all(info[k] == 0.0) for k in info if k.startswith("reward_"))
+    assert np.all(np.isfinite(obs)) and all(vec.single_observation_space.contains(o) for o in obs)
+    obs, reward, terminated, truncated, info = vec.step(np.zeros((2, 4), dtype=np.float32))  # the autoreset
+    assert not terminated.any() and np.all(reward == 0.0) and info["solver_converged"].all()
+    assert np.all(info["lift"] == 0.0) and np.all(info["hold_time"] == 0.0)
+
+
 def test_bad_actions():
     env = TissueRetractionEnv()
     env.reset(seed=0)
