@@ -153,9 +153,18 @@ def test_rrd_layout_and_frames(recording):
     tri = np.array(mesh["Mesh3D:vertex_positions"][-1]).reshape(-1, 3, 3)
     normals = np.array(mesh["Mesh3D:vertex_normals"][-1]).reshape(-1, 3, 3)
     assert np.abs((normals[:, 0] * (tri[:, 1] - tri[:, 0])).sum(axis=1)).max() < 1e-5
-    # the camera image is the env's own view of that frame
+    # the camera image is the env's own view of that frame: the last one equals the env's
+    # render of its final state, colour and depth
+    from heml_gym.agents.recording import CAMERA_SIZE
+
     image = data["/world/camera/image"]
     assert image["step"] == list(range(n_frames))
+    view = env.unwrapped.camera_view(0, CAMERA_SIZE)
+    recorded = np.frombuffer(bytes(image["Image:buffer"][-1][0]), dtype=np.uint8).reshape(view["rgb"].shape)
+    np.testing.assert_array_equal(recorded, view["rgb"])
+    depth = data["/world/camera/depth"]
+    recorded_depth = np.frombuffer(bytes(depth["DepthImage:buffer"][-1][0]), dtype=view["depth"].dtype)
+    np.testing.assert_array_equal(recorded_depth.reshape(view["depth"].shape), view["depth"])
 
     for entity in ("/world/gripper", "/world/target", "/world/held"):
         assert data[entity]["step"] == list(range(n_frames))
