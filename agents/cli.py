@@ -172,8 +172,7 @@ def _bench(args) -> int:
     for name in names:
         script = root / f"{name}.py"
         if not script.is_file():
-            print(f"unknown benchmark {name!r}; known: {', '.join(BENCHMARKS)}", file=sys.stderr)
-            return 2
+            raise ValueError(f"unknown benchmark {name!r} (known: {', '.join(BENCHMARKS)})")
         print(f"== {name}", flush=True)
         code = subprocess.call([sys.executable, str(script), *args.extra])
         if code:

@@ -190,3 +190,27 @@ def test_an_unknown_env_is_one_line_exit_2_and_nothing_written(tmp_path, capsys,
     assert "unknown environment" in err and "heml_gym/TissueRetraction-v0" in err  # (the known ones listed)
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["eval", "{tmp}/nope"], "not found"),
+    (["eval", "{tmp}/fake.zip"], "is not a PPO or SAC model"),
+    (["eval", "{tmp}/empty_run"], "no model.zip or checkpoint"),
+    (["rollout", "--policy", "{tmp}/nope", "--rrd", "{tmp}/r.rrd"], "not found"),
+    (["rollout", "--policy", "{tmp}/fake.zip", "--rrd", "{tmp}/r.rrd"], "is not a PPO or SAC model"),
+    (["rollout", "--episodes", "0", "--rrd", "{tmp}/r.rrd"], "episodes must be >= 1"),
+    (["scene", "--out", "{tmp}/no/such/folder/scene.yaml"], "No such file or directory"),
+    (["sweep", "{tmp}/nope.yaml"], "config file not found"),
+    (["bench", "no_such_benchmark"], "unknown benchmark"),
+])
+def test_every_subcommands_user_errors_are_one_line_exit_2_and_leave_nothing(tmp_path, capsys, argv, says):
+    """Missing and unreadable files, an empty run folder, bad values: one line on stderr
+    naming the problem, exit 2, no traceback, nothing written."""
+    (tmp_path / "fake.zip").write_text("not a zip")
+    (tmp_path / "empty_run").mkdir()
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert err.startswith(f"heml-gym {argv[0]}: error: ")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
