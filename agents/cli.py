@@ -38,6 +38,13 @@ def _known_env(env_id: str, argument: str = "--env") -> str:
     return env_id
 
 
+class _Parser(argparse.ArgumentParser):
+    """Bad flags are user errors too: one line (with where to find the usage), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (usage: {self.prog} -h)\n")
+
+
 def _train(args) -> int:
     from .config import load_config
     from .train import train
@@ -181,7 +188,7 @@ def _bench(args) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="heml-gym", description="Train, evaluate and record agents on HEML tissue.")
+    ap = _Parser(prog="heml-gym", description="Train, evaluate and record agents on HEML tissue.")
     sub = ap.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train an agent from a YAML config")

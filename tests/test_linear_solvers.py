@@ -69,7 +69,7 @@ def test_envelope_cholesky_solves_and_reuses_its_analysis():
     first = chol._first
     chol.factor(a1)  # same pattern: new values, same analysis
     assert chol._first is first
-    b_before = b.copy()
+    b_before = np.array(b)  # (a copy taken before the solve)
     x = chol.solve(b)
     assert np.linalg.norm(a1 @ x - b) <= 1e-12 * np.linalg.norm(b)
     np.testing.assert_array_equal(b, b_before)  # solve leaves b alone
