@@ -371,7 +371,7 @@ class BatchedRetraction:
     def _lift(self, scenes) -> np.ndarray:
         """Lift progress in [0, 1]: mean over the edge vertices of their fold angle from
         rest divided by the scene's ``fold_angle``, each clipped to [0, 1]."""
-        x_edge = self.state.x[np.atleast_1d(scenes)][:, self._edge]
+        x_edge = self.state.x[np.atleast_1d(scenes)[:, None], self._edge]  # (no copy of the whole state first)
         progress = (self._fold_angles(x_edge) - self._rest_angle) / self.scene.fold_angle
         return finite(np.clip(progress, 0.0, 1.0), nan=0.0).mean(axis=1)
 

@@ -246,7 +246,7 @@ class QuasiNewtonSolver(Solver):
             return
         stiffness = self._scene_constants()["stiffness"]
         if len(m.supports):
-            d, normal = m.supports.signed_distance(x[scenes])
+            d, normal = m.supports.signed_distance(x if len(scenes) == m.n_scenes else x[scenes])
             contact = (d.reshape(len(scenes), n) <= self._contact_margin) & ~held[scenes]
             normal = normal.reshape(len(scenes), n, 3)
         jobs = []
