@@ -28,7 +28,7 @@ from numba import prange
 from .render import box, draw_triangles, icosphere, look_at
 from .spec import invalid
 
-__all__ = ["CameraSpec", "CameraRenderer", "SEGMENT_IDS", "render_scenes"]
+__all__ = ["ImageSpec", "CameraRenderer", "SEGMENT_IDS", "render_scenes"]
 
 #: Segmentation labels.
 SEGMENT_IDS = {"background": 0, "tissue": 1, "target": 2, "instrument": 3, "support": 4}
@@ -43,8 +43,9 @@ JAW_OFFSET = (0.0, 0.0, 0.006)  # m: box centre above the grasp point
 
 
 @dataclass
-class CameraSpec:
-    """Camera observation settings (``camera=`` of the envs, a mapping of these fields):
+class ImageSpec:
+    """The image observations' settings (``camera=`` of the envs, a mapping of these
+    fields; where the camera is, is the scene's :class:`~heml_gym.envs.scene.CameraSpec`):
     ``size`` ``[height, width]`` in pixels (or one number: square), ``segmentation`` (add
     a segmentation image), ``state`` (add the state vector), ``jitter`` (m, camera eye
     offset per episode), ``far`` (m, the depth of the background and the depth bound)."""
@@ -137,12 +138,12 @@ def _row(colour) -> np.ndarray:
 class CameraRenderer:
     """Camera images of every scene of a :class:`~heml_gym.envs.core.BatchedRetraction`.
 
-    ``spec``: :class:`CameraSpec`. :meth:`render` fills :attr:`rgb`, :attr:`depth` and
+    ``spec``: :class:`ImageSpec`. :meth:`render` fills :attr:`rgb`, :attr:`depth` and
     :attr:`segmentation` (arrays with a leading scene axis) and returns them;
     :meth:`new_pose` draws scene ``i``'s camera jitter (called at each reset).
     """
 
-    def __init__(self, task, spec: CameraSpec):
+    def __init__(self, task, spec: ImageSpec):
         self.task, self.spec = task, spec
         scene = task.scene
         n = task.n

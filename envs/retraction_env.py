@@ -25,7 +25,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from .camera import SEGMENT_IDS, CameraRenderer, CameraSpec
+from .camera import SEGMENT_IDS, CameraRenderer, ImageSpec
 from .core import BatchedRetraction, RewardWeights, TaskSettings, as_settings, settings_with
 from .difficulty import apply_difficulty
 from .scene import PhysicsSpec, Scene, build_scene
@@ -128,7 +128,7 @@ class _SceneAccess:
         state_space = spaces.Box(low, high, dtype=np.float32)
         self.camera_renderer = None
         if obs_mode in IMAGE_MODES:
-            spec = camera if isinstance(camera, CameraSpec) else from_mapping(CameraSpec, camera or {}, "camera")
+            spec = camera if isinstance(camera, ImageSpec) else from_mapping(ImageSpec, camera or {}, "camera")
             self.camera_renderer = CameraRenderer(self.task, spec)
             h, w = spec.size
             parts = {}
@@ -202,7 +202,7 @@ class _SceneAccess:
         camera, rows the camera axes x right, y down, z forward), ``focal`` (pixels)."""
         size = tuple(int(v) for v in size)
         if getattr(self, "_view_renderer", None) is None or self._view_renderer.spec.size != list(size):
-            self._view_renderer = CameraRenderer(self.task, CameraSpec(size=list(size), far=10.0))
+            self._view_renderer = CameraRenderer(self.task, ImageSpec(size=list(size), far=10.0))
         view = self._view_renderer
         if self.camera_renderer is not None:  # the observation camera's pose (jitter included)
             view.eyes[:], view.rots[:] = self.camera_renderer.eyes, self.camera_renderer.rots
@@ -246,7 +246,7 @@ class _Resolving:
         settings = as_settings(settings, TaskSettings, "settings")
         as_settings(weights, RewardWeights, "weights")
         if camera is not None:
-            as_settings(camera, CameraSpec, "camera")
+            as_settings(camera, ImageSpec, "camera")
         return apply_difficulty(difficulty, settings, cls.resolve(scene, physics, **size))[1]
 
 
