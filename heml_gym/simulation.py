@@ -34,10 +34,8 @@ from .forces.base import ForceField
 from .model import Damping, Model
 from .solvers import INTEGRATORS, SceneStepStats, SimulationDiverged, StaticSolver, make_solver
 
-__all__ = ["Simulation", "SimulationDiverged", "Damping", "StepStats", "NotConverged", "NotConvergedWarning"]
+__all__ = ["Simulation", "SimulationDiverged", "Damping", "SceneStepStats", "NotConverged", "NotConvergedWarning"]
 
-#: What :meth:`Simulation.step` returns (one scene's report).
-StepStats = SceneStepStats
 
 
 class NotConverged(RuntimeError):
@@ -112,7 +110,7 @@ class Simulation:
         self.control = self.model.control()
         self.time = 0.0
         self.step_count = 0
-        self.last = StepStats()
+        self.last = SceneStepStats()
         self._reaction = np.zeros((self.model.n_vertices, 3))
 
     # --------------------------------------------------------------- the pieces
@@ -221,7 +219,7 @@ class Simulation:
             raise ValueError(f"method must be 'eigen' or 'estimate', got {method!r}")
         return self.model.critical_dt(0)
 
-    def step(self, dt: float, substeps: int | None = None) -> StepStats:
+    def step(self, dt: float, substeps: int | None = None) -> SceneStepStats:
         """Advance by ``dt`` seconds (in ``substeps`` equal sub-steps; explicit picks enough).
 
         Raises :class:`SimulationDiverged` (state unchanged) if the result is non-finite
@@ -253,7 +251,7 @@ class Simulation:
         self.step_count += 1
         return report
 
-    def solve_static(self, load_steps: int = 1, tol: float = 1e-8, max_iter: int = 100) -> StepStats:
+    def solve_static(self, load_steps: int = 1, tol: float = 1e-8, max_iter: int = 100) -> SceneStepStats:
         """Static equilibrium under gravity and external forces, by Newton with load stepping
         (:class:`~heml_gym.solvers.StaticSolver`). Velocities are zeroed.
 
