@@ -80,7 +80,8 @@ from typing import Any, Callable
 import numpy as np
 
 from heml_gym.envs.core import RewardWeights
-from heml_gym.envs.render_scene import JAWS_CLOSED, JAWS_OPEN, STRAINED, TISSUE, TUMOUR
+from heml_gym.envs.palette import (ATTACHMENT, FORCE, HELD, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN,
+                                   STRAINED, SUPPORT, TARGET, TISSUE)
 
 __all__ = ["record_rollouts", "FORCE_ARROW_FRACTION", "SCALAR_ENTITIES", "REWARD_TERMS", "REWARD_ENTITIES"]
 
@@ -109,12 +110,7 @@ CAMERA_SIZE = (240, 320)
 OUTCOME_VALUES = {"success": 1.0, "truncated": 0.0, "unfinished": 0.0, "terminated": -0.5, "torn": -1.0,
                   "diverged": -1.0}
 
-_ATTACHMENT = np.array([110, 110, 120])
-_SUPPORT = np.array([120, 60, 60])
-_HELD = np.array([40, 120, 255])
-_FORCE = np.array([255, 140, 0])
-_JAW_HALF_SIZE = np.array([0.003, 0.006, 0.006])  # m, as in render_scene
-_JAW_OFFSET = np.array([0.0, 0.0, 0.006])  # m: box centre above the grasp point
+
 
 
 def _import_rerun():
@@ -202,21 +198,21 @@ class _SceneLogger:
         rec.log("world/tissue", rr.Mesh3D.from_fields(
             triangle_indices=np.arange(3 * len(self.faces), dtype=np.uint32).reshape(-1, 3)), static=True)
         rec.log("world/attachment", rr.Points3D(geo.rest_vertices[geo.fixed], radii=0.0015,
-                                                colors=_ATTACHMENT), static=True)
+                                                colors=ATTACHMENT), static=True)
         sv, sf = geo.support_mesh
         if len(sf):
             rec.log("world/support", rr.Mesh3D(vertex_positions=sv, triangle_indices=sf,
-                                               albedo_factor=_SUPPORT), static=True)
+                                               albedo_factor=SUPPORT), static=True)
         st = geo.settings
         styles = {
             **{REWARD_ENTITIES[t]: (t, None) for t in SHAPING_TERMS},
             REWARD_ENTITIES["total"]: ("total", [255, 255, 255]),
             REWARD_ENTITIES["success"]: ("success bonus", [120, 200, 120]),
-            "plots/exposure/exposure": ("exposure", TUMOUR),
+            "plots/exposure/exposure": ("exposure", TARGET),
             "plots/exposure/success_threshold": (f"success ({st.success_exposure:g})", [120, 200, 120]),
             "plots/strain/max_strain": ("max gauge strain", STRAINED),
             "plots/strain/damage_threshold": (f"damage ({st.damage_strain:g})", [150, 150, 150]),
-            "plots/grasp_force": ("grasp force (N)", _FORCE),
+            "plots/grasp_force": ("grasp force (N)", FORCE),
             "plots/outcome": ("outcome", [200, 200, 200]),
         }
         for entity, (name, colour) in styles.items():
@@ -255,17 +251,18 @@ class _SceneLogger:
                                                       vertex_normals=np.repeat(normals, 3, axis=0),
                                                       vertex_colors=colours))
         gripper = np.asarray(snap.gripper, dtype=np.float64)
-        rec.log("world/gripper", rr.Boxes3D(centers=[gripper + _JAW_OFFSET], half_sizes=[_JAW_HALF_SIZE],
+        rec.log("world/gripper", rr.Boxes3D(centers=[gripper + np.array(JAW_OFFSET)],
+                                            half_sizes=[np.array(JAW_HALF_SIZE)],
                                             colors=[JAWS_CLOSED if snap.grasping else JAWS_OPEN],
                                             labels=["closed" if snap.grasping else "open"],
                                             fill_mode="solid"))
         held = x[snap.held]
-        rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=_HELD))
+        rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=HELD))
         force = np.nan_to_num(np.asarray(snap.grasp_force, dtype=np.float64))
         rec.log("world/grasp_force", rr.Arrows3D(origins=[gripper], vectors=[force * self.force_scale],
-                                                 colors=[_FORCE], labels=[f"{np.linalg.norm(force):.3f} N"]))
+                                                 colors=[FORCE], labels=[f"{np.linalg.norm(force):.3f} N"]))
         exposure = float(info["exposure"])
-        rec.log("world/target", rr.Points3D([snap.target], radii=float(geo.target_radius), colors=[TUMOUR],
+        rec.log("world/target", rr.Points3D([snap.target], radii=float(geo.target_radius), colors=[TARGET],
                                             labels=[f"exposure {exposure:.0%}"]))
         rec.log("world/camera/image", rr.Image(view["rgb"]))
         rec.log("world/camera/depth", rr.DepthImage(view["depth"], meter=1.0))

@@ -25,6 +25,7 @@ import numba as nb
 import numpy as np
 from numba import prange
 
+from .palette import BACKGROUND, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, SUPPORT, TARGET, TISSUE, unit
 from .render import box, draw_triangles, icosphere, look_at
 from .spec import invalid
 
@@ -32,14 +33,7 @@ __all__ = ["ImageSpec", "CameraRenderer", "SEGMENT_IDS", "render_scenes"]
 
 #: Segmentation labels.
 SEGMENT_IDS = {"background": 0, "tissue": 1, "target": 2, "instrument": 3, "support": 4}
-TISSUE = (235 / 255, 170 / 255, 150 / 255)
-TARGET = (240 / 255, 220 / 255, 40 / 255)
-JAWS_OPEN = (150 / 255, 150 / 255, 160 / 255)
-JAWS_CLOSED = (40 / 255, 200 / 255, 90 / 255)
-SUPPORT = (120 / 255, 60 / 255, 60 / 255)
-BACKGROUND = np.array([25, 25, 35], dtype=np.uint8)
-JAW_HALF_SIZE = (0.003, 0.006, 0.006)  # m
-JAW_OFFSET = (0.0, 0.0, 0.006)  # m: box centre above the grasp point
+
 
 
 @dataclass
@@ -201,11 +195,11 @@ class CameraRenderer:
     def render(self):
         """``(rgb, depth, segmentation)`` of every scene (arrays owned by the renderer)."""
         t = self.task
-        jaw = np.where(t.grasping[:, None], np.array(JAWS_CLOSED), np.array(JAWS_OPEN))
+        jaw = np.where(t.grasping[:, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
         kernel = render_scenes if t.n > 1 and nb.get_num_threads() > 1 else render_scenes_serial
         seg = self.segmentation[..., 0]
-        kernel(np.ascontiguousarray(t.x), self.faces, _row(TISSUE), np.ascontiguousarray(t.target), *self.sphere,
-               _row(TARGET), np.ascontiguousarray(t.gripper), *self.box, np.ascontiguousarray(jaw), *self.support,
-               _row(SUPPORT), self.eyes, self.rots, self.focal, 0.5 * self.width, 0.5 * self.height, self.near,
+        kernel(np.ascontiguousarray(t.x), self.faces, _row(unit(TISSUE)), np.ascontiguousarray(t.target), *self.sphere,
+               _row(unit(TARGET)), np.ascontiguousarray(t.gripper), *self.box, np.ascontiguousarray(jaw), *self.support,
+               _row(unit(SUPPORT)), self.eyes, self.rots, self.focal, 0.5 * self.width, 0.5 * self.height, self.near,
                float(self.spec.far), 0.25, BACKGROUND, self.rgb, self.depth, seg)
         return self.rgb, self.depth, self.segmentation

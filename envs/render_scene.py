@@ -11,14 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .palette import JAWS_CLOSED, JAWS_OPEN, STRAINED, TARGET, TISSUE
 from .render import Camera, box, compose, icosphere, rasterize
 
 _COUNTER = itertools.count()
-TISSUE = np.array([235, 170, 150])  # fat: pale pink
-STRAINED = np.array([200, 30, 30])  # at the damage threshold
-TUMOUR = np.array([240, 220, 40])
-JAWS_OPEN = np.array([150, 150, 160])
-JAWS_CLOSED = np.array([40, 200, 90])
+
 
 
 class SceneRenderer:
@@ -49,7 +46,7 @@ class SceneRenderer:
         sphere = icosphere(t.scene.target_radius, t.target[i], subdivisions=1)
         jaws = box(t.gripper[i] + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
         jaw_colour = JAWS_CLOSED if t.grasping[i] else JAWS_OPEN
-        x_all, faces_all, colours = compose([(sphere[0], sphere[1], TUMOUR), (jaws[0], jaws[1], jaw_colour)])
+        x_all, faces_all, colours = compose([(sphere[0], sphere[1], TARGET), (jaws[0], jaws[1], jaw_colour)])
         n = len(x_all)
         return (np.concatenate([x_all, x]), np.concatenate([faces_all, f + n]),
                 np.concatenate([colours, tissue_colours]))
