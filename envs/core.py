@@ -316,8 +316,34 @@ class BatchedRetraction:
             "newton_iterations": stats.newton_iterations.copy(),
             "substep_refinement": stats.refinement.copy(),
             "solver_fallback": stats.fallback.copy(),
+            **self._episode_info(all_scenes),
         }
         return reward, terminated, truncated, info
+
+    def _episode_info(self, scenes) -> dict:
+        """What ``info`` says of the episode itself (drawn at its reset): the tissue's
+        ``young_modulus`` (Pa) and, with adhesion, its ``adhesion_width`` (m)."""
+        info = {"young_modulus": self.young_modulus[scenes].copy()}
+        if self.scene.adhesion_vertices is not None:
+            info["adhesion_width"] = self.adhesion_width[scenes].copy()
+        return info
+
+    def start_info(self, scenes) -> dict:
+        """The ``info`` of ``scenes`` (indices) at the start of their episodes (after
+        :meth:`reset`), with the keys and dtypes of :meth:`step`'s: every reward term 0,
+        nothing held, succeeded, torn or failed, the solver's counters at rest, and the
+        episode's measurements and draws. Single envs return it at reset, vector envs
+        for the scenes they start afresh."""
+        scenes = np.atleast_1d(np.asarray(scenes, dtype=np.int64))
+        k = len(scenes)
+        zero, no = np.zeros(k), np.zeros(k, dtype=bool)
+        return {**{f"reward_{term.name}": zero.copy() for term in fields(RewardWeights)},
+                "exposure": self.exposure[scenes].copy(), "lift": self.lift[scenes].copy(),
+                "max_strain": self.max_strain[scenes].copy(), "grasp_force": zero.copy(),
+                "grasping": self.grasping[scenes].copy(), "is_success": no.copy(), "hold_time": zero.copy(),
+                "tissue_torn": no.copy(), "simulation_diverged": no.copy(), "solver_converged": ~no,
+                "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),
+                "solver_fallback": no.copy(), **self._episode_info(scenes)}
 
     def _jaw_vertices(self, i: int) -> np.ndarray:
         """The tissue vertices that closing the gripper of scene ``i`` holds (maybe none)."""

@@ -291,12 +291,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
         return self.observe(), self._info_at_reset()
 
     def _info_at_reset(self) -> dict[str, Any]:
-        t = self.task
-        info = {"exposure": float(t.exposure[0]), "lift": float(t.lift[0]), "max_strain": float(t.max_strain[0]),
-                "grasp_force": 0.0, "is_success": False, "hold_time": 0.0, "young_modulus": float(t.young_modulus[0])}
-        if t.scene.adhesion_vertices is not None:
-            info["adhesion_width"] = float(t.adhesion_width[0])
-        return info
+        return {k: v[0].item() for k, v in self.task.start_info([0]).items()}
 
     def step(self, action):
         a = check_actions(action, (4,))
@@ -399,16 +394,8 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
             reward[idx] = 0.0
             terminated[idx] = False
             truncated[idx] = False
-            for key, values in info.items():  # their info describes the new episode's start
-                if key.startswith("reward_") or values.dtype == bool or key == "newton_iterations":
-                    values[idx] = 0
-            info["solver_converged"][idx] = True
-            info["substep_refinement"][idx] = 1
-            info["exposure"][idx] = self.task.exposure[idx]
-            info["lift"][idx] = self.task.lift[idx]
-            info["max_strain"][idx] = self.task.max_strain[idx]
-            info["grasp_force"][idx] = 0.0
-            info["hold_time"][idx] = 0.0
+            for key, values in self.task.start_info(idx).items():  # their info: the new episode's start
+                info[key][idx] = values
         self._needs_reset = terminated | truncated
         return self.observations(), reward, terminated, truncated, info
 

@@ -390,3 +390,30 @@ def test_exposure_is_the_visible_share_of_the_target_by_an_independent_ray_cast(
             break
     assert min(seen) < 0.1 and max(seen) > 0.8  # covered, then exposed: the range was crossed
     assert max(gaps) < 0.05, gaps  # (sampling: about 0.013 for 1,500 points at one half)
+
+
+def test_info_has_one_set_of_keys_at_reset_step_and_autoreset_in_both_env_kinds():
+    """The keys of ``info`` (and each value's kind) are the same after a single env's
+    reset and step, and in a vector env's step, autoreset steps included: one definition
+    (``BatchedRetraction.start_info`` and ``step``). The reward terms are the weights'
+    (``reward_<weight>``) and they add up to the reward."""
+    from dataclasses import fields
+
+    from heml_gym.envs.core import RewardWeights
+
+    env = TissueRetractionEnv(settings={"max_steps": 2})
+    _, reset_info = env.reset(seed=0)
+    _, reward, _, _, step_info = env.step(np.zeros(4, dtype=np.float32))
+    assert set(reset_info) == set(step_info)
+    assert {type(v) for v in reset_info.values()} <= {float, int, bool}
+    assert all(type(reset_info[k]) is type(step_info[k]) for k in reset_info)
+    terms = {k for k in step_info if k.startswith("reward_")}
+    assert terms == {f"reward_{f.name}" for f in fields(RewardWeights)}
+    assert sum(step_info[k] for k in terms) == pytest.approx(reward)
+    assert reset_info["young_modulus"] == step_info["young_modulus"] > 0
+    vec = TissueRetractionVectorEnv(num_envs=2, settings={"max_steps": 2})
+    vec.reset(seed=0)
+    for _ in range(3):  # truncated at step 2, started afresh at step 3
+        _, _, _, _, info = vec.step(np.zeros((2, 4), dtype=np.float32))
+        assert set(info) == set(step_info)
+        assert all(np.asarray(info[k]).dtype.kind == np.asarray(step_info[k]).dtype.kind for k in info)
