@@ -85,6 +85,8 @@ observation stays finite. Truncated after 100 steps (10 s). ``info["substep_refi
 says when the solver had to re-take a step in shorter sub-steps (strongly compressed
 tissue), ``info["solver_fallback"]`` when the quasi-Newton solver took it again by
 Newton's method (its fallback), ``info["newton_iterations"]`` what an implicit step cost.
+``info`` has the same keys at reset (every reward term 0) and at every step, including
+the episode's draws ``young_modulus`` (Pa) and, with adhesion, ``adhesion_width`` (m).
 
 ## Arguments
 
