@@ -17,7 +17,6 @@ from .render import Camera, box, compose, icosphere, rasterize
 _COUNTER = itertools.count()
 
 
-
 class SceneRenderer:
     """Renders scene ``i`` of a :class:`~heml_gym.envs.core.BatchedRetraction`.
 
