@@ -98,9 +98,7 @@ def avx2_slowdown() -> str:
     native, avx2 = load("env_throughput"), load("env_throughput_avx2")
     if not (native and avx2) or native["machine"].get("vector_isa") != "AVX-512":
         return ""
-    tissue = "heml_gym/TissueRetraction-v0"
-    rates = [throughput_rate(d["envs"][tissue]["throughput"], env="vector", actions="random", num_envs=16,
-                             threads=2) for d in (native, avx2)]
+    rates = [_rates(d)[0](TISSUE, "vector", 16, 2) for d in (native, avx2)]
     if None in rates:
         return ""
     return (f" On an AVX2-only CPU the main job's 16 flap scenes step {rates[0] / rates[1]:.1f}x slower "
@@ -132,7 +130,12 @@ def rllib(data: dict) -> str:
             "[scale_out.md](../scale_out.md#measured)).")
 
 
-def throughput(data: dict) -> str:
+TISSUE, ORGAN = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+
+
+def _rates(data: dict):
+    """``rate(env_id, env, n, threads, actions)`` (env steps/s) and ``best_vector(env_id)``
+    (the fastest vector row) of a stored env_throughput run."""
     def rate(env_id, env, n, threads, actions="random"):
         return throughput_rate(data["envs"][env_id]["throughput"], env=env, actions=actions, num_envs=n,
                                threads=threads)
@@ -141,7 +144,12 @@ def throughput(data: dict) -> str:
         return max(throughput_rows(data["envs"][env_id]["throughput"], env="vector"),
                    key=lambda r: r["median_steps_per_s"])
 
-    tissue, organ = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+    return rate, best_vector
+
+
+def throughput(data: dict) -> str:
+    rate, best_vector = _rates(data)
+    tissue, organ = TISSUE, ORGAN
     tv, ov = best_vector(tissue), best_vector(organ)
     text = (f"**Env speed** (0.1 s of tissue per step, both envs' default physics: backward Euler by L-BFGS): "
             f"TissueRetraction {rate(tissue, 'single', 1, 1):,.0f} env steps/s as a single env on one core (random "
@@ -159,15 +167,8 @@ def throughput(data: dict) -> str:
 
 def throughput_avx2(data: dict) -> str:
     """The same rates with the kernels compiled for an AVX2-only CPU (``env_throughput.py --avx2``)."""
-    def rate(env_id, env, n, threads, actions="random"):
-        return throughput_rate(data["envs"][env_id]["throughput"], env=env, actions=actions, num_envs=n,
-                               threads=threads)
-
-    def best_vector(env_id):
-        return max(throughput_rows(data["envs"][env_id]["throughput"], env="vector"),
-                   key=lambda r: r["median_steps_per_s"])
-
-    tissue, organ = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+    rate, best_vector = _rates(data)
+    tissue, organ = TISSUE, ORGAN
     tv, ov = best_vector(tissue), best_vector(organ)
     m = data["machine"]
     machine = (f"{m['cpu']}, {m['cores']} cores, {m['vector_isa']}, kernels compiled for "

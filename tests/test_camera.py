@@ -12,6 +12,7 @@ import heml_gym.envs  # noqa: F401
 from heml_gym.envs.camera import SEGMENT_IDS
 from heml_gym.envs.render import box, icosphere
 from heml_gym.envs.scripted import scripted_policy
+from raycast import first_hits
 
 TISSUE, ORGAN = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
 
@@ -41,32 +42,6 @@ def test_sb3_cnn_and_multi_input_policies_take_them_without_wrappers():
         model = PPO(policy, RetractionSb3VecEnv(vec.unwrapped), n_steps=16, batch_size=16, n_epochs=1, device="cpu")
         model.learn(32)
         assert model.num_timesteps >= 32
-
-
-def _ray_cast(origin, directions, triangles):
-    """Nearest hit distance along each ray and the index of the triangle hit (Moller-Trumbore),
-    and each hit's smallest barycentric coordinate; ``(inf, -1, 0)`` for a miss."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    e1, e2 = b - a, c - a
-    best_t = np.full(len(directions), np.inf)
-    best_k = np.full(len(directions), -1)
-    best_w = np.zeros(len(directions))
-    for r, d in enumerate(directions):
-        p = np.cross(d, e2)
-        det = (e1 * p).sum(axis=1)
-        ok = np.abs(det) > 1e-18
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        s = origin - a
-        u = (s * p).sum(axis=1) * inv
-        q = np.cross(s, e1)
-        v = (q @ d) * inv
-        t = (q * e2).sum(axis=1) * inv
-        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
-        if hit.any():
-            k = np.flatnonzero(hit)[np.argmin(t[hit])]
-            best_t[r], best_k[r] = t[k], k
-            best_w[r] = min(u[k], v[k], 1 - u[k] - v[k])
-    return best_t, best_k, best_w
 
 
 def _pinhole_rays(spec, rest_vertices, height, width):
@@ -123,9 +98,9 @@ def test_depth_segmentation_and_colour_match_an_independent_pinhole_ray_cast(env
     triangles = np.concatenate([m[0] for m in meshes])
     labels = np.concatenate([np.full(len(m[0]), m[1]) for m in meshes])
     eye, rows, cols, cam, world = _pinhole_rays(t.scene.spec.camera, t.scene.mesh.vertices, 40, 56)
-    t_hit, k_hit, w_hit = _ray_cast(eye, world, triangles)
+    t_hit, k_hit, w_hit = first_hits(eye, world, triangles)
     # the support lies behind everything: a ray sees it only where it hits nothing else
-    s_hit, _, s_w = _ray_cast(eye, world, qv[qf])
+    s_hit, _, s_w = first_hits(eye, world, qv[qf])
     on_support = ~np.isfinite(t_hit) & np.isfinite(s_hit)
     t_hit[on_support], w_hit[on_support] = s_hit[on_support], s_w[on_support]
     labels = np.append(labels, SEGMENT_IDS["support"])

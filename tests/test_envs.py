@@ -12,6 +12,7 @@ from heml_gym.envs.organ_retraction import OrganRetractionEnv, OrganRetractionVe
 from heml_gym.envs.scripted import FoldBackPolicy, run_episodes, scripted_policy
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
 from heml_gym.envs.spec import SpecError
+from raycast import segments_blocked
 
 ENV_ID = "heml_gym/TissueRetraction-v0"
 
@@ -340,27 +341,6 @@ def test_every_step_of_twenty_seeded_streams_converges_and_stays_in_space(vector
         assert retaken > 0  # the streams did reach the hard steps this test is about
 
 
-def _hidden(eye, points, triangles):
-    """For each point (k, 3) (m): does any triangle (t, 3, 3) cross the segment from
-    ``eye`` to it (Moller-Trumbore on the segment, numpy)?"""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    e1, e2 = b - a, c - a
-    hidden = np.zeros(len(points), dtype=bool)
-    for i, p in enumerate(points):
-        d = p - eye  # the segment: eye + s d, s in (0, 1)
-        q = np.cross(d, e2)
-        det = (e1 * q).sum(axis=1)
-        ok = np.abs(det) > 1e-20
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        r = eye - a
-        u = (r * q).sum(axis=1) * inv
-        w = np.cross(r, e1)
-        v = (w @ d) * inv
-        s = (w * e2).sum(axis=1) * inv
-        hidden[i] = np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 1e-9) & (s < 1 - 1e-9))
-    return hidden
-
-
 def test_exposure_is_the_visible_share_of_the_target_by_an_independent_ray_cast():
     """Along the scripted fold of the flap (the target covered, partly and wholly
     exposed; every third step), ``info["exposure"]`` against an independent estimate:
@@ -382,7 +362,7 @@ def test_exposure_is_the_visible_share_of_the_target_by_an_independent_ray_cast(
         directions = rng.standard_normal((6000, 3))
         points = centre + radius * directions / np.linalg.norm(directions, axis=1, keepdims=True)
         points = points[((points - centre) * (eye - points)).sum(axis=1) > 0][:1500]  # camera-facing
-        hidden = _hidden(eye, points, t.x[0][t.scene.surface_faces])
+        hidden = segments_blocked(eye, points, t.x[0][t.scene.surface_faces])
         expected = 1.0 - hidden.mean()
         seen.append(expected)
         gaps.append(abs(info["exposure"] - expected))
