@@ -135,7 +135,8 @@ class BatchedRetraction:
                            fixed=s.fixed, gravity=ph.gravity, damping=ph.damping, supports=s.supports)
         dt = self.settings.control_dt
         self.solver = make_solver(self.model, ph.integrator, scheme=ph.scheme, safety=ph.safety,
-                                  newton_tol=ph.newton_tol, max_iterations=ph.max_newton)
+                                  newton_tol=ph.newton_tol, max_iterations=ph.max_newton,
+                                  hessian_scale=ph.hessian_scale if ph.integrator == "quasi_newton" else 1.0)
         if ph.integrator == "explicit":
             # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
             # scene and batch, so a scene's trajectory does not depend on its neighbours

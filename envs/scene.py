@@ -106,7 +106,10 @@ class PhysicsSpec:
     iterations) or ``"quasi_newton"`` (the same steps by L-BFGS from a constant
     factorised Hessian, at most ``max_newton`` iterations; HEML fields only);
     ``scheme``: the implicit steps' time discretisation, ``"backward_euler"`` or, with
-    ``"quasi_newton"``, ``"bdf2"`` (second order, the same cost per step).
+    ``"quasi_newton"``, ``"bdf2"`` (second order, the same cost per step);
+    ``hessian_scale``: the weight of the quasi-Newton initial Hessian's Laplacian in units
+    of ``lambda + mu`` (iterations per step, not accuracy; the other integrators have no
+    initial Hessian and do not read it, see :class:`heml_gym.QuasiNewtonSolver`).
     """
 
     material: str = "NeoHookean"
@@ -123,6 +126,7 @@ class PhysicsSpec:
     newton_tol: float = 1e-3
     max_newton: int = 20
     scheme: str = "backward_euler"
+    hessian_scale: float = 1.0
 
     def __post_init__(self):
         if self.material not in LAWS:
@@ -159,6 +163,9 @@ class PhysicsSpec:
             raise invalid(self, "newton_tol", f"must be a positive number, got {self.newton_tol}")
         if self.max_newton < 1:
             raise invalid(self, "max_newton", f"must be >= 1, got {self.max_newton}")
+        if not (isinstance(self.hessian_scale, (int, float)) and not isinstance(self.hessian_scale, bool)
+                and math.isfinite(self.hessian_scale) and self.hessian_scale > 0):
+            raise invalid(self, "hessian_scale", f"must be a positive number, got {self.hessian_scale!r}")
 
     def material_for(self, young_modulus: float) -> materials.Material:
         """The scene's law with Young's modulus ``young_modulus`` (Pa)."""

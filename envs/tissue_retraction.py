@@ -154,7 +154,7 @@ def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> Scene:
         tissue=TissueSpec(kind="box", size=FLAP_SIZE, cells=tuple(int(c) for c in cells), mirrored=mirrored),
         physics=PhysicsSpec(material="NeoHookean", young_modulus=STIFFNESS_RANGE, poisson=0.45, density=950.0,
                             damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
-                            max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.75),
+                            max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.75, hessian_scale=1.25),
         attachment=RegionSpec(low=(0.0, None, None), high=(0.0, None, None)),
         grasp=RegionSpec(low=(lx, None, lz), high=(lx, None, lz)),
         tracked=RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),

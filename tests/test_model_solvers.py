@@ -258,6 +258,12 @@ def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
     solver = env.unwrapped.task.solver
     assert (solver.max_iter, solver.newton_tol, solver.scheme) == (physics.max_newton, physics.newton_tol,
                                                                  physics.scheme)
+    assert solver.hessian_scale == physics.hessian_scale == 1.25  # the flap's scene: a speed setting
+    with pytest.raises(SolverChoiceError, match="^hessian_scale"):
+        make_solver(model, "implicit", hessian_scale=2.0)
+    # an integrator without an initial Hessian does not read the scene's setting
+    implicit = gym.make("heml_gym/TissueRetraction-v0", physics={"integrator": "implicit"}).unwrapped.task.solver
+    assert isinstance(implicit, hg.ImplicitSolver)
     with pytest.raises(Exception, match="PhysicsSpec.scheme|physics.scheme"):
         gym.make("heml_gym/TissueRetraction-v0", physics={"integrator": "implicit", "scheme": "bdf2"})
 

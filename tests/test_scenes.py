@@ -52,6 +52,7 @@ def test_a_scene_file_drives_the_env(tmp_path):
     ({"physics": {"material_options": {"b": -1.0}, "material": "Demiray"}}, "physics.material_options"),
     ({"physics": {"safety": 1.5}}, "physics.safety"),
     ({"physics": {"scheme": "rk4"}}, "physics.scheme"),
+    ({"physics": {"hessian_scale": 0}}, "physics.hessian_scale"),
     ({"physics": {"scheme": "bdf2", "integrator": "explicit"}}, "physics.scheme"),
     ({"physics": {"materal": "NeoHookean"}}, "physics.materal"),
     ({"physics": "implicit"}, "physics"),

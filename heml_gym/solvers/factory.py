@@ -52,7 +52,8 @@ def check_solver_choice(integrator: str, field: str | None = None, scheme: str =
 
 def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str = "backward_euler",
                 safety: float = 0.5, newton_tol: float = 1e-3, max_iterations: int | None = None,
-                max_speed: float = 1e3, linear_solver: str = "pcg", refinements=(4, 16)) -> Solver:
+                max_speed: float = 1e3, linear_solver: str = "pcg", refinements=(4, 16),
+                hessian_scale: float = 1.0) -> Solver:
     """The solver ``integrator`` for ``model``, every setting with one meaning:
 
     * ``safety``: explicit sub-steps are at most this fraction of the critical step;
@@ -65,16 +66,22 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
       (explicit) or shorter (implicit, quasi-Newton) sub-steps, in turn;
     * ``scheme``: ``"backward_euler"`` or (``quasi_newton`` only) ``"bdf2"``;
     * ``linear_solver``: Newton's linear solves (``implicit``): ``"pcg"`` or ``"direct"``;
+    * ``hessian_scale``: the weight of the quasi-Newton initial Hessian's Laplacian in
+      units of ``lambda + mu`` (``quasi_newton`` only; speed, not accuracy, see
+      :class:`~heml_gym.QuasiNewtonSolver`);
     * ``max_speed`` (m/s): a vertex faster than this counts as exploded.
 
     Errors name the setting (:class:`SolverChoiceError`, or the solver's own ValueError
     for a field it cannot step, e.g. mass-spring with ``quasi_newton``).
     """
     check_solver_choice(integrator, scheme=scheme)
+    if hessian_scale != 1.0 and integrator != "quasi_newton":
+        raise SolverChoiceError("hessian_scale", f"applies to integrator 'quasi_newton' only, got {integrator!r}")
     if integrator == "explicit":
         return ExplicitSolver(model, safety=safety, max_speed=max_speed, refinements=refinements)
     if integrator == "quasi_newton":
         return QuasiNewtonSolver(model, newton_tol=newton_tol, max_iter=50 if max_iterations is None else max_iterations,
-                                 refinements=refinements, max_speed=max_speed, scheme=scheme)
+                                 refinements=refinements, max_speed=max_speed, scheme=scheme,
+                                 hessian_scale=hessian_scale)
     return ImplicitSolver(model, newton_tol=newton_tol, max_newton=20 if max_iterations is None else max_iterations,
                           linear_solver=linear_solver, max_speed=max_speed, refinements=refinements)
