@@ -38,6 +38,9 @@ from .evaluation import evaluate_policy
 __all__ = ["train_rllib", "load_rllib_policy", "is_rllib_run"]
 
 STATS_FILE = "obs_stats.json"
+#: training iterations in a row without a sample (each waits RLlib's sample_timeout_s,
+#: 60 s by default) before a run stops with an error
+MAX_IDLE_ITERATIONS = 10
 #: the gymnasium id RLlib's env runners make: ``"<this module>:<id>"`` imports this module
 #: (and so registers the id) in every runner process, on any node
 VECTOR_ENV_ID = "heml_gym_rllib/NormalizedRetraction-v0"
@@ -198,10 +201,17 @@ def train_rllib(cfg: RunConfig, run_dir: str | Path, resume: str | Path | None =
             history_path.write_text(json.dumps(history, indent=1))
             return result
 
+        idle = 0  # train() calls in a row that sampled nothing
         while steps < cfg.algorithm.total_timesteps:
             t0 = time.perf_counter()
             result = algo.train()
-            new = int(result["env_runners"]["num_env_steps_sampled_lifetime"])
+            # no "env_runners" entry: the runners returned no samples within RLlib's
+            # sample_timeout_s (e.g. while a cold Numba cache compiles the kernels)
+            new = int(result.get("env_runners", {}).get("num_env_steps_sampled_lifetime", steps))
+            idle = idle + 1 if new == steps else 0
+            if idle >= MAX_IDLE_ITERATIONS:
+                raise RuntimeError(f"RLlib's env runners returned no samples in {idle} training iterations in a row "
+                                   f"(at {steps} env steps): check the Ray workers' logs")
             rates.append((new - steps) / (time.perf_counter() - t0))
             if bar is not None:
                 bar.update(new - steps)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -61,12 +62,68 @@ class ImageSpec:
             raise invalid(self, "far", f"must be a positive length in metres, got {self.far}")
 
 
+class SceneMeshes(NamedTuple):
+    """What every scene draws, as triangles and colours (``(1, 3)`` rows in [0, 1]): the
+    tissue's surface ``faces`` (over each scene's vertices), the target sphere and the jaw
+    box templates (placed per scene), the support, and the background colour ``(3,)``
+    uint8."""
+
+    faces: np.ndarray
+    tissue_colour: np.ndarray
+    sphere_v: np.ndarray
+    sphere_f: np.ndarray
+    target_colour: np.ndarray
+    box_v: np.ndarray
+    box_f: np.ndarray
+    support_v: np.ndarray
+    support_f: np.ndarray
+    support_colour: np.ndarray
+    background: np.ndarray
+
+
+class ScenePoses(NamedTuple):
+    """Per scene (leading axis N): the tissue's vertices ``x`` (m), the target's and the
+    gripper's places (m), the jaws' colour (``(N, 3)``), the camera's eye (m) and its
+    world-to-camera rotation ``rots (N, 3, 3)``."""
+
+    x: np.ndarray
+    targets: np.ndarray
+    grippers: np.ndarray
+    jaw_colours: np.ndarray
+    eyes: np.ndarray
+    rots: np.ndarray
+
+
+class Lens(NamedTuple):
+    """The pinhole: ``focal`` length and principal point ``cx, cy`` (pixels), ``near`` and
+    ``far`` (m), and the ``ambient`` share of the headlight shading."""
+
+    focal: float
+    cx: float
+    cy: float
+    near: float
+    far: float
+    ambient: float
+
+
+class Images(NamedTuple):
+    """The outputs: ``rgb (N, H, W, 3)`` uint8, ``depth (N, H, W, 1)`` float32 (m along the
+    optical axis, ``far`` where empty), ``seg (N, H, W)`` uint8."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    seg: np.ndarray
+
+
 @nb.njit(cache=True, inline="always")
-def _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
-                jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
-                background, rgb, depth, seg):
-    image = rgb[s]
-    labels = seg[s]
+def _render_one(s, poses, meshes, lens, images):
+    x, targets, grippers, jaw_colours, eyes, rots = poses
+    faces, tissue_colour, sphere_v, sphere_f, target_colour, box_v, box_f, support_v, support_f, support_colour, \
+        background = meshes
+    focal, cx, cy, near, far, ambient = lens
+    image = images.rgb[s]
+    labels = images.seg[s]
+    depth = images.depth
     height, width = image.shape[0], image.shape[1]
     inv = np.zeros((height, width))
     for i in range(height):
@@ -99,30 +156,21 @@ def _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_
 
 
 @nb.njit(cache=True, parallel=True)
-def render_scenes(x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
-                  jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
-                  background, rgb, depth, seg):
-    """Draw every scene ``s`` (tissue ``x[s]`` over ``faces``, the target sphere template
-    ``sphere_v`` at ``targets[s]``, the jaw box ``box_v`` at ``grippers[s]`` in
-    ``jaw_colours[s]``, the support) from its camera (``eyes[s]``, world-to-camera
-    ``rots[s]``) into ``rgb (N, H, W, 3)`` uint8, ``depth (N, H, W, 1)`` float32 (m along
-    the optical axis, ``far`` where empty) and ``seg (N, H, W)`` uint8, scenes over
-    threads. Colours are ``(1, 3)`` rows in [0, 1]."""
-    for s in prange(x.shape[0]):
-        _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
-                    jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
-                    background, rgb, depth, seg)
+def render_scenes(poses, meshes, lens, images):
+    """Draw every scene ``s`` (tissue ``poses.x[s]`` over ``meshes.faces``, the target
+    sphere at ``poses.targets[s]``, the jaw box at ``poses.grippers[s]`` in
+    ``poses.jaw_colours[s]``, the support) from its camera (``poses.eyes[s]``,
+    ``poses.rots[s]``) through ``lens`` into ``images`` (:class:`ScenePoses`,
+    :class:`SceneMeshes`, :class:`Lens`, :class:`Images`), scenes over threads."""
+    for s in prange(poses.x.shape[0]):
+        _render_one(s, poses, meshes, lens, images)
 
 
 @nb.njit(cache=True)
-def render_scenes_serial(x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
-                         jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far,
-                         ambient, background, rgb, depth, seg):
+def render_scenes_serial(poses, meshes, lens, images):
     """:func:`render_scenes` scene after scene (one scene: no thread launch)."""
-    for s in range(x.shape[0]):
-        _render_one(s, x, faces, tissue_colour, targets, sphere_v, sphere_f, target_colour, grippers, box_v, box_f,
-                    jaw_colours, support_v, support_f, support_colour, eyes, rots, focal, cx, cy, near, far, ambient,
-                    background, rgb, depth, seg)
+    for s in range(poses.x.shape[0]):
+        _render_one(s, poses, meshes, lens, images)
 
 
 def _row(colour) -> np.ndarray:
@@ -156,6 +204,9 @@ class CameraRenderer:
         bv, bf = box(JAW_OFFSET, JAW_HALF_SIZE)
         self.box = (np.ascontiguousarray(bv), np.ascontiguousarray(bf))
         self.support = self.support_mesh(scene)
+        self.meshes = SceneMeshes(self.faces, _row(unit(TISSUE)), *self.sphere, _row(unit(TARGET)), *self.box,
+                                  *self.support, _row(unit(SUPPORT)), BACKGROUND)
+        self.lens = Lens(float(self.focal), 0.5 * self.width, 0.5 * self.height, self.near, float(spec.far), 0.25)
         self.rgb = np.zeros((n, self.height, self.width, 3), dtype=np.uint8)
         self.depth = np.zeros((n, self.height, self.width, 1), dtype=np.float32)
         self.segmentation = np.zeros((n, self.height, self.width, 1), dtype=np.uint8)
@@ -197,9 +248,7 @@ class CameraRenderer:
         t = self.task
         jaw = np.where(t.grasping[:, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
         kernel = render_scenes if t.n > 1 and nb.get_num_threads() > 1 else render_scenes_serial
-        seg = self.segmentation[..., 0]
-        kernel(np.ascontiguousarray(t.x), self.faces, _row(unit(TISSUE)), np.ascontiguousarray(t.target), *self.sphere,
-               _row(unit(TARGET)), np.ascontiguousarray(t.gripper), *self.box, np.ascontiguousarray(jaw), *self.support,
-               _row(unit(SUPPORT)), self.eyes, self.rots, self.focal, 0.5 * self.width, 0.5 * self.height, self.near,
-               float(self.spec.far), 0.25, BACKGROUND, self.rgb, self.depth, seg)
+        poses = ScenePoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(t.gripper),
+                           np.ascontiguousarray(jaw), self.eyes, self.rots)
+        kernel(poses, self.meshes, self.lens, Images(self.rgb, self.depth, self.segmentation[..., 0]))
         return self.rgb, self.depth, self.segmentation

@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from .kernel_data import SupportArrays
 from .kernels_contact import band_distances, inside_by_parity, signed_distances
 
 __all__ = ["Support", "PlaneSupport", "MeshSupport", "Supports"]
@@ -141,9 +142,10 @@ class Supports:
     def __len__(self) -> int:
         return len(self.items)
 
-    def kernel_args(self):
-        """``(planes, grids, grid_values)`` for the kernels."""
-        return self.planes, self.grids, self.grid_values
+    def kernel_args(self) -> SupportArrays:
+        """``(planes, grids, grid_values)`` for the kernels
+        (:class:`~heml_gym.kernel_data.SupportArrays`)."""
+        return SupportArrays(self.planes, self.grids, self.grid_values)
 
     def signed_distance(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Smallest signed distance (m) of each point to the supports (``inf`` when there

@@ -28,6 +28,7 @@ import scipy.sparse.linalg as spla
 from .contact import Support, Supports
 from .control import Control
 from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
+from .kernel_data import HemlBody, HemlLaws
 from .materials import Material
 from .mesh import TetMesh
 from .state import State
@@ -144,6 +145,9 @@ class Model:
         if base is None:
             base = cls(mesh, materials[0])
         self._base = base
+        self._body: HemlBody | None = None  # see heml_body / heml_laws
+        self._laws: HemlLaws | None = None
+        self.material_revision = 0  # counts set_material calls (for what a solver derives from materials)
         self.fields: list[ForceField] = [None] * n_scenes
         self.materials: list[Material] = [None] * n_scenes
         for s, mat in enumerate(materials):
@@ -168,6 +172,67 @@ class Model:
                 raise IndexError(f"scene {s} outside [0, {self.n_scenes})")
             self.fields[s] = field
             self.materials[s] = material
+        self.material_revision += 1
+        self._update_laws(np.atleast_1d(scenes))
+
+    # -------------------------------------------------------------- kernel arrays
+    def heml_body(self) -> HemlBody:
+        """The arrays of a HEML model that the solver kernels read and every scene shares
+        (:class:`~heml_gym.kernel_data.HemlBody`: rest data, masses, fixed set, gravity,
+        damping, the tets around each vertex). Only for HEML force fields."""
+        if self._body is None:
+            rest = self._heml_fields()[0].rest
+            tets = self.mesh.tets
+            order = np.argsort(tets.ravel(), kind="stable")
+            vt_tets = np.ascontiguousarray(order // 4, dtype=np.int64)
+            vt_ptr = np.concatenate([[0], np.cumsum(np.bincount(tets.ravel(), minlength=self.n_vertices))])
+            self._body = HemlBody(tets=rest.tets, coef_t=rest.coef_t, inv_det=rest.inv_det,
+                                  edge_weights=np.ascontiguousarray(rest.edge_weights), mass=self.mass,
+                                  fixed=self.fixed, gravity=self.gravity, alpha=float(self.damping.alpha),
+                                  vt_ptr=vt_ptr.astype(np.int64), vt_tets=vt_tets)
+        return self._body
+
+    def heml_laws(self) -> HemlLaws:
+        """Every scene's law as the solver kernels read it
+        (:class:`~heml_gym.kernel_data.HemlLaws`), kept current by :meth:`set_material`.
+        Only for HEML force fields."""
+        if self._laws is None:
+            fields = self._heml_fields()
+            split = all(f.split for f in fields)
+            use_q = any(f.use_q for f in fields)
+            self._laws = HemlLaws(
+                law=np.array([f.law_id for f in fields], dtype=np.int64),
+                params=stack_law_params(fields),
+                weights=np.stack([f.spring_weights for f in fields]) if split else np.zeros((self.n_scenes, 6, 1)),
+                psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
+                split=split, use_q=use_q, q_t=fields[0].rest.q_t if use_q else fields[0].q_t)
+        return self._laws
+
+    def _heml_fields(self) -> list[HemlForce]:
+        if not all(isinstance(f, HemlForce) for f in self.fields):
+            kinds = sorted({type(f).__name__ for f in self.fields})
+            raise TypeError(f"these kernels need HEML force fields, the model has {', '.join(kinds)}")
+        return self.fields
+
+    def _update_laws(self, scenes: np.ndarray) -> None:
+        """Keep :meth:`heml_laws` current after ``scenes`` changed material: their rows in
+        place, or a rebuild (on the next call) when the batch's flags or widths change."""
+        laws = self._laws
+        if laws is None:
+            return
+        fields = self.fields
+        if (all(f.split for f in fields) != laws.split or any(f.use_q for f in fields) != laws.use_q
+                or max(len(f.params) for f in fields) != laws.params.shape[1]):
+            self._laws = None
+            return
+        for s in scenes:
+            f = fields[int(s)]
+            laws.law[s] = f.law_id
+            laws.params[s] = 0.0
+            laws.params[s, :len(f.params)] = f.params
+            laws.psi1[s] = f.psi1 if f.split else 0.0
+            if laws.split:
+                laws.weights[s] = f.spring_weights
 
     @property
     def young_modulus(self) -> np.ndarray:
@@ -221,6 +286,16 @@ class Model:
         laws = sorted({type(m).__name__ for m in self.materials})
         return (f"Model({self.mesh!r}, {self.n_scenes} scenes, {type(self._base).__name__}, "
                 f"{'/'.join(laws)}, {int(self.fixed.sum())} fixed, {len(self.supports)} supports)")
+
+
+def stack_law_params(fields) -> np.ndarray:
+    """``(N, k)`` law constants of the scenes' fields, zero-padded to the longest (for the
+    kernels that take one law per scene)."""
+    width = max(len(f.params) for f in fields)
+    out = np.zeros((len(fields), width))
+    for s, f in enumerate(fields):
+        out[s, :len(f.params)] = f.params
+    return out
 
 
 def vertex_mask(n: int, vertices, what: str) -> np.ndarray:

@@ -102,3 +102,24 @@ def test_the_physics_imports_no_learning_or_visualisation_library():
                      else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
             offenders += [f"{name}: {n}" for n in names if n.split(".")[0] in banned or n.startswith(banned)]
     assert offenders == []
+
+
+def numba_kernels() -> list[tuple[str, str, int]]:
+    """``(module, function, number of arguments)`` of every ``@njit`` / ``@jit`` function of
+    the physics and the envs."""
+    found = []
+    for name, (path, _) in modules().items():
+        if name.startswith("heml_gym.agents"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef) and any("jit" in ast.unparse(d) for d in node.decorator_list):
+                found.append((name, node.name, len(node.args.args) + len(node.args.kwonlyargs)))
+    return found
+
+
+def test_no_kernel_takes_more_than_twenty_arguments():
+    """Kernels take bundles (heml_gym.kernel_data and the solvers' own NamedTuples), not
+    dozens of positional arrays."""
+    kernels = numba_kernels()
+    assert len(kernels) > 100  # every kernel module was read
+    assert [k for k in kernels if k[2] > 20] == []

@@ -299,3 +299,27 @@ def test_one_broken_scene_in_a_batch_leaves_the_others_as_single_runs(integrator
     if integrator != "explicit":
         for s in (0, 2):
             np.testing.assert_array_equal(state.x[s], run([materials[s]])[0].x[0])
+
+
+def test_the_kernel_arrays_follow_every_material_change():
+    """``Model.heml_laws()`` (what the kernels read) after any sequence of
+    ``set_material`` calls equals the arrays of a model built with the final materials:
+    rows updated in place, or rebuilt when a law changes the batch's flags."""
+    mesh = hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1))
+    soft, stiff = M.NeoHookean(E=3e3, nu=0.45), M.NeoHookean(E=9e3, nu=0.4)
+    demiray = M.Demiray(E=5e3, nu=0.45, b=2.0)
+    model = hg.Model(mesh, soft, n_scenes=3)
+    first = model.heml_laws()
+    for scenes, material, final in ((1, stiff, [soft, stiff, soft]), ([0, 2], stiff, [stiff, stiff, stiff]),
+                                    (2, demiray, [stiff, stiff, demiray]), (2, soft, [stiff, stiff, soft])):
+        revision = model.material_revision
+        model.set_material(scenes, material)
+        assert model.material_revision > revision
+        fresh = hg.Model(mesh, final).heml_laws()
+        laws = model.heml_laws()
+        assert (laws.split, laws.use_q) == (fresh.split, fresh.use_q)
+        for name in ("law", "params", "weights", "psi1", "q_t"):
+            np.testing.assert_array_equal(getattr(laws, name), getattr(fresh, name), err_msg=name)
+    assert model.heml_laws() is not first  # Demiray (no constant Psi_1) rebuilt the arrays
+    with pytest.raises(TypeError, match="HEML"):
+        hg.Model(mesh, soft, field="fem").heml_body()

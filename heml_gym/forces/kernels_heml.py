@@ -80,12 +80,11 @@ def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
             w1 = v2 * grad[0, k]
             w2 = v2 * grad[1, k] if use_q else 0.0
             g = grad[2, k] * (1.0 / 6.0)
-            _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
-                              c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
-                              c3x * g, c3y * g, c3z * g,
-                              w1 * coef_t[2, t] + w2 * qs[0, k], w1 * coef_t[3, t] + w2 * qs[1, k],
-                              w1 * coef_t[4, t] + w2 * qs[2, k], w1 * coef_t[5, t] + w2 * qs[3, k],
-                              w1 * coef_t[6, t] + w2 * qs[4, k], w1 * coef_t[7, t] + w2 * qs[5, k])
+            _store_tet_forces(work, k, (ax, ay, az, bx, by, bz, cx, cy, cz),
+                              (c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g, c3x * g, c3y * g, c3z * g),
+                              (w1 * coef_t[2, t] + w2 * qs[0, k], w1 * coef_t[3, t] + w2 * qs[1, k],
+                               w1 * coef_t[4, t] + w2 * qs[2, k], w1 * coef_t[5, t] + w2 * qs[3, k],
+                               w1 * coef_t[6, t] + w2 * qs[4, k], w1 * coef_t[7, t] + w2 * qs[5, k]))
         scatter_block(f, tets, first, size, work)
 
 
@@ -220,10 +219,9 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
             good = jac >= SMALLEST_NORMAL and jac < math.inf
             n_bad += 0 if good else 1
             g = volumetric_gradient_fast(law, p0, p1, jac if good else 1.0) * (1.0 / 6.0)
-            _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
-                              c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
-                              c3x * g, c3y * g, c3z * g,
-                              w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
+            _store_tet_forces(work, k, (ax, ay, az, bx, by, bz, cx, cy, cz),
+                              (c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g, c3x * g, c3y * g, c3z * g),
+                              (w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t]))
         if n_bad:  # rare: inverted, flat or non-finite tets take the general path
             for k in range(size):
                 t = start + k
@@ -233,10 +231,9 @@ def constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, lo, hi):
                 if not (jac >= SMALLEST_NORMAL and jac < math.inf):
                     d1, d2, dj = law_gradient(law, p, 0.0, 0.0, jac)
                     g = dj * (1.0 / 6.0)
-                    _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
-                                      c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
-                                      c3x * g, c3y * g, c3z * g,
-                                      w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
+                    _store_tet_forces(work, k, (ax, ay, az, bx, by, bz, cx, cy, cz),
+                                      (c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g, c3x * g, c3y * g, c3z * g),
+                                      (w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t]))
         scatter_block(f, tets, first, size, work)
 
 
@@ -273,10 +270,9 @@ def constant_psi1_energy_and_forces_chunk(x, tets, inv_det, volume, w, psi1, law
                               + w[5, t] * s5)
                        + volume[t] * (volumetric_energy_fast(law, p0, p1, j_safe) - 3.0 * psi1))
             g = volumetric_gradient_fast(law, p0, p1, j_safe) * (1.0 / 6.0)
-            _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
-                              c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
-                              c3x * g, c3y * g, c3z * g,
-                              w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t])
+            _store_tet_forces(work, k, (ax, ay, az, bx, by, bz, cx, cy, cz),
+                              (c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g, c3x * g, c3y * g, c3z * g),
+                              (w[0, t], w[1, t], w[2, t], w[3, t], w[4, t], w[5, t]))
         if n_bad:
             return math.inf
         for k in range(size):
@@ -326,14 +322,16 @@ def edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy")
-def _store_tet_forces(work, k, ax, ay, az, bx, by, bz, cx, cy, cz,
-                      c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z,
-                      w01, w02, w03, w12, w13, w23):
+def _store_tet_forces(work, k, edges, volume, springs):
     """Write the forces on the 4 vertices of the tet in lane ``k`` into ``work[:, k]``.
 
-    ``a, b, c`` are its edges from vertex 0, ``c1..c3`` the volume-term vectors (already
-    scaled), ``w..`` the spring weights of edges 01, 02, 03, 12, 13, 23.
+    ``edges = (ax, ay, az, bx, by, bz, cx, cy, cz)``: its edges ``a, b, c`` from vertex 0;
+    ``volume``: the volume-term vectors ``c1..c3`` (already scaled), 9 numbers;
+    ``springs``: the spring weights of edges 01, 02, 03, 12, 13, 23.
     """
+    ax, ay, az, bx, by, bz, cx, cy, cz = edges
+    c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = volume
+    w01, w02, w03, w12, w13, w23 = springs
     s01x = w01 * ax
     s01y = w01 * ay
     s01z = w01 * az

@@ -97,16 +97,6 @@ NO_ELEMENTS = np.zeros(0, dtype=np.int64)
 NO_ELEMENTS.flags.writeable = False
 
 
-def stack_law_params(fields) -> np.ndarray:
-    """``(N, k)`` law constants of the scenes' fields, zero-padded to the longest (for the
-    kernels that take one law per scene)."""
-    width = max(len(f.params) for f in fields)
-    out = np.zeros((len(fields), width))
-    for s, f in enumerate(fields):
-        out[s, :len(f.params)] = f.params
-    return out
-
-
 def stiffness_damping(field, x: np.ndarray, v: np.ndarray, f_elastic: np.ndarray, beta: float) -> np.ndarray:
     """The Rayleigh stiffness-damping force ``-beta K(x) v`` (N), as a directional
     difference of the elastic forces ``f_elastic`` at ``x`` along ``v``."""

@@ -30,7 +30,7 @@ from ..forces.heml import HemlForce
 from ..model import Model
 from ..state import State
 from . import kernels_explicit as ke
-from .base import Solver, StepStats, stack_law_params, stiffness_damping
+from .base import Solver, StepStats, stiffness_damping
 
 __all__ = ["ExplicitSolver"]
 
@@ -125,35 +125,25 @@ class ExplicitSolver(Solver):
     def _fused(self, state, control, h, n_sub, x0, active, reaction):
         m = self.model
         N = m.n_scenes
-        fields = m.fields
-        planes, grids, values = m.supports.kernel_args()
-        f = np.empty_like(state.x)
-        sub_reaction = np.empty_like(state.x)
         bad = np.full(N, -1, dtype=np.int64)
         parallel = N > 1 and numba.get_num_threads() > 1
-        rest = fields[0].rest
-        common = (state.x, state.v, f, reaction, sub_reaction, m.mass, m.gravity, control.external_forces,
-                  m.damping.alpha, h, n_sub, m.fixed, control.kinematic, x0, control.targets, self.max_speed)
-        if all(fd.split for fd in fields):
-            weights = np.stack([fd.spring_weights for fd in fields]) if N > 1 else fields[0].spring_weights[None]
-            params = stack_law_params(fields)
+        scenes = ke.ExplicitScenes(state.x, state.v, np.empty_like(state.x), reaction, np.empty_like(state.x),
+                                   control.external_forces, control.kinematic, x0, control.targets)
+        laws = m.heml_laws()
+        if laws.split:
             kernel = ke.split_substeps_parallel if parallel else ke.split_substeps_serial
-            kernel(*common, rest.tets, rest.inv_det, weights, fields[0].law_id, params, planes, grids, values,
-                   active, bad)
         else:
-            use_q = any(fd.use_q for fd in fields)
-            q_t = rest.q_t if use_q else fields[0].q_t
-            laws = np.array([fd.law_id for fd in fields], dtype=np.int64)
             kernel = ke.heml_substeps_parallel if parallel else ke.heml_substeps_serial
-            kernel(*common, rest.tets, rest.coef_t, q_t, use_q, laws, stack_law_params(fields), planes, grids,
-                   values, active, bad)
+        kernel(scenes, m.heml_body(), laws, m.supports.kernel_args(), self._step(h, n_sub), active, bad)
         return bad
+
+    def _step(self, h, n_sub) -> ke.ExplicitStep:
+        return ke.ExplicitStep(float(h), int(n_sub), float(self.max_speed))
 
     def _lanes(self, state, control, h, n_sub, x0, reaction_out):
         """All scenes in lockstep, vectorised across scenes (Neo-Hookean HEML)."""
         m = self.model
         N = m.n_scenes
-        fields = m.fields
         per_thread = math.ceil(N / numba.get_num_threads())
         lanes = min(ke.LANES, 4 * math.ceil(per_thread / 4))
         blocks = math.ceil(N / lanes)
@@ -167,18 +157,14 @@ class ExplicitSolver(Solver):
         def from_lanes(a):
             return np.moveaxis(a, -1, 1).reshape((blocks * lanes,) + a.shape[1:-1])[:N]
 
-        params = stack_law_params(fields)
-        psi1 = np.array([fd.psi1 for fd in fields])
+        laws = m.heml_laws()
         xl, vl = to_lanes(state.x), to_lanes(state.v)
         reaction = np.empty_like(xl)
         bad_lanes = np.empty((blocks, lanes), dtype=np.int64)
-        planes, grids, values = m.supports.kernel_args()
-        rest = fields[0].rest
-        ke.lane_substeps(xl, vl, np.empty_like(xl), reaction, m.mass, m.gravity, to_lanes(control.external_forces),
-                         m.damping.alpha, h, n_sub, m.fixed, to_lanes(control.kinematic), to_lanes(x0),
-                         to_lanes(control.targets), self.max_speed, rest.tets, rest.inv_det, rest.edge_weights,
-                         fields[0].law_id, to_lanes(params[:, 0]), to_lanes(params[:, 1]), to_lanes(psi1),
-                         planes, grids, values, bad_lanes)
+        scenes = ke.LaneScenes(xl, vl, np.empty_like(xl), reaction, to_lanes(control.external_forces),
+                               to_lanes(control.kinematic), to_lanes(x0), to_lanes(control.targets),
+                               to_lanes(laws.params[:, 0]), to_lanes(laws.params[:, 1]), to_lanes(laws.psi1), bad_lanes)
+        ke.lane_substeps(scenes, m.heml_body(), laws.law[0], m.supports.kernel_args(), self._step(h, n_sub))
         state.x[:] = from_lanes(xl)
         state.v[:] = from_lanes(vl)
         reaction_out[:] = from_lanes(reaction)
@@ -188,7 +174,7 @@ class ExplicitSolver(Solver):
         """Sub-step by sub-step from Python: any force field, stiffness damping."""
         m = self.model
         N, n = m.n_scenes, m.n_vertices
-        planes, grids, values = m.supports.kernel_args()
+        supports = m.supports.kernel_args()
         f = np.zeros((n, 3))
         sub_reaction = np.zeros((n, 3))
         bad = np.full(N, -1, dtype=np.int64)
@@ -203,7 +189,7 @@ class ExplicitSolver(Solver):
                 b = ke.symplectic_euler_update(x, v, f, m.mass, m.gravity, control.external_forces[s],
                                                m.damping.alpha, h, m.fixed, control.kinematic[s], x0[s],
                                                control.targets[s], k / n_sub, self.max_speed, sub_reaction,
-                                               planes, grids, values)
+                                               supports)
                 if b >= 0:
                     bad[s] = b
                     break

@@ -21,6 +21,7 @@ non-finite or faster than ``max_speed`` (m/s), or -1.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -40,6 +41,50 @@ from ..laws import volumetric_gradient_fast
 
 #: scenes per block of :func:`lane_substeps` (SIMD lanes); its arrays end in it
 LANES = 32
+
+
+class ExplicitScenes(NamedTuple):
+    """The N scenes' arrays of a fused explicit step (leading axis N): ``x, v`` (m, m/s),
+    ``f``, ``sub_reaction`` scratch, ``reaction`` (N: the constraint forces averaged over
+    the sub-steps), ``ext`` (N), ``kinematic`` (N, n) held vertices moved from
+    ``kin_from`` to ``kin_to`` (m) over the sub-steps."""
+
+    x: np.ndarray
+    v: np.ndarray
+    f: np.ndarray
+    reaction: np.ndarray
+    sub_reaction: np.ndarray
+    ext: np.ndarray
+    kinematic: np.ndarray
+    kin_from: np.ndarray
+    kin_to: np.ndarray
+
+
+class LaneScenes(NamedTuple):
+    """Scenes in blocks of ``L`` lanes (see :func:`lane_substeps`): ``x, v, f, reaction,
+    ext, kin_from, kin_to`` ``(B, n, 3, L)``, ``kinematic`` ``(B, n, L)``, the Neo-Hookean
+    constants ``p0, p1`` and ``psi1`` (Pa) ``(B, L)``, and the report ``bad_vertex (B, L)``."""
+
+    x: np.ndarray
+    v: np.ndarray
+    f: np.ndarray
+    reaction: np.ndarray
+    ext: np.ndarray
+    kinematic: np.ndarray
+    kin_from: np.ndarray
+    kin_to: np.ndarray
+    p0: np.ndarray
+    p1: np.ndarray
+    psi1: np.ndarray
+    bad_vertex: np.ndarray
+
+
+class ExplicitStep(NamedTuple):
+    """``n_sub`` sub-steps of ``h`` s; a vertex faster than ``max_speed`` (m/s) is flagged."""
+
+    h: float
+    n_sub: int
+    max_speed: float
 
 
 @nb.njit(cache=True, inline="always")
@@ -86,14 +131,15 @@ def _flagged(vx, vy, vz, px, py, pz, limit):
 
 @nb.njit(cache=True)
 def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinematic,
-                            kin_from, kin_to, frac, max_speed, reaction, planes, grids, grid_values):
+                            kin_from, kin_to, frac, max_speed, reaction, supports):
     """One symplectic Euler sub-step of one scene, in place, given its elastic forces ``f`` (N).
 
     ``x, v, f, ext, kin_from, kin_to, reaction``: ``(n, 3)``; ``fixed``, ``kinematic``:
     ``(n,)`` masks. Fixed vertices keep ``x`` and get ``v = 0``; kinematic ones move to
     ``kin_from + frac (kin_to - kin_from)``; free ones integrate and are kept out of the
-    supports. ``reaction`` receives the constraint force (N) on held vertices, 0
-    elsewhere. Returns the first vertex that went non-finite or too fast, or -1.
+    ``supports`` (:class:`~heml_gym.kernel_data.SupportArrays`). ``reaction`` receives
+    the constraint force (N) on held vertices, 0 elsewhere. Returns the first vertex that
+    went non-finite or too fast, or -1.
     """
     n = x.shape[0]
     limit = max_speed * max_speed
@@ -115,8 +161,8 @@ def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinema
         # at most its depth, so it cannot turn a good vertex bad
         if bad < 0 and _flagged(v[i, 0], v[i, 1], v[i, 2], x[i, 0], x[i, 1], x[i, 2], limit):
             bad = i
-    if planes.shape[0] + grids.shape[0]:
-        project_free_vertices(x, v, fixed, kinematic, planes, grids, grid_values)
+    if supports.planes.shape[0] + supports.grids.shape[0]:
+        project_free_vertices(x, v, fixed, kinematic, supports.planes, supports.grids, supports.grid_values)
     return bad
 
 
@@ -130,118 +176,106 @@ def _add_mean_reaction(reaction, sub_reaction, fixed, kinematic, n_sub):
 
 # ------------------------------------------------------- fused kernels, scene by scene
 @nb.njit(cache=True, inline="always")
-def _split_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                 kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights, law, params,
-                 planes, grids, grid_values):
-    xs, vs, fs, rs, ss = x[s], v[s], f[s], reaction[s], sub_reaction[s]
-    m = tets.shape[0]
-    rs[:, :] = 0.0
-    for k in range(1, n_sub + 1):
-        fs[:, :] = 0.0
-        constant_psi1_forces_chunk(xs, tets, inv_det, weights[s], law, params[s], fs, 0, m)
-        bad = symplectic_euler_update(xs, vs, fs, mass, gravity, ext[s], alpha, h, fixed, kinematic[s],
-                                      kin_from[s], kin_to[s], k / n_sub, max_speed, ss, planes, grids,
-                                      grid_values)
-        if bad >= 0:
-            return bad
-        _add_mean_reaction(rs, ss, fixed, kinematic[s], n_sub)
-    return -1
-
-
-@nb.njit(cache=True)
-def split_substeps_serial(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                          kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights, law, params,
-                          planes, grids, grid_values, active, bad):
-    """``n_sub`` sub-steps of length ``h`` (s) of every active scene of a constant-``Psi_1``
-    HEML body (Neo-Hookean), scene after scene, in place.
-
-    Per scene (leading axis ``N``): ``x, v, f, reaction, sub_reaction, ext, kin_from,
-    kin_to`` ``(N, n, 3)``; ``kinematic (N, n)``; ``weights (N, 6, m)`` its spring weights
-    (N/m); ``params (N, k)`` its law constants. Shared: ``mass (n,)``, ``gravity (3,)``,
-    ``fixed (n,)``, ``tets``, ``inv_det``, ``law``, the supports. ``f`` and
-    ``sub_reaction`` are scratch; ``reaction`` receives the constraint forces (N)
-    averaged over the sub-steps. ``bad[s]``: the first bad vertex of scene ``s`` (its
-    integration stopped there) or -1.
-    """
-    for s in range(x.shape[0]):
-        bad[s] = -1
-        if active[s]:
-            bad[s] = _split_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
-                                  fixed, kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights,
-                                  law, params, planes, grids, grid_values)
-
-
-@nb.njit(cache=True, parallel=True)
-def split_substeps_parallel(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                            kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights, law, params,
-                            planes, grids, grid_values, active, bad):
-    """:func:`split_substeps_serial` with the scenes spread over the threads."""
-    for s in prange(x.shape[0]):
-        bad[s] = -1
-        if active[s]:
-            bad[s] = _split_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
-                                  fixed, kinematic, kin_from, kin_to, max_speed, tets, inv_det, weights,
-                                  law, params, planes, grids, grid_values)
+def _update_scene(s, k, scenes, body, supports, step):
+    """Sub-step ``k`` (1..n_sub) of scene ``s`` from its elastic forces ``scenes.f[s]``:
+    the update and the reaction's mean; returns the first bad vertex or -1."""
+    kinematic = scenes.kinematic[s]
+    n_sub = step.n_sub
+    bad = symplectic_euler_update(scenes.x[s], scenes.v[s], scenes.f[s], body.mass, body.gravity, scenes.ext[s],
+                                  body.alpha, step.h, body.fixed, kinematic, scenes.kin_from[s], scenes.kin_to[s],
+                                  k / n_sub, step.max_speed, scenes.sub_reaction[s], supports)
+    if bad < 0:
+        _add_mean_reaction(scenes.reaction[s], scenes.sub_reaction[s], body.fixed, kinematic, n_sub)
+    return bad
 
 
 @nb.njit(cache=True, inline="always")
-def _heml_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q, laws, params,
-                planes, grids, grid_values):
-    xs, vs, fs, rs, ss = x[s], v[s], f[s], reaction[s], sub_reaction[s]
-    m = tets.shape[0]
-    rs[:, :] = 0.0
-    for k in range(1, n_sub + 1):
+def _split_scene(s, scenes, body, laws, supports, step):
+    xs, fs = scenes.x[s], scenes.f[s]
+    tets = body.tets
+    scenes.reaction[s][:, :] = 0.0
+    for k in range(1, step.n_sub + 1):
         fs[:, :] = 0.0
-        heml_forces_chunk(xs, tets, coef_t, q_t, use_q, laws[s], params[s], fs, 0, m)
-        bad = symplectic_euler_update(xs, vs, fs, mass, gravity, ext[s], alpha, h, fixed, kinematic[s],
-                                      kin_from[s], kin_to[s], k / n_sub, max_speed, ss, planes, grids,
-                                      grid_values)
+        constant_psi1_forces_chunk(xs, tets, body.inv_det, laws.weights[s], laws.law[s], laws.params[s], fs, 0,
+                                   tets.shape[0])
+        bad = _update_scene(s, k, scenes, body, supports, step)
         if bad >= 0:
             return bad
-        _add_mean_reaction(rs, ss, fixed, kinematic[s], n_sub)
+    return -1
+
+
+@nb.njit(cache=True, inline="always")
+def _heml_scene(s, scenes, body, laws, supports, step):
+    xs, fs = scenes.x[s], scenes.f[s]
+    tets = body.tets
+    scenes.reaction[s][:, :] = 0.0
+    for k in range(1, step.n_sub + 1):
+        fs[:, :] = 0.0
+        heml_forces_chunk(xs, tets, body.coef_t, laws.q_t, laws.use_q, laws.law[s], laws.params[s], fs, 0,
+                          tets.shape[0])
+        bad = _update_scene(s, k, scenes, body, supports, step)
+        if bad >= 0:
+            return bad
     return -1
 
 
 @nb.njit(cache=True)
-def heml_substeps_serial(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                         kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q, laws, params,
-                         planes, grids, grid_values, active, bad):
-    """As :func:`split_substeps_serial` for any law: ``laws (N,)`` and ``params (N, k)`` per
-    scene, HEML's per-tet constants ``coef_t``, ``q_t`` (read if ``use_q``) shared."""
-    for s in range(x.shape[0]):
+def split_substeps_serial(scenes, body, laws, supports, step, active, bad):
+    """``step.n_sub`` sub-steps of length ``step.h`` (s) of every ``active`` scene of a
+    constant-``Psi_1`` HEML body (Neo-Hookean: ``laws.split``, the forces from the
+    per-scene spring weights), scene after scene, in place: ``scenes``
+    (:class:`ExplicitScenes`), the model's ``body`` and ``laws``
+    (:class:`~heml_gym.kernel_data.HemlBody`, :class:`~heml_gym.kernel_data.HemlLaws`),
+    ``supports`` (:class:`~heml_gym.kernel_data.SupportArrays`), ``step``
+    (:class:`ExplicitStep`). ``bad[s]``: the first bad vertex of scene ``s`` (its
+    integration stopped there) or -1.
+    """
+    for s in range(scenes.x.shape[0]):
         bad[s] = -1
         if active[s]:
-            bad[s] = _heml_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
-                                 fixed, kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q,
-                                 laws, params, planes, grids, grid_values)
+            bad[s] = _split_scene(s, scenes, body, laws, supports, step)
 
 
 @nb.njit(cache=True, parallel=True)
-def heml_substeps_parallel(x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
-                           kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q, laws, params,
-                           planes, grids, grid_values, active, bad):
-    """:func:`heml_substeps_serial` with the scenes spread over the threads."""
-    for s in prange(x.shape[0]):
+def split_substeps_parallel(scenes, body, laws, supports, step, active, bad):
+    """:func:`split_substeps_serial` with the scenes spread over the threads."""
+    for s in prange(scenes.x.shape[0]):
         bad[s] = -1
         if active[s]:
-            bad[s] = _heml_scene(s, x, v, f, reaction, sub_reaction, mass, gravity, ext, alpha, h, n_sub,
-                                 fixed, kinematic, kin_from, kin_to, max_speed, tets, coef_t, q_t, use_q,
-                                 laws, params, planes, grids, grid_values)
+            bad[s] = _split_scene(s, scenes, body, laws, supports, step)
+
+
+@nb.njit(cache=True)
+def heml_substeps_serial(scenes, body, laws, supports, step, active, bad):
+    """As :func:`split_substeps_serial` for any law (per-scene law and constants)."""
+    for s in range(scenes.x.shape[0]):
+        bad[s] = -1
+        if active[s]:
+            bad[s] = _heml_scene(s, scenes, body, laws, supports, step)
+
+
+@nb.njit(cache=True, parallel=True)
+def heml_substeps_parallel(scenes, body, laws, supports, step, active, bad):
+    """:func:`heml_substeps_serial` with the scenes spread over the threads."""
+    for s in prange(scenes.x.shape[0]):
+        bad[s] = -1
+        if active[s]:
+            bad[s] = _heml_scene(s, scenes, body, laws, supports, step)
 
 
 # --------------------------------------------------- scenes in lockstep, across lanes
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
-def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed, kinematic, kin_from,
-                  kin_to, max_speed, tets, inv_det, base_w, law, p0, p1, psi1, planes, grids,
-                  grid_values, bad_vertex):
-    """``n_sub`` sub-steps of length ``h`` (s) of Neo-Hookean HEML scenes, vectorised across scenes.
+def lane_substeps(lanes_, body, law, supports, step):
+    """``n_sub`` sub-steps of length ``h`` (s) of Neo-Hookean HEML scenes, vectorised across
+    scenes: ``lanes_`` (:class:`LaneScenes`), the model's ``body``
+    (:class:`~heml_gym.kernel_data.HemlBody`), the law id ``law``, ``supports``
+    (:class:`~heml_gym.kernel_data.SupportArrays`), ``step`` (:class:`ExplicitStep`).
 
     Scenes come in blocks of ``L`` <= :data:`LANES`: ``x, v, f, reaction, ext, kin_from,
     kin_to`` are ``(B, n, 3, L)`` (m, m/s, N, N, N, m, m), entry ``[b, i, d, q]`` being
     vertex ``i``, axis ``d`` of scene ``b L + q``; ``kinematic``: ``(B, n, L)`` held
-    vertices, moved from ``kin_from`` to ``kin_to`` over the sub-steps; ``fixed``:
-    ``(n,)``, shared; ``base_w``: ``(6, m)`` edge weights ``2 V0 a_k`` (m^3); ``psi1``:
+    vertices, moved from ``kin_from`` to ``kin_to`` over the sub-steps; ``body.fixed``:
+    ``(n,)``, shared; ``body.edge_weights``: ``(6, m)`` ``2 V0 a_k`` (m^3); ``psi1``:
     ``(B, L)`` the constant ``Psi_1`` (Pa) of each scene, so its spring weights are
     ``psi1 * base_w``; ``p0, p1``: ``(B, L)`` its Neo-Hookean constants (Pa). The update
     per vertex is :func:`integrate_dof` and the supports' projection, as in every path.
@@ -253,6 +287,11 @@ def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
     such a scene is flagged too. Scenes run in lockstep: a flagged scene keeps being
     integrated (its values are meaningless; the caller restores it).
     """
+    x, v, f, reaction, ext, kinematic, kin_from, kin_to, p0, p1, psi1, bad_vertex = lanes_
+    tets, inv_det, base_w, mass, gravity = body.tets, body.inv_det, body.edge_weights, body.mass, body.gravity
+    alpha, fixed = body.alpha, body.fixed
+    planes, grids, grid_values = supports
+    h, n_sub, max_speed = step
     n_blocks, n, _, lanes = x.shape
     if lanes > LANES:
         raise ValueError("too many scenes per block")
@@ -301,10 +340,9 @@ def lane_substeps(x, v, f, reaction, mass, gravity, ext, alpha, h, n_sub, fixed,
                     g = volumetric_gradient_fast(law, p0b[q], p1b[q], jac if good else 1.0) * (1.0 / 6.0)
                     g = g if good else math.nan
                     c = psi1b[q]
-                    _store_tet_forces(work, q, ax, ay, az, bx, by, bz, cx, cy, cz,
-                                      c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g,
-                                      c3x * g, c3y * g, c3z * g,
-                                      c * w01, c * w02, c * w03, c * w12, c * w13, c * w23)
+                    _store_tet_forces(work, q, (ax, ay, az, bx, by, bz, cx, cy, cz),
+                                      (c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g, c3x * g, c3y * g, c3z * g),
+                                      (c * w01, c * w02, c * w03, c * w12, c * w13, c * w23))
                 for d in range(3):  # one loop per vertex: no possible overlap to check
                     for q in range(lanes):
                         fb[i0, d, q] += work[d, q]

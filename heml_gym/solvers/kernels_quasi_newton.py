@@ -1,6 +1,8 @@
 """Numba kernels of the quasi-Newton (L-BFGS) backward Euler solver: one scene per call
 of :func:`_lbfgs_scene`, scenes over threads in :func:`lbfgs_steps_parallel`, and the
-assembly and factorisation of its scalar initial Hessians (:func:`factor_jobs`).
+assembly and factorisation of its scalar initial Hessians (:func:`factor_jobs`). The
+kernels take the model's bundles (:mod:`heml_gym.kernel_data`) and the solver's own
+(:class:`InitialHessians`, :class:`LbfgsMemory`, :class:`Bdf2History`, :class:`Substep`).
 
 Each step minimises the incremental potential of backward Euler (or of BDF2) over the free
 vertices,
@@ -15,12 +17,13 @@ p/(2 h)) / c`` with ``p = 4 x_n - x_n-1``, ``q = 4 v_n - v_n-1`` (see :func:`ine
 
 by L-BFGS whose initial Hessian is, on each axis ``a``, the scalar matrix
 
-    A_a = c M + (lambda + mu) L + diag(k_i n_ia^2 over the vertices in contact),
+    A_a = c M + s (lambda + mu) L + diag(k_i n_ia^2 over the vertices in contact),
 
 ``L`` the mesh's P1 Laplacian (edge weights ``sum V0 a_k`` over the tets of an edge: the
 Hessian of ``V0 (I1 - 3) / 2`` on one axis; Neo-Hookean's ``I1`` stiffness is ``mu L``),
 ``lambda + mu`` the material's small-strain stiffness (the Laplacian at that weight
-approximates the shear and volumetric stiffness together), held and fixed vertices
+approximates the shear and volumetric stiffness together; ``s`` the solver's
+``hessian_scale``, 1 by default), held and fixed vertices
 eliminated (their rows made identity), the support penalty of the vertices in contact on
 the diagonal. Unlike the rest stiffness ``K(X)`` it does not depend on the orientation
 of the tissue, so it stays a good model of the Hessian when the tissue turns over (Liu,
@@ -37,10 +40,108 @@ import numba as nb
 import numpy as np
 from numba import prange
 
+from typing import NamedTuple
+
 from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
                                    heml_energy_chunk, heml_forces_chunk)
+from ..kernel_data import scene_law
 from ..kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
 from ..kernels_contact import signed_distances
+
+
+# ------------------------------------------------------------------------ bundles
+# (the model's: heml_gym.kernel_data.HemlBody / HemlLaws / SceneLaw / SupportArrays)
+class InitialHessians(NamedTuple):
+    """The solver's factorised initial Hessians (envelope storage, float32), per scene two
+    entries of up to three factors (one per distinct contact penalty over the axes)."""
+
+    inverse: np.ndarray  #: (n,) int64: vertex -> row of the factor (a bandwidth-reducing order)
+    first: np.ndarray  #: (n,) envelope layout (see :mod:`heml_gym.kernels_cholesky`)
+    ptr: np.ndarray  #: (n + 1,)
+    values: np.ndarray  #: (N, 2, 3, size) float32 factors
+    entry: np.ndarray  #: (N,) int64: the entry in use
+    axis_slot: np.ndarray  #: (N, 2, 3) int64: the factor of each axis
+    edge_i: np.ndarray  #: (E,) int64 the Laplacian's edges
+    edge_j: np.ndarray  #: (E,) int64
+    edge_w: np.ndarray  #: (E,) edge weights (m)
+    stiffness: np.ndarray  #: (N,) the Laplacian's weight (Pa)
+
+
+class SceneHessian(NamedTuple):
+    """One scene's current initial Hessian (see :func:`scene_hessian`)."""
+
+    inverse: np.ndarray
+    first: np.ndarray
+    ptr: np.ndarray
+    values: np.ndarray  #: (3, size) float32
+    axis_slot: np.ndarray  #: (3,)
+    edge_i: np.ndarray
+    edge_j: np.ndarray
+    edge_w: np.ndarray
+    stiffness: float
+
+
+class LbfgsMemory(NamedTuple):
+    """L-BFGS curvature pairs kept from step to step (stacked over scenes, or one scene's)."""
+
+    s_hist: np.ndarray  #: ([N,] history, n, 3) steps (m)
+    y_hist: np.ndarray  #: ([N,] history, n, 3) gradient changes (N)
+    rho: np.ndarray  #: ([N,] history) 1 / (s . y)
+    memory: np.ndarray  #: ([N,] 2) int64: pairs stored, newest
+
+
+class Bdf2History(NamedTuple):
+    """BDF2's state one step back (``(.., 0, 3)`` arrays under backward Euler) and that
+    step's length (s; 0: none), stacked over scenes or one scene's (``history_h``: a
+    one-element slice)."""
+
+    x_prev: np.ndarray
+    v_prev: np.ndarray
+    history_h: np.ndarray
+
+
+class Substep(NamedTuple):
+    """What one call's sub-steps share."""
+
+    h: float  #: sub-step length (s)
+    fraction: float  #: held vertices move this fraction of the way to their targets
+    order: int  #: 1: backward Euler, 2: BDF2
+    first_substep: bool  #: the step's first (its start's holding force is computed)
+    max_iter: int  #: L-BFGS iterations at most
+    kappa: float  #: support penalty stiffness in units of a vertex's inertia ``c m_i``
+
+
+class SubstepWork(NamedTuple):
+    """A sub-step's working arrays (``(n, 3)``; ``x_m, v_m``: ``(0, 3)`` under backward
+    Euler; ``held``: ``(n,)`` bool), filled by :func:`begin_substep`."""
+
+    x_n: np.ndarray
+    v_n: np.ndarray
+    x_m: np.ndarray
+    v_m: np.ndarray
+    x_hat: np.ndarray
+    load: np.ndarray
+    held: np.ndarray
+    jump: np.ndarray
+    f: np.ndarray
+
+
+@nb.njit(cache=True, inline="always")
+def scene_hessian(hessians, s):
+    """Scene ``s``'s current :class:`SceneHessian` of ``hessians`` (:class:`InitialHessians`)."""
+    e = hessians.entry[s]
+    return SceneHessian(hessians.inverse, hessians.first, hessians.ptr, hessians.values[s, e],
+                        hessians.axis_slot[s, e], hessians.edge_i, hessians.edge_j, hessians.edge_w,
+                        hessians.stiffness[s])
+
+
+@nb.njit(cache=True, inline="always")
+def substep_work(n, order):
+    """Fresh :class:`SubstepWork` for ``n`` vertices."""
+    kept = n if order == 2 else 0  # (backward Euler reads neither)
+    return SubstepWork(np.empty((n, 3)), np.empty((n, 3)), np.empty((kept, 3)), np.empty((kept, 3)),
+                       np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.bool_), np.empty((n, 3)),
+                       np.empty((n, 3)))
 
 
 @nb.njit(cache=True)
@@ -103,12 +204,14 @@ def factor_jobs(job_scene, job_entry, job_slot, values, first, ptr, diag_pos, ed
 
 
 @nb.njit(cache=True)
-def _precondition(g, z, held, inverse, first, ptr, values, axis_slot, b, y):
-    """``z = A^-1 g`` axis by axis (``A_a`` the factor ``values[axis_slot[a]]``; two axes
-    that share a factor are solved in one pass over it); zero on held vertices. ``b``,
-    ``y`` are ``(3, n)`` scratch arrays of the factor's dtype (float32: an approximate
-    inverse needs no more, and the solves then run in 8 lanes on AVX2)."""
+def _precondition(g, z, held, hessian, b, y):
+    """``z = A^-1 g`` axis by axis (``A_a`` the factor ``hessian.values[axis_slot[a]]``;
+    two axes that share a factor are solved in one pass over it); zero on held vertices.
+    ``b``, ``y`` are ``(3, n)`` scratch arrays of the factor's dtype (float32: an
+    approximate inverse needs no more, and the solves then run in 8 lanes on AVX2)."""
     n = g.shape[0]
+    inverse, first, ptr, values, axis_slot = hessian.inverse, hessian.first, hessian.ptr, hessian.values, \
+        hessian.axis_slot
     for a in range(3):
         for i in range(n):
             b[a, np.uint64(inverse[i])] = 0.0 if held[i] else g[i, a]
@@ -135,27 +238,34 @@ def _precondition(g, z, held, inverse, first, ptr, values, axis_slot, b, y):
 
 # ------------------------------------------------------------------------ potential
 @nb.njit(cache=True)
-def potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat, load, held, k_contact,
-                            tets, coef_t, q_t, use_q, law, p, split, w, psi1, inv_det, planes, grids, grid_values,
-                            n_supports):
+def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supports, c, x_hat, load, held,
+                           k_contact):
     """``Phi(x)`` (J) and, if ``want_gradient``, its gradient into ``g`` (N; zero on held
-    vertices). ``f``, ``dist``, ``normal`` are scratch (``dist``, ``normal``: the signed
-    distances to the supports at ``x``)."""
+    vertices): ``body`` (:class:`~heml_gym.kernel_data.HemlBody`), ``law``
+    (:class:`~heml_gym.kernel_data.SceneLaw`), ``supports``
+    (:class:`~heml_gym.kernel_data.SupportArrays`), the inertia weight ``c`` (1/s^2), the
+    inertial target ``x_hat`` (m), the ``load`` (N), the ``held`` mask and the support
+    penalty ``k_contact`` (1/s^2, times a vertex's mass). ``f``, ``dist``, ``normal`` are
+    scratch (``dist``, ``normal``: the signed distances to the supports at ``x``)."""
     n = x.shape[0]
+    tets = body.tets
     m = tets.shape[0]
-    if split and want_gradient:  # energy and forces in one pass
+    mass = body.mass
+    n_supports = supports.planes.shape[0] + supports.grids.shape[0]
+    if law.split and want_gradient:  # energy and forces in one pass
         f[:, :] = 0.0
-        phi = constant_psi1_energy_and_forces_chunk(x, tets, inv_det, coef_t[0], w, psi1, law, p, f, 0, m)
+        phi = constant_psi1_energy_and_forces_chunk(x, tets, body.inv_det, body.coef_t[0], law.weights, law.psi1,
+                                                    law.law, law.params, f, 0, m)
         if not math.isfinite(phi):
             return math.inf
     else:
-        phi = heml_energy_chunk(x, tets, coef_t, q_t, use_q, law, p, 0, m)
+        phi = heml_energy_chunk(x, tets, body.coef_t, law.q_t, law.use_q, law.law, law.params, 0, m)
         if not math.isfinite(phi):
             return math.inf
         if want_gradient:
-            elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+            elastic_forces(x, f, body, law)
     if n_supports:
-        signed_distances(x, planes, grids, grid_values, dist, normal)
+        signed_distances(x, supports.planes, supports.grids, supports.grid_values, dist, normal)
     for i in range(n):
         if held[i]:
             if want_gradient:
@@ -176,8 +286,15 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, mass, c, x_hat,
 
 
 @nb.njit(cache=True)
-def elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
+def elastic_forces(x, f, body, law):
     """``f`` = the HEML forces (N) at ``x``."""
+    _forces_of(x, f, body.tets, body.coef_t, law.q_t, law.use_q, law.law, law.params, law.split, law.weights,
+               body.inv_det)
+
+
+@nb.njit(cache=True, inline="always")
+def _forces_of(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
+    """``f`` = the HEML forces (N) at ``x`` of the tets ``tets`` (and their rest data)."""
     f[:, :] = 0.0
     if split:
         constant_psi1_forces_chunk(x, tets, inv_det, w, law, p, f, 0, tets.shape[0])
@@ -186,10 +303,13 @@ def elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
 
 
 @nb.njit(cache=True)
-def held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det):
+def held_forces(x, f, held, body, law):
     """The HEML forces (N) at ``x`` on the ``held`` vertices, exactly (from every tet that
     touches one), into ``f``; ``f`` is zero or partial elsewhere. The reaction on held
     vertices needs no more: a tenth of the tets of the lobe, or fewer."""
+    tets, coef_t, q_t, w, inv_det = body.tets, body.coef_t, law.q_t, law.weights, body.inv_det
+    split, use_q = law.split, law.use_q
+    vt_ptr, vt_tets = body.vt_ptr, body.vt_tets
     m = tets.shape[0]
     touches = np.zeros(m, dtype=np.bool_)
     k = 0
@@ -221,7 +341,7 @@ def held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, s
                 for a in range(q_t.shape[0]):
                     sub_q[a, r] = q_t[a, t]
             r += 1
-    elastic_forces(x, f, sub_tets, sub_coef, sub_q, use_q, law, p, split, sub_w, sub_inv_det)
+    _forces_of(x, f, sub_tets, sub_coef, sub_q, use_q, law.law, law.params, split, sub_w, sub_inv_det)
 
 
 _FAST = {"reassoc", "contract", "nsz", "arcp"}  # lets the dot products vectorise
@@ -267,26 +387,27 @@ def _positive_volumes(x, tets, inv_det, vt_ptr, vt_tets, moved):
 
 # ----------------------------------------------------------------------- one scene
 @nb.njit(cache=True)
-def begin_substep(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, order, x_prev, v_prev,
-                  history_h, first_substep, r_prev, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, vt_ptr,
-                  vt_tets, x_n, v_n, x_m, v_m, x_hat, load, held, jump, f):
+def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev, work):
     """What a sub-step of length ``h`` (s) needs before its minimisation, whichever method
-    minimises (L-BFGS, or Newton as the fallback): fills the step's start ``x_n, v_n``,
-    BDF2's state one step back ``x_m, v_m`` (``(0, 3)`` arrays under backward Euler), the
-    inertial target ``x_hat``, the ``load`` (N: external forces and weight), the ``held``
-    mask (kinematic or fixed) and the held vertices' ``jump`` beyond their own predictor;
+    minimises (L-BFGS, or Newton as the fallback): fills in ``work`` (:class:`SubstepWork`) the step's start
+    ``x_n, v_n``, BDF2's state one step back ``x_m, v_m``, the inertial target ``x_hat``,
+    the ``load`` (N: external forces ``ext`` and weight), the ``held`` mask (kinematic or
+    fixed) and the held vertices' ``jump`` beyond their own predictor;
     moves the held vertices a ``fraction`` of the way to their ``targets`` in ``x``; at
-    ``first_substep`` puts the start's quasi-static holding force into ``r_prev`` (``f``:
-    scratch). Returns ``(c, any_jump)``: the inertia weight ``c`` (1/s^2, see
+    ``sub.first_substep`` puts the start's quasi-static holding force into ``r_prev``
+    (``work.f``: scratch). Returns ``(c, any_jump)``: the inertia weight ``c`` (1/s^2, see
     :func:`inertia`) and whether any held vertex jumps.
 
-    BDF2 reads the state one step back from ``x_prev``, ``v_prev`` when ``history_h[0]``
-    is this step's length ``h``, else it expands the state about the step's start with its
+    BDF2 reads the state one step back from ``history`` (:class:`Bdf2History`) when its
+    ``history_h[0]`` is this step's length ``h``, else it expands the state about the step's start with its
     acceleration (``x_n-1 = x_n - h v_n + h^2 a_n / 2``, ``v_n-1 = v_n - h a_n``, supports
     aside): a start that keeps the scheme second order, at the cost of one force
     evaluation.
     """
     n = x.shape[0]
+    h, fraction, order = sub.h, sub.fraction, sub.order
+    alpha, mass, gravity, fixed = body.alpha, body.mass, body.gravity, body.fixed
+    x_n, v_n, x_m, v_m, x_hat, load, held, jump, f = work
     c = inertia(order, h, alpha)
     x_n[:, :] = x
     v_n[:, :] = v
@@ -294,19 +415,19 @@ def begin_substep(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h,
         held[i] = kinematic[i] or fixed[i]
         for d in range(3):
             load[i, d] = ext[i, d] + mass[i] * gravity[d]
-    if order == 2 and history_h[0] == h:
-        x_m[:, :] = x_prev
-        v_m[:, :] = v_prev
+    if order == 2 and history.history_h[0] == h:
+        x_m[:, :] = history.x_prev
+        v_m[:, :] = history.v_prev
     elif order == 2:
-        elastic_forces(x, f, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+        elastic_forces(x, f, body, law)
         for i in range(n):
             for d in range(3):
                 a0 = 0.0 if held[i] else (f[i, d] + load[i, d]) / mass[i] - alpha * v_n[i, d]
                 x_m[i, d] = x_n[i, d] - h * v_n[i, d] + 0.5 * h * h * a0
                 v_m[i, d] = v_n[i, d] - h * a0
     # the start's holding force: what held vertices need to stay put (quasi-static)
-    if first_substep:
-        held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+    if sub.first_substep:
+        held_forces(x, f, held, body, law)
         for i in range(n):
             for d in range(3):
                 r_prev[i, d] = -(f[i, d] + load[i, d] - alpha * mass[i] * v[i, d]) if held[i] else 0.0
@@ -330,17 +451,16 @@ def begin_substep(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h,
 
 
 @nb.njit(cache=True)
-def end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, normal, n_supports, f, f_at_x,
-                reaction, r_prev, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, vt_ptr, vt_tets, x_prev,
-                v_prev, history_h):
+def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, body, law, sub, history):
     """What a sub-step does after its minimisation reached ``x``, whichever method
     minimised: vertices inside a support (``dist``, ``normal``: the signed distances at
     ``x``) go onto it, unless that would turn a tet inside out (a sliver on the support),
     and lose their velocity into it; the velocities ``v`` follow from the scheme; the
     step-mean constraint force on held vertices is added into ``reaction`` (N) by the
     trapezoidal rule between ``r_prev`` (the start's) and the end's, which ``r_prev`` then
-    holds; BDF2 keeps the step's start in ``x_prev, v_prev`` (``history_h[0] = h``).
-    ``f``: the elastic forces at ``x`` if ``f_at_x``, else scratch.
+    holds; BDF2 keeps the step's start in ``history``. ``work``: the sub-step's
+    (:func:`begin_substep`); its ``f``: the elastic forces at ``x`` if ``f_at_x``, else
+    scratch.
 
     Held and fixed vertices follow their prescribed path, straight within a step and
     turning between steps (the gripper's commands): their velocity is the step's
@@ -348,6 +468,8 @@ def end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, no
     either scheme (BDF2's formula would read a turn as a spurious acceleration).
     """
     n = x.shape[0]
+    x_n, v_n, x_m, held, load, f = work.x_n, work.v_n, work.x_m, work.held, work.load, work.f
+    mass, alpha, h, order = body.mass, body.alpha, sub.h, sub.order
     trial = np.empty((n, 3))
     inside = np.zeros(n, dtype=np.bool_)
     n_inside = 0
@@ -361,7 +483,7 @@ def end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, no
             for d in range(3):
                 trial[i, d] = x[i, d]
     moved = False
-    if n_inside and _positive_volumes(trial, tets, inv_det, vt_ptr, vt_tets, inside):
+    if n_inside and _positive_volumes(trial, body.tets, body.inv_det, body.vt_ptr, body.vt_tets, inside):
         x[:, :] = trial
         moved = True
     for i in range(n):
@@ -376,7 +498,7 @@ def end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, no
                 v[i, d] -= vn * normal[i, d]
     # the constraint force on held vertices: m a minus every other force on them
     if moved or not f_at_x:
-        held_forces(x, f, held, vt_ptr, vt_tets, tets, coef_t, q_t, use_q, law, p, split, w, inv_det)
+        held_forces(x, f, held, body, law)
     for i in range(n):
         if held[i]:
             for d in range(3):
@@ -387,21 +509,22 @@ def end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, no
             for d in range(3):
                 r_prev[i, d] = 0.0
     if order == 2:
-        x_prev[:, :] = x_n
-        v_prev[:, :] = v_n
-        history_h[0] = h
+        history.x_prev[:, :] = x_n
+        history.v_prev[:, :] = v_n
+        history.history_h[0] = h
 
 
 @nb.njit(cache=True)
-def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, tets, coef_t, q_t, use_q,
-                 law, p, split, w, psi1, inv_det, planes, grids, grid_values, kappa, inverse, first, ptr, values,
-                 axis_slot, edge_i, edge_j, edge_w, stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho,
-                 memory, first_substep, r_prev, reaction, out, order, x_prev, v_prev, history_h):
-    """One backward Euler (``order`` 1) or BDF2 (``order`` 2) sub-step of one scene by
-    L-BFGS, in place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best
-    of four starts, :func:`end_substep`.
+def _lbfgs_scene(x, v, targets, kinematic, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
+                 reaction, out):
+    """One backward Euler (``sub.order`` 1) or BDF2 (2) sub-step of one scene by L-BFGS, in
+    place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best of four
+    starts, :func:`end_substep`. ``body``, ``law``, ``supports``: the model's (see
+    :mod:`heml_gym.kernel_data`); ``hessian``: the scene's :class:`SceneHessian`;
+    ``memory``: its :class:`LbfgsMemory`; ``history``: its :class:`Bdf2History`; ``tol``:
+    the force residual (N) to reach.
 
-    Held (``kinematic``) vertices move a ``fraction`` of the way from where they are to
+    Held (``kinematic``) vertices move a ``sub.fraction`` of the way from where they are to
     their ``targets``; fixed ones stay. The free vertices start from the explicit
     predictor plus the linear response (through the initial Hessian) of the held
     vertices' jump beyond it, else from where they are. ``reaction`` (N) receives the
@@ -410,20 +533,12 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     feasible)``.
     """
     n = x.shape[0]
-    x_n = np.empty((n, 3))
-    v_n = np.empty((n, 3))
-    x_m = np.empty((n if order == 2 else 0, 3))  # (backward Euler reads neither)
-    v_m = np.empty((n if order == 2 else 0, 3))
-    x_hat = np.empty((n, 3))
-    load = np.empty((n, 3))
-    held = np.empty(n, dtype=np.bool_)
-    jump = np.empty((n, 3))
-    f = np.empty((n, 3))
-    c, any_jump = begin_substep(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction, order,
-                                x_prev, v_prev, history_h, first_substep, r_prev, tets, coef_t, q_t, use_q, law, p,
-                                split, w, inv_det, vt_ptr, vt_tets, x_n, v_n, x_m, v_m, x_hat, load, held, jump, f)
-    k_contact = kappa * c
-    n_supports = planes.shape[0] + grids.shape[0]
+    h = sub.h
+    work = substep_work(n, sub.order)
+    x_n, v_n, held, jump, f = work.x_n, work.v_n, work.held, work.jump, work.f
+    c, any_jump = begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev, work)
+    k_contact = sub.kappa * c
+    n_supports = supports.planes.shape[0] + supports.grids.shape[0]
     g = np.zeros((n, 3))
     g_new = np.zeros((n, 3))
     d_vec = np.empty((n, 3))
@@ -431,12 +546,14 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     response = np.zeros((n, 3))
     dist = np.full(n, math.inf)
     normal = np.zeros((n, 3))
-    nd = first.shape[0]
+    nd = hessian.first.shape[0]
     b = np.empty((3, nd), dtype=np.float32)  # the preconditioner's solves run in the
     y = np.empty((3, nd), dtype=np.float32)  # factor's precision: 8 lanes on AVX2
-    history = rho.shape[0]
-    a_coef = np.zeros(history)
+    s_hist, y_hist, rho = memory.s_hist, memory.y_hist, memory.rho
+    history_len = rho.shape[0]
+    a_coef = np.zeros(history_len)
     if any_jump:  # -A_ff^-1 A_fh jump: the free vertices follow the held ones smoothly
+        edge_i, edge_j, edge_w, stiffness = hessian.edge_i, hessian.edge_j, hessian.edge_w, hessian.stiffness
         for e in range(edge_i.shape[0]):
             i = edge_i[e]
             j = edge_j[e]
@@ -448,9 +565,8 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
                 else:
                     for d in range(3):
                         g[j, d] += we * jump[i, d]
-        _precondition(g, response, held, inverse, first, ptr, values, axis_slot, b, y)
-    args = (mass, c, x_hat, load, held, k_contact, tets, coef_t, q_t, use_q, law, p, split, w, psi1, inv_det,
-            planes, grids, grid_values, n_supports)
+        _precondition(g, response, held, hessian, b, y)
+    args = (body, law, supports, c, work.x_hat, work.load, held, k_contact)
     phi = math.inf
     for attempt in range(4):  # predictor + response, predictor, start + response, start
         for i in range(n):
@@ -470,10 +586,10 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
     x[:, :] = trial
     last_at_x = True  # ``f`` holds the elastic forces at ``x``
     gnorm = math.sqrt(_dot(g, g))
-    stored = memory[0]  # curvature pairs kept from the scene's earlier steps (same initial Hessian)
-    newest = memory[1]
+    stored = memory.memory[0]  # curvature pairs kept from the scene's earlier steps (same initial Hessian)
+    newest = memory.memory[1]
     it = 0
-    while gnorm > tol and it < max_iter:
+    while gnorm > tol and it < sub.max_iter:
         it += 1
         # two-loop recursion: d = -H g
         d_vec[:, :] = g
@@ -481,19 +597,19 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
         for _ in range(stored):
             a_coef[k] = rho[k] * _dot(s_hist[k], d_vec)
             _axpy(-a_coef[k], y_hist[k], d_vec)
-            k = (k - 1) % history
-        _precondition(d_vec, trial, held, inverse, first, ptr, values, axis_slot, b, y)
+            k = (k - 1) % history_len
+        _precondition(d_vec, trial, held, hessian, b, y)
         d_vec[:, :] = trial
-        k = (newest - stored + 1) % history
+        k = (newest - stored + 1) % history_len
         for _ in range(stored):
             b_coef = rho[k] * _dot(y_hist[k], d_vec)
             _axpy(a_coef[k] - b_coef, s_hist[k], d_vec)
-            k = (k + 1) % history
+            k = (k + 1) % history_len
         d_vec *= -1.0
         slope = _dot(g, d_vec)
         if not slope < 0.0:  # not a descent direction: restart from the initial Hessian
             stored = 0
-            _precondition(g, d_vec, held, inverse, first, ptr, values, axis_slot, b, y)
+            _precondition(g, d_vec, held, hessian, b, y)
             d_vec *= -1.0
             slope = _dot(g, d_vec)
             if not slope < 0.0:
@@ -519,7 +635,7 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
             last_at_x = False
             break
         phi = phi_t
-        newest = (newest + 1) % history
+        newest = (newest + 1) % history_len
         for i in range(n):
             for dd in range(3):
                 s_hist[newest, i, dd] = trial[i, dd] - x[i, dd]
@@ -527,53 +643,51 @@ def _lbfgs_scene(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, 
         sy = _dot(s_hist[newest], y_hist[newest])
         if sy > 1e-300:
             rho[newest] = 1.0 / sy
-            stored = min(stored + 1, history)
+            stored = min(stored + 1, history_len)
         else:
-            newest = (newest - 1) % history
+            newest = (newest - 1) % history_len
         x[:, :] = trial
         g[:, :] = g_new
         gnorm = math.sqrt(_dot(g, g))
-    end_substep(x, v, x_n, v_n, x_m, held, mass, load, alpha, h, order, dist, normal, n_supports, f, last_at_x,
-                reaction, r_prev, tets, coef_t, q_t, use_q, law, p, split, w, inv_det, vt_ptr, vt_tets, x_prev, v_prev,
-                history_h)
-    memory[0] = stored
-    memory[1] = newest
+    end_substep(x, v, work, dist, normal, n_supports, last_at_x, reaction, r_prev, body, law, sub, history)
+    memory.memory[0] = stored
+    memory.memory[1] = newest
     out[0], out[1], out[2], out[3] = float(it), gnorm, 1.0 if gnorm <= tol else 0.0, 1.0
 
 
+@nb.njit(cache=True, inline="always")
+def _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
+                reaction, out):
+    """:func:`_lbfgs_scene` of scene ``s`` of the stacked bundles."""
+    _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], ext[s], body, scene_law(laws, s), supports,
+                 scene_hessian(hessians, s),
+                 LbfgsMemory(memory.s_hist[s], memory.y_hist[s], memory.rho[s], memory.memory[s]), tol[s], sub,
+                 Bdf2History(history.x_prev[s], history.v_prev[s], history.history_h[s:s + 1]), r_prev[s],
+                 reaction[s], out[s])
+
+
 @nb.njit(cache=True, parallel=True)
-def lbfgs_steps_parallel(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction,
-                         tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
-                         grid_values, kappa, inverse, first, ptr, values, entry, axis_slot, edge_i, edge_j, edge_w,
-                         stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active,
-                         r_prev, reaction, out, order, x_prev, v_prev, history_h):
-    """:func:`_lbfgs_scene` for every active scene (leading axis N), scenes over threads;
-    scene ``s`` preconditions with its current initial Hessian ``values[s, entry[s]]``."""
+def lbfgs_steps_parallel(x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+                         active, r_prev, reaction, out):
+    """:func:`_lbfgs_scene` for every ``active`` scene (leading axis N of the arrays and of
+    ``laws`` (:class:`~heml_gym.kernel_data.HemlLaws`), ``hessians``
+    (:class:`InitialHessians`), ``memory`` (:class:`LbfgsMemory`), ``history``
+    (:class:`Bdf2History`)), scenes over threads; scene ``s`` preconditions with its
+    current initial Hessian ``hessians.values[s, hessians.entry[s]]``."""
     for s in prange(x.shape[0]):
         if active[s]:
-            _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], fixed, mass, gravity,
-                         ext[s], alpha, h, fraction, tets, coef_t, q_t, use_q, laws[s], params[s], split, weights[s],
-                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr,
-                         values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
-                         vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
-                         reaction[s], out[s], order, x_prev[s], v_prev[s], history_h[s:s + 1])
+            _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+                        r_prev, reaction, out)
 
 
 @nb.njit(cache=True)
-def lbfgs_steps_serial(x, v, targets, kinematic, fixed, mass, gravity, ext, alpha, h, fraction,
-                       tets, coef_t, q_t, use_q, laws, params, split, weights, psi1, inv_det, planes, grids,
-                       grid_values, kappa, inverse, first, ptr, values, entry, axis_slot, edge_i, edge_j, edge_w,
-                       stiffness, vt_ptr, vt_tets, tol, max_iter, s_hist, y_hist, rho, memory, first_substep, active,
-                       r_prev, reaction, out, order, x_prev, v_prev, history_h):
+def lbfgs_steps_serial(x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+                       active, r_prev, reaction, out):
     """:func:`lbfgs_steps_parallel` scene after scene."""
     for s in range(x.shape[0]):
         if active[s]:
-            _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], fixed, mass, gravity,
-                         ext[s], alpha, h, fraction, tets, coef_t, q_t, use_q, laws[s], params[s], split, weights[s],
-                         psi1[s], inv_det, planes, grids, grid_values, kappa, inverse, first, ptr,
-                         values[s, entry[s]], axis_slot[s, entry[s]], edge_i, edge_j, edge_w, stiffness[s], vt_ptr,
-                         vt_tets, tol[s], max_iter, s_hist[s], y_hist[s], rho[s], memory[s], first_substep, r_prev[s],
-                         reaction[s], out[s], order, x_prev[s], v_prev[s], history_h[s:s + 1])
+            _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+                        r_prev, reaction, out)
 
 
 @nb.njit(cache=True)

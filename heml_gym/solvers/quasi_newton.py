@@ -46,11 +46,12 @@ import scipy.sparse as sp
 
 from ..control import Control
 from ..forces.heml import HemlForce, assembled_edge_weights
+from ..kernel_data import scene_law_py
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeLayout, FreeSubmatrix, LaggedFactorPCG
 from ..model import Model
 from ..state import State
 from . import kernels_quasi_newton as kq
-from .base import Solver, StepStats, stack_law_params
+from .base import Solver, StepStats
 from .newton import minimize
 
 __all__ = ["QuasiNewtonSolver"]
@@ -167,7 +168,7 @@ class QuasiNewtonSolver(Solver):
         mesh = model.mesh
         n = mesh.n_vertices
         # the P1 Laplacian: per tet the Hessian of V0 (I1 - 3) / 2 on one axis, edge weights V0 a_k
-        edges, weights = assembled_edge_weights(mesh, model.fields[0].rest.edge_weights.T)
+        edges, weights = assembled_edge_weights(mesh, model.heml_body().edge_weights.T)
         self._edge_i = np.ascontiguousarray(edges[:, 0], dtype=np.int64)
         self._edge_j = np.ascontiguousarray(edges[:, 1], dtype=np.int64)
         self._edge_w = np.ascontiguousarray(0.5 * weights)
@@ -179,10 +180,6 @@ class QuasiNewtonSolver(Solver):
         self.layout = EnvelopeLayout.of(pattern)
         self._diag_pos = self.layout.positions(np.arange(n), np.arange(n))
         self._edge_pos = self.layout.positions(self._edge_i, self._edge_j)
-        # the tets around each vertex (to check that a projection onto a support keeps them)
-        order = np.argsort(mesh.tets.ravel(), kind="stable")
-        self._vt_tets = np.ascontiguousarray(order // 4, dtype=np.int64)
-        self._vt_ptr = np.concatenate([[0], np.cumsum(np.bincount(mesh.tets.ravel(), minlength=n))]).astype(np.int64)
         self._contact_margin = 0.01 * mesh.min_edge_length  # m: closer to a support than this is in contact
         N = model.n_scenes
         # per scene two initial Hessians ("entries", the current one ``_entry[s]``), each up to
@@ -205,9 +202,7 @@ class QuasiNewtonSolver(Solver):
         self._x_prev = np.zeros((N, kept, 3))
         self._v_prev = np.zeros((N, kept, 3))
         self._history_h = np.zeros(N)
-        self._weights = None  # (N, 6, m) spring weights of the scenes' fields, see _spring_weights
-        self._weights_of: list = []
-        self._constants = None  # the scenes' law constants, see _scene_constants
+        self._stiffness = (-1, None)  # (model.material_revision, stiffness per scene), see _stiffnesses
         self.factorizations = 0
 
     def laplacian(self) -> sp.csr_matrix:
@@ -256,7 +251,7 @@ class QuasiNewtonSolver(Solver):
         n = m.n_vertices
         if len(scenes) == 0:
             return
-        stiffness = self._scene_constants()["stiffness"]
+        stiffness = self._stiffnesses()
         if len(m.supports):
             d, normal = m.supports.signed_distance(x if len(scenes) == m.n_scenes else x[scenes])
             contact = (d.reshape(len(scenes), n) <= self._contact_margin) & ~held[scenes]
@@ -410,42 +405,16 @@ class QuasiNewtonSolver(Solver):
     def _kernel_args(self, state: State, control: Control, held: np.ndarray, tol: np.ndarray) -> dict:
         """What every call of the L-BFGS kernel in one step shares."""
         m = self.model
-        c = self._scene_constants()
-        split = bool(c["split"].all())
-        return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, split=split,
-                    use_q=bool(c["use_q"].any()),
-                    weights=self._spring_weights() if split else np.zeros((m.n_scenes, 6, 1)),
-                    laws=c["laws"], psi1=c["psi1"], params=c["params"], stiffness=c["stiffness"])
+        return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, body=m.heml_body(),
+                    laws=m.heml_laws(), supports=m.supports.kernel_args(), stiffness=self._stiffnesses())
 
-    def _scene_constants(self) -> dict:
-        """The scenes' law ids, law constants (zero-padded), ``psi1`` (0 unless split),
-        split / ``use_q`` flags and :meth:`stiffness` (Pa), kept from step to step: rebuilt
-        only when a scene's field changed (a reset drew a new material)."""
-        fields, materials = self.model.fields, self.model.materials
-        c = self._constants
-        if c is not None and all(a is b for a, b in zip(c["of"], fields + materials)):
-            return c
-        self._constants = c = dict(
-            of=fields + materials,  # themselves (kept alive: ids could be reused)
-            laws=np.array([f.law_id for f in fields], dtype=np.int64),
-            psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
-            params=stack_law_params(fields),
-            stiffness=np.array([self.stiffness(s) for s in range(self.model.n_scenes)]),
-            split=np.array([f.split for f in fields]), use_q=np.array([f.use_q for f in fields]))
-        return c
-
-    def _spring_weights(self) -> np.ndarray:
-        """``(N, 6, m)`` the scenes' constant spring weights (Neo-Hookean), kept from step to
-        step: a scene's row is copied again only when its field changed (a reset)."""
-        fields = self.model.fields
-        if self._weights is None:
-            self._weights = np.stack([f.spring_weights for f in fields])
-            self._weights_of = list(fields)  # the fields themselves (kept alive: ids could be reused)
-        for s, f in enumerate(fields):
-            if self._weights_of[s] is not f:
-                self._weights[s] = f.spring_weights
-                self._weights_of[s] = f
-        return self._weights
+    def _stiffnesses(self) -> np.ndarray:
+        """:meth:`stiffness` of every scene (Pa), kept until a scene's material changes."""
+        revision, stiffness = self._stiffness
+        if revision != self.model.material_revision:
+            stiffness = np.array([self.stiffness(s) for s in range(self.model.n_scenes)])
+            self._stiffness = (self.model.material_revision, stiffness)
+        return stiffness
 
     def _advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
                  r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
@@ -460,19 +429,25 @@ class QuasiNewtonSolver(Solver):
         x, v = a["x"], a["v"]
         c = np.full(N, self.inertia(h))
         self._refresh_factors(np.flatnonzero(run), a["held"], x, c)
-        rest = m.fields[0].rest
-        planes, grids, values = m.supports.kernel_args()
         control = a["control"]
+        hessians = kq.InitialHessians(self.layout.inverse, self.layout.first, self.layout.ptr, self._values,
+                                      self._entry, self._axis_slot, self._edge_i, self._edge_j, self._edge_w,
+                                      a["stiffness"])
         kernel = kq.lbfgs_steps_parallel if N > 1 and numba.get_num_threads() > 1 else kq.lbfgs_steps_serial
-        kernel(x, v, control.targets, control.kinematic, m.fixed, m.mass, m.gravity, control.external_forces,
-               m.damping.alpha, h, fraction, rest.tets, rest.coef_t, rest.q_t if a["use_q"] else m.fields[0].q_t,
-               a["use_q"], a["laws"], a["params"], a["split"], a["weights"], a["psi1"], rest.inv_det, planes, grids,
-               values, self.contact_stiffness, self.layout.inverse, self.layout.first, self.layout.ptr,
-               self._values, self._entry, self._axis_slot, self._edge_i, self._edge_j, self._edge_w, a["stiffness"],
-               self._vt_ptr, self._vt_tets, a["tol"], self.max_iter, self._s_hist, self._y_hist, self._rho,
-               self._memory, first_substep, run, r_prev, contribution, out, self.order, self._x_prev, self._v_prev,
-               self._history_h)
+        kernel(x, v, control.targets, control.kinematic, control.external_forces, a["body"], a["laws"],
+               a["supports"], hessians, self._lbfgs_memory(), a["tol"], self._substep(h, fraction, first_substep),
+               self._bdf2_history(), run, r_prev, contribution, out)
         return out
+
+    def _substep(self, h: float, fraction: float, first_substep: bool) -> kq.Substep:
+        return kq.Substep(float(h), float(fraction), int(self.order), bool(first_substep), int(self.max_iter),
+                          float(self.contact_stiffness))
+
+    def _lbfgs_memory(self) -> kq.LbfgsMemory:
+        return kq.LbfgsMemory(self._s_hist, self._y_hist, self._rho, self._memory)
+
+    def _bdf2_history(self) -> kq.Bdf2History:
+        return kq.Bdf2History(self._x_prev, self._v_prev, self._history_h)
 
     def _newton_advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
                         r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
@@ -498,24 +473,16 @@ class QuasiNewtonSolver(Solver):
         control = a["control"]
         x, v = a["x"][s], a["v"][s]
         field = m.fields[s]
-        rest = field.rest
-        law, params, w, psi1 = a["laws"][s], a["params"][s], a["weights"][s], a["psi1"][s]
-        q_t = rest.q_t if a["use_q"] else m.fields[0].q_t
-        x_n, v_n, x_hat, load, jump, f = (np.empty((n, 3)) for _ in range(6))
-        kept = n if self.order == 2 else 0
-        x_m, v_m = np.empty((kept, 3)), np.empty((kept, 3))
-        held = np.empty(n, dtype=bool)
-        alpha = float(m.damping.alpha)
-        field_args = (rest.tets, rest.coef_t, q_t, a["use_q"], law, params, a["split"], w, rest.inv_det)
-        c, _ = kq.begin_substep(x, v, control.targets[s], control.kinematic[s], m.fixed, m.mass, m.gravity,
-                                control.external_forces[s], alpha, h, fraction, self.order, self._x_prev[s],
-                                self._v_prev[s], self._history_h[s:s + 1], first_substep, r_prev, *field_args,
-                                self._vt_ptr, self._vt_tets, x_n, v_n, x_m, v_m, x_hat, load, held, jump, f)
-        planes, grids, values = m.supports.kernel_args()
-        n_supports = planes.shape[0] + grids.shape[0]
+        body, law, supports = a["body"], scene_law_py(a["laws"], s), a["supports"]
+        work = kq.substep_work(n, self.order)
+        x_n, v_n, held, f = work.x_n, work.v_n, work.held, work.f
+        sub = self._substep(h, fraction, first_substep)
+        history = kq.Bdf2History(self._x_prev[s], self._v_prev[s], self._history_h[s:s + 1])
+        c, _ = kq.begin_substep(x, v, control.targets[s], control.kinematic[s], control.external_forces[s], body, law,
+                                sub, history, r_prev, work)
+        n_supports = supports.planes.shape[0] + supports.grids.shape[0]
         k_contact = self.contact_stiffness * c
-        potential_args = (m.mass, c, x_hat, load, held, k_contact, rest.tets, rest.coef_t, q_t, a["use_q"], law,
-                          params, a["split"], w, psi1, rest.inv_det, planes, grids, values, n_supports)
+        potential_args = (body, law, supports, c, work.x_hat, work.load, held, k_contact)
         g = np.zeros((n, 3))
         dist, normal = np.full(n, math.inf), np.zeros((n, 3))
 
@@ -558,9 +525,7 @@ class QuasiNewtonSolver(Solver):
         if not result.finite:
             return float(result.iterations), math.inf, 0.0, 1.0
         kq.potential_and_gradient(x, True, g, f, dist, normal, *potential_args)  # f, dist, normal at x
-        kq.end_substep(x, v, x_n, v_n, x_m, held, m.mass, load, alpha, h, self.order, dist, normal, n_supports, f,
-                       True, reaction, r_prev, *field_args, self._vt_ptr, self._vt_tets, self._x_prev[s],
-                       self._v_prev[s], self._history_h[s:s + 1])
+        kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub, history)
         return float(result.iterations), result.residual, float(result.converged), 1.0
 
     @staticmethod
