@@ -45,6 +45,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (usage: {self.prog} -h)\n")
 
 
+TRUST_HELP = ("read a run folder's pickles (statistics written before 2026-11-26, RLlib checkpoints): they can "
+              "run code, so only for a folder you trust")
+
+
 def _train(args) -> int:
     from .config import load_config
     from .train import train
@@ -56,6 +60,7 @@ def _train(args) -> int:
         overrides.setdefault("algorithm", {})["total_timesteps"] = args.steps
     cfg = load_config(args.config, overrides)
     result = train(cfg, run_dir=args.run_dir, resume=args.resume, progress_bar=not args.no_progress,
+                   trust_pickle=args.trust_pickle,
                    address=args.address)
     ev = result["final_evaluation"]
     print(f"run folder: {result['run_dir']}  ({result['timesteps']} env steps)")
@@ -75,7 +80,7 @@ def _eval(args) -> int:
 
     if args.env:
         _known_env(args.env)
-    policy, _, cfg = load_policy(args.run_or_model)
+    policy, _, cfg = load_policy(args.run_or_model, trust_pickle=args.trust_pickle)
     env_id = args.env or (cfg.env.id if cfg else DEFAULT_ENV)
     obs_mode = cfg.env.obs_mode if cfg else "state"
     kwargs = cfg.env.kwargs if cfg and env_id == cfg.env.id else {}
@@ -104,7 +109,7 @@ def _rollout(args) -> int:
     else:
         from .train import load_policy, make_env
 
-        policy, _, cfg = load_policy(args.policy)
+        policy, _, cfg = load_policy(args.policy, trust_pickle=args.trust_pickle)
         if cfg and args.env and args.env != cfg.env.id:
             raise ValueError(f"--env {args.env}: the policy was trained on {cfg.env.id} (its observations and "
                              "actions are that env's); omit --env to roll it out there")
@@ -166,7 +171,7 @@ def _sweep(args) -> int:
 
 BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
               "env_throughput", "scene_convergence", "scene_stability", "reliability", "scale_out",
-              "camera_throughput", "time_schemes"]
+              "camera_throughput", "time_schemes", "hessian_scale", "solver_paths"]
 
 
 def _bench(args) -> int:
@@ -199,6 +204,7 @@ def main(argv=None) -> int:
     t.add_argument("--run-dir", help="run folder (default runs/<config name>-seed<seed>)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--address", help="Ray cluster for an RLlibPPO run ('auto', HOST:PORT; default: local Ray)")
+    t.add_argument("--trust-pickle", action="store_true", help=TRUST_HELP)
     t.set_defaults(func=_train)
 
     e = sub.add_parser("eval", help="success rate of a trained model or run folder")
@@ -207,6 +213,7 @@ def main(argv=None) -> int:
     e.add_argument("--seed", type=int, default=10_000)
     e.add_argument("--env", help="environment id (default: the run's)")
     e.add_argument("--out", help="write the result as JSON here")
+    e.add_argument("--trust-pickle", action="store_true", help=TRUST_HELP)
     e.set_defaults(func=_eval)
 
     r = sub.add_parser("rollout", help="roll a policy out and record it to rerun")
@@ -216,6 +223,7 @@ def main(argv=None) -> int:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--rrd", help="write the recording to this .rrd file")
     r.add_argument("--spawn", action="store_true", help="open the rerun viewer")
+    r.add_argument("--trust-pickle", action="store_true", help=TRUST_HELP)
     r.set_defaults(func=_rollout)
 
     w = sub.add_parser("sweep", help="seed / hyperparameter sweep on Ray Tune (local or a cluster)")

@@ -138,7 +138,7 @@ def _save(algo, path: Path) -> None:
 
 
 def train_rllib(cfg: RunConfig, run_dir: str | Path, resume: str | Path | None = None, address: str | None = None,
-                progress_bar: bool = True) -> dict:
+                progress_bar: bool = True, trust_pickle: bool = False) -> dict:
     """Train ``cfg`` (``algorithm.name: RLlibPPO``) into ``run_dir``; ``resume``: an RLlib
     checkpoint folder to continue from (its step count kept)."""
 
@@ -148,6 +148,9 @@ def train_rllib(cfg: RunConfig, run_dir: str | Path, resume: str | Path | None =
     run_dir = Path(run_dir)
     if resume is not None and not _module_path(Path(resume)).is_dir():
         raise ConfigError(f"--resume: {resume} is not an RLlib checkpoint folder")
+    if resume is not None and not trust_pickle:
+        raise ConfigError(f"--resume: {resume} is an RLlib checkpoint, which RLlib reads by unpickling (code in it "
+                          "would run): pass --trust-pickle if you trust where it came from")
     hp = dict(cfg.algorithm.hyperparameters)
     runners = int(hp.pop("num_env_runners", 1))
     cpus = float(hp.pop("num_cpus_per_env_runner", 1))

@@ -4,15 +4,14 @@ A run lives in one folder: ``config.yaml`` (the resolved config), ``checkpoints/
 ``tb/`` (TensorBoard), ``evaluations.json`` (success rate, exposure, strain and the
 wall time so far, in seconds including evaluation, at each evaluation),
 ``model.zip`` (the final policy) and, when ``env.normalize_observations`` is on,
-``vecnormalize.pkl`` (the observation statistics the policy was trained with; each
+``vecnormalize.json`` (the observation statistics the policy was trained with; each
 checkpoint has its own), so it can be evaluated, resumed or reproduced from the folder
-alone.
+alone. Loading a run executes nothing from it (:mod:`heml_gym.agents.run_files`).
 """
 
 from __future__ import annotations
 
 import json
-import pickle
 import re
 import shutil
 import time
@@ -29,9 +28,9 @@ import heml_gym.envs  # noqa: F401  (registers the environments)
 from .algorithms import ALGORITHMS, BACKENDS, algorithm_class
 from .config import ConfigError, RunConfig, load_config
 from .evaluation import evaluate_policy, wilson_interval  # noqa: F401  (wilson_interval: for callers)
+from .run_files import (NORMALIZER_FILE, UntrustedPickle, load_model, load_normalizer, model_record,  # noqa: F401
+                        normalizer_path, save_normalizer)
 from .vec_env import RetractionSb3VecEnv
-
-NORMALIZER_FILE = "vecnormalize.pkl"
 
 
 def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
@@ -58,41 +57,21 @@ def model_policy(model, normalizer: VecNormalize | None = None):
     return lambda obs: model.predict(normalizer.normalize_obs(obs), deterministic=True)[0]
 
 
-def normalizer_path(model_path: Path) -> Path:
-    """Where the observation statistics of a model file are: a checkpoint's own
-    ``model_vecnormalize_<N>_steps.pkl``, else ``vecnormalize.pkl`` beside the model."""
-    m = re.fullmatch(r"(.*)_(\d+)_steps\.zip", model_path.name)
-    if m:
-        return model_path.with_name(f"{m.group(1)}_vecnormalize_{m.group(2)}_steps.pkl")
-    return model_path.with_name(NORMALIZER_FILE)
+class Checkpoints(CheckpointCallback):
+    """SB3's checkpoints, with the observation statistics as JSON beside each
+    (:func:`~heml_gym.agents.run_files.save_normalizer`), never a pickle."""
 
+    def __init__(self, save_freq: int, save_path: str):
+        super().__init__(save_freq=save_freq, save_path=save_path, name_prefix="model", save_vecnormalize=False)
 
-def load_normalizer(path: Path) -> VecNormalize:
-    """Observation statistics saved by :func:`train` (frozen: evaluation does not update
-    them). ``ConfigError`` if the file cannot be read or holds something else."""
-    try:
-        with open(path, "rb") as f:
-            normalizer = pickle.load(f)
-    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError, TypeError, ValueError) as exc:
-        raise ConfigError(f"observation statistics {path} cannot be read ({type(exc).__name__}: {exc}): "
-                          "the file is damaged or not from heml-gym") from None
-    if not isinstance(normalizer, VecNormalize):
-        raise ConfigError(f"{path} does not hold VecNormalize statistics")
-    normalizer.training = False
-    return normalizer
-
-
-def check_normalizer(normalizer: VecNormalize, space, path: Path) -> None:
-    """``ConfigError`` unless the statistics were gathered on observations of ``space``."""
-    rms = normalizer.obs_rms
-    if isinstance(rms, dict):
-        shapes = {k: v.mean.shape for k, v in rms.items()}
-        expected = {k: s.shape for k, s in space.spaces.items()} if hasattr(space, "spaces") else None
-    else:
-        shapes, expected = rms.mean.shape, getattr(space, "shape", None)
-    if shapes != expected:
-        raise ConfigError(f"observation statistics {path} are of observations shaped {shapes}, "
-                          f"this environment's are {expected}")
+    def _on_step(self) -> bool:
+        if self.n_calls % self.save_freq == 0:
+            model_path = Path(self._checkpoint_path(extension="zip"))
+            self.model.save(model_path)
+            normalizer = self.model.get_vec_normalize_env()
+            if normalizer is not None:
+                save_normalizer(normalizer, normalizer_path(model_path))
+        return True
 
 
 class SuccessEvalCallback(BaseCallback):
@@ -171,14 +150,13 @@ def check_resume(cfg: RunConfig, resume: Path) -> None:
             if old != new:
                 raise ConfigError(f"--resume: {resume} was trained with {key} = {old!r}, this config has {new!r}")
     try:
-        algorithm_class(cfg.algorithm.name).load(resume, device="cpu")
-    except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a foreign or corrupt file
-        raise ConfigError(f"--resume: {resume} is not a readable {cfg.algorithm.name} checkpoint "
-                          f"({type(exc).__name__}: {exc})") from None
+        model_record(resume)  # (plain JSON; the weights are checked when they are loaded)
+    except ConfigError as exc:
+        raise ConfigError(f"--resume: {resume} is not a readable {cfg.algorithm.name} checkpoint ({exc})") from None
 
 
 def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
-          progress_bar: bool = True, address: str | None = None) -> dict:
+          progress_bar: bool = True, address: str | None = None, trust_pickle: bool = False) -> dict:
     """Train per ``cfg`` into ``run_dir``; ``resume`` continues from a checkpoint's step count.
 
     Everything that can be checked is checked before the run folder is written
@@ -186,6 +164,8 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     environment, the algorithm's hyperparameters (by building the model), the
     observation statistics. A start that fails leaves no new folder behind.
     ``address``: the Ray cluster of an ``RLlibPPO`` run (:mod:`heml_gym.agents.rllib_backend`).
+    ``trust_pickle``: resume from a run folder whose files are pickles (statistics
+    written before 2026-11-26, RLlib checkpoints): only for folders you trust.
     """
     run_dir = Path(run_dir) if run_dir is not None else run_directory(cfg)
     if run_dir.exists() and not run_dir.is_dir():
@@ -193,7 +173,8 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     if BACKENDS[cfg.algorithm.name] == "rllib":
         from .rllib_backend import train_rllib
 
-        return train_rllib(cfg, run_dir, resume=resume, address=address, progress_bar=progress_bar)
+        return train_rllib(cfg, run_dir, resume=resume, address=address, progress_bar=progress_bar,
+                           trust_pickle=trust_pickle)
     if address is not None:
         raise ConfigError("--address is for RLlibPPO runs; spread SB3 runs over a cluster with heml-gym sweep")
     if resume is not None:
@@ -209,11 +190,10 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     if cfg.env.normalize_observations:
         if resume is not None:  # continue with the statistics the checkpoint was trained with
             stats = normalizer_path(resume)
-            if not stats.is_file():
-                raise ConfigError(f"--resume: observation statistics of {resume} not found: {stats}")
-            normalizer = load_normalizer(stats)
-            check_normalizer(normalizer, env.observation_space, stats)
-            normalizer.set_venv(env)
+            try:
+                normalizer = load_normalizer(stats, env, trust_pickle=trust_pickle)
+            except FileNotFoundError:
+                raise ConfigError(f"--resume: observation statistics of {resume} not found: {stats}") from None
             env = normalizer
             env.training = True
         else:
@@ -223,9 +203,9 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     try:
         if resume is not None:
             try:
-                model = algo.load(resume, env=env, device="cpu", tensorboard_log=tb)
-            except ValueError as exc:  # SB3: spaces that do not match
-                raise ConfigError(f"--resume: {resume} does not fit this environment: {exc}") from None
+                model = load_model(resume, cfg, env, tensorboard_log=tb)
+            except ConfigError as exc:
+                raise ConfigError(f"--resume: {exc}") from None
         else:
             try:
                 model = algo(cfg.algorithm.policy, env, seed=cfg.seed, device="cpu", verbose=0, tensorboard_log=tb,
@@ -241,12 +221,8 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
             shutil.rmtree(run_dir)
         raise
     evaluator = SuccessEvalCallback(cfg, run_dir / "evaluations.json")
-    callbacks = [
-        CheckpointCallback(save_freq=max(1, cfg.checkpoint.every_steps // cfg.env.num_envs),
-                           save_path=str(run_dir / "checkpoints"), name_prefix="model",
-                           save_vecnormalize=cfg.env.normalize_observations),
-        evaluator,
-    ]
+    callbacks = [Checkpoints(max(1, cfg.checkpoint.every_steps // cfg.env.num_envs), str(run_dir / "checkpoints")),
+                 evaluator]
     remaining = cfg.algorithm.total_timesteps - (model.num_timesteps if resume is not None else 0)
     if remaining > 0:
         model.learn(total_timesteps=remaining, callback=CallbackList(callbacks),
@@ -254,60 +230,73 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
                     tb_log_name=cfg.algorithm.name)
     model.save(run_dir / "model.zip")
     if cfg.env.normalize_observations:
-        env.save(str(run_dir / NORMALIZER_FILE))
+        save_normalizer(env, run_dir / NORMALIZER_FILE)
     final = evaluator.evaluate() if not evaluator.history or evaluator.history[-1]["timesteps"] != model.num_timesteps else evaluator.history[-1]
     env.close()
     return {"run_dir": str(run_dir), "timesteps": int(model.num_timesteps), "final_evaluation": final}
 
 
-def load_policy(path: str | Path):
+def load_policy(path: str | Path, trust_pickle: bool = False):
     """``(policy, model, cfg)`` from a ``.zip`` or a run folder: ``policy`` maps a raw
-    observation to an action, through the run's observation statistics when it has them."""
+    observation to an action, through the run's observation statistics when it has them.
+
+    Nothing in the folder is executed: the model is rebuilt from the run's
+    ``config.yaml`` and only its weights are read, the statistics from JSON
+    (:mod:`heml_gym.agents.run_files`). A model without a run config beside it, a run
+    with only the former pickled statistics and an RLlib checkpoint (RLlib pickles its
+    modules) are refused with :class:`~heml_gym.agents.run_files.UntrustedPickle` unless
+    ``trust_pickle``: for folders you trust."""
     from .rllib_backend import is_rllib_run, load_rllib_policy
 
     path = Path(path)
     if is_rllib_run(path):
+        if not trust_pickle:
+            raise UntrustedPickle(f"{path} is an RLlib checkpoint, which RLlib reads by unpickling (code in it would "
+                                  "run): pass --trust-pickle if you trust where this run folder came from")
         checkpoint = path / "rllib_checkpoint" if (path / "rllib_checkpoint").is_dir() else path
         run_folder = path if (path / "rllib_checkpoint").is_dir() else (
             path.parent.parent if path.parent.name == "checkpoints" else path.parent)
         cfg_path = run_folder / "config.yaml"
         cfg = load_config(cfg_path) if cfg_path.is_file() else None
         return load_rllib_policy(checkpoint), None, cfg
-    model, cfg, model_path = _load(path)
+    model_path, cfg = _model_file(path)
+    if cfg is None:
+        if not trust_pickle:
+            raise UntrustedPickle(f"{model_path} has no run config (config.yaml) beside it to rebuild the model from, "
+                                  "and loading it whole would unpickle it: pass --trust-pickle if you trust it")
+        return model_policy(algorithm_class(_algorithm_of(model_path)).load(model_path, device="cpu")), None, None
+    model = load_model(model_path, cfg, make_env(cfg))
     stats = normalizer_path(model_path)
-    if stats.is_file():
-        return model_policy(model, load_normalizer(stats)), model, cfg
-    if cfg is not None and cfg.env.normalize_observations:
-        raise FileNotFoundError(f"{model_path} was trained on normalised observations, but their "
-                                f"statistics are missing: {stats}")
+    if cfg.env.normalize_observations:
+        try:
+            normalizer = load_normalizer(stats, trust_pickle=trust_pickle)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{model_path} was trained on normalised observations, but their "
+                                    f"statistics are missing: {stats}") from None
+        return model_policy(model, normalizer), model, cfg
     return model_policy(model), model, cfg
 
 
-def _load(path: str | Path):
-    """``(model, cfg or None, model file)`` from a ``.zip`` or a run folder (its
-    ``model.zip`` or latest checkpoint)."""
-    path = Path(path)
+def _model_file(path: Path) -> tuple[Path, RunConfig | None]:
+    """``(model file, cfg or None)`` of a ``.zip`` or a run folder (its ``model.zip`` or
+    latest checkpoint)."""
     if path.is_dir():
-        cfg_path = path / "config.yaml"
         candidate = path / "model.zip"
         if not candidate.is_file():
             candidate = latest_checkpoint(path)
         if candidate is None:
             raise FileNotFoundError(f"no model.zip or checkpoint in run folder {path}")
-        cfg = load_config(cfg_path) if cfg_path.is_file() else None
-        path = candidate
-    elif not path.is_file():
+        cfg_path = path / "config.yaml"
+        return candidate, load_config(cfg_path) if cfg_path.is_file() else None
+    if not path.is_file():
         raise FileNotFoundError(f"model file or run folder not found: {path}")
-    else:
-        cfg = None
-        cfg_path = path.parent.parent / "config.yaml" if path.parent.name == "checkpoints" else path.parent / "config.yaml"
-        if cfg_path.is_file():
-            cfg = load_config(cfg_path)
-    name = cfg.algorithm.name if cfg is not None else _algorithm_of(path)
-    return algorithm_class(name).load(path, device="cpu"), cfg, path
+    model_record(path)  # a zip of SB3's (else: not a PPO or SAC model)
+    cfg_path = path.parent.parent / "config.yaml" if path.parent.name == "checkpoints" else path.parent / "config.yaml"
+    return path, load_config(cfg_path) if cfg_path.is_file() else None
 
 
 def _algorithm_of(path: Path) -> str:
+    """The SB3 algorithm of a model file (loads it whole: trusted files only)."""
     for name in (n for n in ALGORITHMS if BACKENDS[n] == "sb3"):
         try:
             algorithm_class(name).load(path, device="cpu")

@@ -73,9 +73,13 @@ def quickstart_elsewhere(data: dict) -> str:
         return ""
     wall = sorted(s["wall_s"] / 60 for s in done)
     rates = ", ".join(f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done)
-    return (f" On an AVX2-only machine ({where(data)}) with seeds no config was tuned on, training took "
-            f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed ({data.get('trials_at_once', 1)} at a time) and ended at "
-            f"{rates} ([per seed](quick_sweep_avx2.md)).")
+    took = f"{wall[0]:.1f} min" if len(wall) == 1 else f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed"
+    if data.get("trials_at_once", 1) == 1 and data.get("cpus_per_trial", 1) >= 2 and not data.get("machine_loaded"):
+        how = "alone on the machine with both cores, as `scripts/main.sh` runs it"
+    else:
+        how = f"{data.get('trials_at_once', 1)} at a time{beside_other_work(data)}"
+    return (f" On an AVX2-only machine ({where(data)}; today's code) with a seed no config was tuned on, "
+            f"training took {took} ({how}) and ended at {rates} ([per seed](quick_sweep_avx2.md)).")
 
 
 def quickstart_quiet(data: dict) -> str:
@@ -162,19 +166,26 @@ def throughput(data: dict) -> str:
                  f"{rate(organ, 'single', 1, 1, 'scripted') / explicit[1]:.1f}x its explicit path in the same run")
     text += f", {ov['median_steps_per_s']:,.0f}/s vectorised ({where(data)}; [envs.md](../envs.md#measured))."
     avx2 = load("env_throughput_avx2")
-    return text + (" " + throughput_avx2(avx2) if avx2 else "")
+    return text + (" " + throughput_avx2(avx2, data) if avx2 else "")
 
 
-def throughput_avx2(data: dict) -> str:
-    """The same rates with the kernels compiled for an AVX2-only CPU (``env_throughput.py --avx2``)."""
+def throughput_avx2(data: dict, native: dict | None = None) -> str:
+    """The same rates with the kernels compiled for an AVX2-only CPU (``env_throughput.py
+    --avx2``); ``native``: the run above (when it ran on an AVX2 CPU itself, this one is
+    the generic AVX2 code any such CPU gets)."""
     rate, best_vector = _rates(data)
     tissue, organ = TISSUE, ORGAN
     tv, ov = best_vector(tissue), best_vector(organ)
     m = data["machine"]
-    machine = (f"{m['cpu']}, {m['cores']} cores, {m['vector_isa']}, kernels compiled for "
-               f"{m.get('codegen', {}).get('cpu', data.get('compiled_for', '?'))}, {m['date']}")
-    return (f"On an AVX2-only CPU ({machine}; [env_throughput_avx2.md](env_throughput_avx2.md)): "
-            f"TissueRetraction {rate(tissue, 'single', 1, 1):,.0f}/s single (random actions), "
+    target = m.get("codegen", {}).get("cpu", data.get("compiled_for", "?"))
+    machine = f"{m['cpu']}, {m['cores']} cores, {m['vector_isa']}, kernels compiled for {target}, {m['date']}"
+    if native is not None and native["machine"].get("vector_isa") == m.get("vector_isa"):
+        lead = (f"With the kernels compiled for a generic AVX2 CPU ({target}: what any AVX2 machine gets; "
+                f"{m['date']}; [env_throughput_avx2.md](env_throughput_avx2.md)): ")
+    else:
+        lead = f"On an AVX2-only CPU ({machine}; [env_throughput_avx2.md](env_throughput_avx2.md)): "
+    return (lead
+            + f"TissueRetraction {rate(tissue, 'single', 1, 1):,.0f}/s single (random actions), "
             f"{tv['median_steps_per_s']:,.0f}/s vectorised; OrganRetraction {rate(organ, 'single', 1, 1):,.0f}/s "
             f"single with random actions and {rate(organ, 'single', 1, 1, 'scripted'):,.0f}/s on the scripted "
             f"retraction, {ov['median_steps_per_s']:,.0f}/s vectorised.")

@@ -117,8 +117,9 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path, capsys)
     assert len(err.strip().splitlines()) == 1 and not rrd.exists()
     # observation statistics: saved with the model and with every checkpoint, learned from
     # the training observations, and applied by the loaded policy
-    stats = load_normalizer(run / "vecnormalize.pkl")
+    stats = load_normalizer(run / "vecnormalize.json")
     assert stats.obs_rms.count >= 1024 and not stats.training
+    assert not list(run.rglob("*.pkl"))  # no pickle is written
     assert all(normalizer_path(c).is_file() for c in checkpoints)
     policy, loaded, _ = load_policy(run)
     obs = np.array(stats.obs_rms.mean, dtype=np.float32) + 0.01
@@ -132,9 +133,9 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path, capsys)
                  "--steps", str(first + 512), "--no-progress"]) == 0
     resumed = PPO.load(run / "model.zip", device="cpu")
     assert first + 512 <= resumed.num_timesteps < first + 512 + 4 * 64 + 1
-    assert load_normalizer(run / "vecnormalize.pkl").obs_rms.count > stats.obs_rms.count + 500
+    assert load_normalizer(run / "vecnormalize.json").obs_rms.count > stats.obs_rms.count + 500
     # a model whose statistics are lost is refused, not run on unnormalised observations
-    (run / "vecnormalize.pkl").unlink()
+    (run / "vecnormalize.json").unlink()
     with pytest.raises(FileNotFoundError, match="statistics"):
         load_policy(run / "model.zip")
 

@@ -152,7 +152,7 @@ def test_resume_refuses_another_env_obs_mode_or_algorithm_and_damaged_statistics
         assert match in err and "Traceback" not in err and not target.exists()
     assert main(["train", str(config), "--run-dir", str(tmp_path / "r2"), "--resume", str(run)]) == 2
     assert "directory" in capsys.readouterr().err
-    (run / "vecnormalize.pkl").write_bytes(b"not a pickle")
+    (run / "vecnormalize.json").write_text("{not json")
     assert main(["train", str(config), "--run-dir", str(tmp_path / "r3"), "--resume", str(checkpoint)]) == 2
     err = capsys.readouterr().err
     assert "cannot be read" in err and "Traceback" not in err and not (tmp_path / "r3").exists()

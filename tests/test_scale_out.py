@@ -144,16 +144,18 @@ def test_a_tiny_rllib_run_trains_checkpoints_evaluates_and_resumes_on_a_two_node
         assert sorted(p.name for p in (run / "checkpoints").iterdir())[:1] == ["rllib_128_steps"]
         history = json.loads((run / "evaluations.json").read_text())
         assert history[-1]["timesteps"] >= 256 and 0 <= history[-1]["success_rate"] <= 1
-        policy, _, cfg = load_policy(run)
+        with pytest.raises(ValueError, match="--trust-pickle"):  # RLlib unpickles its checkpoints
+            load_policy(run)
+        policy, _, cfg = load_policy(run, trust_pickle=True)
         action = policy(np.zeros(24, dtype=np.float32))
         assert action.shape == (4,) and np.all(np.abs(action) <= 1)
         assert cfg.algorithm.name == "RLlibPPO"
         out = tmp_path / "eval.json"
-        assert main(["eval", str(run), "--episodes", "1", "--out", str(out)]) == 0
+        assert main(["eval", str(run), "--episodes", "1", "--out", str(out), "--trust-pickle"]) == 0
         assert json.loads(out.read_text())["episodes"] == 1
         # resume from the final checkpoint: the step count continues
         assert main(["train", str(config), "--run-dir", str(run), "--no-progress", "--address", cluster.address,
-                     "--resume", str(run / "rllib_checkpoint"), "--steps", "512"]) == 0
+                     "--resume", str(run / "rllib_checkpoint"), "--steps", "512", "--trust-pickle"]) == 0
         assert json.loads((run / "evaluations.json").read_text())[-1]["timesteps"] >= 512
     finally:
         if ray.is_initialized():
