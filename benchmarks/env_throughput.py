@@ -502,8 +502,9 @@ def _notes(results: dict) -> str:
         f"({per_core:.0f} on one thread; the bar is 1,500/s on AVX-512, set for the explicit 8 x 8 x 1 flap of "
         "earlier versions, whose batch ran vectorised across scenes in one kernel, and 1,000/s on an AVX2-only "
         "CPU; the quasi-Newton solver runs each scene's solve on its own, scenes over threads). Since "
-        "2026-11-26 the flap's initial Hessian weighs its Laplacian 1.25 (lambda + mu) (`hessian_scale`): 17 "
-        "L-BFGS iterations per env step instead of 22, at the same tolerance. A looser tolerance (1e-2 of the "
+        "2026-11-26 the flap's initial Hessian weighs its Laplacian 1.25 (lambda + mu) (`hessian_scale`): 16.9 "
+        "L-BFGS iterations per env step instead of 22.5, at the same tolerance (hessian_scale.md). "
+        "A looser tolerance (1e-2 of the "
         "weight instead of 3e-3, within the 5 % rule as well, scene_convergence.md) would take about 0.7x "
         "the iterations again, but it changes the task's trajectories, so it waits for a new task version.\n"
     )

@@ -105,10 +105,10 @@ class QuasiNewtonSolver(Solver):
         The initial Hessian is ``c M + hessian_scale (lambda + mu) L`` per axis (``L`` the
         P1 Laplacian; plus the contact penalty): a preconditioner, so this changes the
         iterations a step takes, never where it converges (to ``newton_tol``). 1 suits
-        bulky tissue (the lobe: 10.7 iterations per env step at 1, 11.8 at 1.25); the thin
-        two-layer flap, which bends, converges in 17 iterations per env step at 1.25
-        against 22 at 1 (``TissueRetraction``'s scene sets 1.25; measured on 1,400 random
-        steps, 2026-11-26).
+        bulky tissue (the lobe: 12.4 L-BFGS iterations per env step at 1, 12.9 at 1.25);
+        the thin two-layer flap, which bends, converges in 16.9 at 1.25 against 22.5 at 1
+        (``TissueRetraction``'s scene sets 1.25; ``benchmarks/hessian_scale.py``,
+        2026-11-26).
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
     scheme : str
