@@ -291,8 +291,7 @@ def _model_file(path: Path) -> tuple[Path, RunConfig | None]:
     if not path.is_file():
         raise FileNotFoundError(f"model file or run folder not found: {path}")
     model_record(path)  # a zip of SB3's (else: not a PPO or SAC model)
-    cfg_path = path.parent.parent / "config.yaml" if path.parent.name == "checkpoints" else path.parent / "config.yaml"
-    return path, load_config(cfg_path) if cfg_path.is_file() else None
+    return path, _checkpoint_config(path)
 
 
 def _algorithm_of(path: Path) -> str:

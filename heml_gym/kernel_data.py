@@ -69,16 +69,6 @@ class SupportArrays(NamedTuple):
 
 @nb.njit(cache=True, inline="always")
 def scene_law(laws, s):
-    """Scene ``s``'s :class:`SceneLaw` of ``laws`` (:class:`HemlLaws`)."""
+    """Scene ``s``'s :class:`SceneLaw` of ``laws`` (:class:`HemlLaws`), in a kernel or from
+    Python."""
     return SceneLaw(laws.law[s], laws.params[s], laws.weights[s], laws.psi1[s], laws.split, laws.use_q, laws.q_t)
-
-
-def scene_law_py(laws: HemlLaws, s: int) -> SceneLaw:
-    """:func:`scene_law` from Python (the same types)."""
-    return SceneLaw(np.int64(laws.law[s]), laws.params[s], laws.weights[s], float(laws.psi1[s]), bool(laws.split),
-                    bool(laws.use_q), laws.q_t)
-
-
-def count_supports(supports: SupportArrays) -> int:
-    """How many supports the arrays hold."""
-    return supports.planes.shape[0] + supports.grids.shape[0]

@@ -200,12 +200,12 @@ class Model:
             fields = self._heml_fields()
             split = all(f.split for f in fields)
             use_q = any(f.use_q for f in fields)
+            N = self.n_scenes
             self._laws = HemlLaws(
-                law=np.array([f.law_id for f in fields], dtype=np.int64),
-                params=stack_law_params(fields),
-                weights=np.stack([f.spring_weights for f in fields]) if split else np.zeros((self.n_scenes, 6, 1)),
-                psi1=np.array([f.psi1 if f.split else 0.0 for f in fields]),
+                law=np.zeros(N, dtype=np.int64), params=np.zeros((N, max(len(f.params) for f in fields))),
+                weights=np.zeros((N,) + (fields[0].spring_weights.shape if split else (6, 1))), psi1=np.zeros(N),
                 split=split, use_q=use_q, q_t=fields[0].rest.q_t if use_q else fields[0].q_t)
+            self._set_law_rows(range(N))
         return self._laws
 
     def _heml_fields(self) -> list[HemlForce]:
@@ -225,8 +225,14 @@ class Model:
                 or max(len(f.params) for f in fields) != laws.params.shape[1]):
             self._laws = None
             return
+        self._set_law_rows(scenes)
+
+    def _set_law_rows(self, scenes) -> None:
+        """Write ``scenes``' rows of :meth:`heml_laws` from their fields (law id, zero-padded
+        constants, ``psi1`` and spring weights when the batch is split)."""
+        laws = self._laws
         for s in scenes:
-            f = fields[int(s)]
+            f = self.fields[int(s)]
             laws.law[s] = f.law_id
             laws.params[s] = 0.0
             laws.params[s, :len(f.params)] = f.params
@@ -286,16 +292,6 @@ class Model:
         laws = sorted({type(m).__name__ for m in self.materials})
         return (f"Model({self.mesh!r}, {self.n_scenes} scenes, {type(self._base).__name__}, "
                 f"{'/'.join(laws)}, {int(self.fixed.sum())} fixed, {len(self.supports)} supports)")
-
-
-def stack_law_params(fields) -> np.ndarray:
-    """``(N, k)`` law constants of the scenes' fields, zero-padded to the longest (for the
-    kernels that take one law per scene)."""
-    width = max(len(f.params) for f in fields)
-    out = np.zeros((len(fields), width))
-    for s, f in enumerate(fields):
-        out[s, :len(f.params)] = f.params
-    return out
 
 
 def vertex_mask(n: int, vertices, what: str) -> np.ndarray:

@@ -15,7 +15,7 @@ from heml_gym import materials as M
 from heml_gym.forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
                                           heml_energy_chunk)
 from heml_gym.kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
-from heml_gym.kernel_data import scene_law_py
+from heml_gym.kernel_data import scene_law
 from heml_gym.linear_solvers import EnvelopeLayout
 
 MESH = hg.box_mesh((0.06, 0.03, 0.008), (4, 2, 1))
@@ -395,7 +395,7 @@ def test_reaction_from_the_held_vertices_tets_equals_the_full_force_evaluation()
         m = hg.Model(mesh, material)
         full = m.fields[0].forces(x)  # the field's own evaluation, every tet
         part = np.zeros_like(x)
-        kq.held_forces(x, part, held, m.heml_body(), scene_law_py(m.heml_laws(), 0))
+        kq.held_forces(x, part, held, m.heml_body(), scene_law(m.heml_laws(), 0))
         scale = np.abs(full).max()
         np.testing.assert_allclose(part[held], full[held], rtol=1e-12, atol=1e-12 * scale)
 

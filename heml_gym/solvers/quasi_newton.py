@@ -46,7 +46,7 @@ import scipy.sparse as sp
 
 from ..control import Control
 from ..forces.heml import HemlForce, assembled_edge_weights
-from ..kernel_data import scene_law_py
+from ..kernel_data import scene_law
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeLayout, FreeSubmatrix, LaggedFactorPCG
 from ..model import Model
 from ..state import State
@@ -473,7 +473,7 @@ class QuasiNewtonSolver(Solver):
         control = a["control"]
         x, v = a["x"][s], a["v"][s]
         field = m.fields[s]
-        body, law, supports = a["body"], scene_law_py(a["laws"], s), a["supports"]
+        body, law, supports = a["body"], scene_law(a["laws"], s), a["supports"]
         work = kq.substep_work(n, self.order)
         x_n, v_n, held, f = work.x_n, work.v_n, work.held, work.f
         sub = self._substep(h, fraction, first_substep)
