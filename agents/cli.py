@@ -23,7 +23,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
-DEFAULT_ENV = "heml_gym/TissueRetraction-v0"
+DEFAULT_ENV = "heml_gym/TissueRetraction-v1"
 
 
 def _known_env(env_id: str, argument: str = "--env") -> str:
@@ -33,8 +33,9 @@ def _known_env(env_id: str, argument: str = "--env") -> str:
     import heml_gym.envs  # noqa: F401  (registers the ids)
 
     if env_id not in gym.registry:
-        known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
-        raise ValueError(f"{argument}: unknown environment {env_id!r} (known: {', '.join(known)})")
+        from heml_gym.envs import unknown_env_message
+
+        raise ValueError(f"{argument}: {unknown_env_message(env_id)}")
     return env_id
 
 

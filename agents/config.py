@@ -4,7 +4,7 @@ A config names the environment, the algorithm and its hyperparameters, and the
 evaluation / checkpoint schedule::
 
     env:
-      id: heml_gym/TissueRetraction-v0
+      id: heml_gym/TissueRetraction-v1
       num_envs: 8
       obs_mode: state
       normalize_observations: true   # VecNormalize statistics saved beside the model
@@ -55,7 +55,7 @@ class ConfigError(ValueError):
 
 @dataclass
 class EnvConfig:
-    id: str = "heml_gym/TissueRetraction-v0"
+    id: str = "heml_gym/TissueRetraction-v1"
     num_envs: int = 8
     obs_mode: str = "state"
     normalize_observations: bool = True  # running mean/std of observations (SB3 VecNormalize)
@@ -148,10 +148,10 @@ def validate(cfg: RunConfig) -> RunConfig:
 
     import heml_gym.envs  # noqa: F401  (registers the ids)
 
+    from heml_gym.envs import SpecError, check_env_kwargs, unknown_env_message
+
     if cfg.env.id not in gym.registry:
-        known = sorted(k for k in gym.registry if k.startswith("heml_gym/"))
-        raise ConfigError(f"config key 'env.id': unknown environment {cfg.env.id!r} (known: {', '.join(known)})")
-    from heml_gym.envs import SpecError, check_env_kwargs
+        raise ConfigError(f"config key 'env.id': {unknown_env_message(cfg.env.id)}")
 
     try:
         check_env_kwargs(cfg.env.id, cfg.env.kwargs, "env.kwargs")

@@ -33,7 +33,9 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
     the env is ``gym.make(env_id, obs_mode=obs_mode, **env_kwargs)`` (the run's scene,
     physics and settings).
     """
-    env = gym.make(env_id, obs_mode=obs_mode, **(env_kwargs or {}))
+    from heml_gym.envs import episode_steps
+
+    env = gym.make(env_id, obs_mode=obs_mode, max_episode_steps=episode_steps(env_kwargs), **(env_kwargs or {}))
     successes, exposures, strains, lengths = 0, [], [], []
     for k in range(episodes):
         obs, _ = env.reset(seed=seed + k)

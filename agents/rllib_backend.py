@@ -53,10 +53,10 @@ def make_vector_env(num_envs: int, env_id: str, **kwargs):
     import gymnasium as gym
     from gymnasium.wrappers.vector import NormalizeObservation
 
-    import heml_gym.envs  # noqa: F401  (registers the environments in the runner)
+    from heml_gym.envs import episode_steps  # (registers the environments in the runner)
 
     return NormalizeObservation(gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
-                                             **kwargs))
+                                             max_episode_steps=episode_steps(kwargs), **kwargs))
 
 
 def _register() -> None:

@@ -23,7 +23,7 @@ import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-import heml_gym.envs  # noqa: F401  (registers the environments)
+from heml_gym.envs import TISSUE_RETRACTION, episode_steps  # (and registers the environments)
 
 from .algorithms import ALGORITHMS, BACKENDS, algorithm_class
 from .config import ConfigError, RunConfig, load_config
@@ -37,7 +37,7 @@ def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
     """The SB3 VecEnv of a config: one batched Numba call for all scenes, with episode stats."""
     vector_env = gym.make_vec(cfg.env.id, num_envs=num_envs or cfg.env.num_envs,
                               vectorization_mode="vector_entry_point", obs_mode=cfg.env.obs_mode,
-                              **cfg.env.kwargs)
+                              max_episode_steps=episode_steps(cfg.env.kwargs), **cfg.env.kwargs)
     return VecMonitor(RetractionSb3VecEnv(vector_env.unwrapped))
 
 
@@ -45,8 +45,9 @@ def make_env(cfg: RunConfig | None, env_id: str | None = None, **extra):
     """One env of a config (its id, obs mode and ``env.kwargs``), or of ``env_id`` with
     the defaults when there is no config."""
     if cfg is None:
-        return gym.make(env_id or "heml_gym/TissueRetraction-v0", **extra)
-    return gym.make(env_id or cfg.env.id, obs_mode=cfg.env.obs_mode, **{**cfg.env.kwargs, **extra})
+        return gym.make(env_id or TISSUE_RETRACTION, max_episode_steps=episode_steps(extra), **extra)
+    kwargs = {**cfg.env.kwargs, **extra}
+    return gym.make(env_id or cfg.env.id, obs_mode=cfg.env.obs_mode, max_episode_steps=episode_steps(kwargs), **kwargs)
 
 
 def model_policy(model, normalizer: VecNormalize | None = None):

@@ -29,13 +29,13 @@ from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # 
 
 #: (results name of the sweep, config, algorithm, env, difficulty, seeds the command runs)
 SWEEPS = [
-    ("quick_sweep", "configs/quick.yaml", "PPO", "heml_gym/TissueRetraction-v0", 1, "0,1,2,3,4,5,6"),
-    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v0", 1, "0,1,2,3,4"),
-    ("tissue_sac_sweep", "configs/tissue_sac.yaml", "SAC", "heml_gym/TissueRetraction-v0", 1, "0,1,2"),
-    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v0", 1, "0,1,2"),
-    ("tissue_ppo_difficulty2", "configs/tissue_ppo_difficulty2.yaml", "PPO", "heml_gym/TissueRetraction-v0", 2,
+    ("quick_sweep", "configs/quick.yaml", "PPO", "heml_gym/TissueRetraction-v1", 1, "0,1,2,3,4,5,6"),
+    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v1", 1, "0,1,2,3,4"),
+    ("tissue_sac_sweep", "configs/tissue_sac.yaml", "SAC", "heml_gym/TissueRetraction-v1", 1, "0,1,2"),
+    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v1", 1, "0,1,2"),
+    ("tissue_ppo_difficulty2", "configs/tissue_ppo_difficulty2.yaml", "PPO", "heml_gym/TissueRetraction-v1", 2,
      "0,1,2,3,4"),
-    ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v0", 2,
+    ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v1", 2,
      "0,1,2,3,4"),
 ]
 #: line colours of the chart by (algorithm, difficulty)

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import heml_gym.envs  # noqa: E402,F401
 from common import RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 
-ENV = "heml_gym/TissueRetraction-v0"
+ENV = "heml_gym/TissueRetraction-v1"
 
 
 def render_rate(size: int, scenes: int = 16, reps: int = 40) -> float:

@@ -142,9 +142,28 @@ def unsourced_numbers(doc: Path, values: np.ndarray, printed: set[str]) -> list[
     return failures
 
 
+def unlabelled_results() -> list[str]:
+    """Stored results that do not say which task versions they measured, whose stale
+    banner is missing, or an index (docs/benchmarks/index.md) that is not current."""
+    import update_docs
+
+    failures = []
+    for path in sorted(RESULTS.glob("*.json")):
+        data = json.loads(path.read_text())
+        if not isinstance(data.get("tasks"), dict):
+            failures.append(f"{shown(path)}: no 'tasks' (the task versions it measured)")
+        elif update_docs.stale_tasks(data) and path.with_suffix(".md").is_file() \
+                and not path.with_suffix(".md").read_text().startswith("**Stale:**"):
+            failures.append(f"{shown(path.with_suffix('.md'))}: measured on a former task, no **Stale:** banner")
+    index = RESULTS / "index.md"
+    if not index.is_file() or index.read_text() != update_docs.index():
+        failures.append(f"{shown(index)}: not current (python benchmarks/update_docs.py)")
+    return failures
+
+
 def check() -> list[str]:
     values, printed = stored_values()
-    failures = []
+    failures = unlabelled_results()
     for doc in documents():
         for failure in stale_blocks(doc) + unsourced_numbers(doc, values, printed):
             failures.append(f"{shown(doc)}: {failure}")

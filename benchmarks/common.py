@@ -107,10 +107,33 @@ def median_time(fn, min_reps: int = 5, max_reps: int = 200, budget_s: float = 1.
     return {"median_s": float(med), "iqr_s": float(q3 - q1), "reps": len(times)}
 
 
-def write_json(name: str, data: dict) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / name
-    path.write_text(json.dumps(data, indent=1) + "\n")
+def current_tasks() -> dict[str, str]:
+    """The registered version of each task, ``{"heml_gym/TissueRetraction": "v1", ...}``."""
+    from heml_gym.envs import ENV_IDS
+
+    return dict(env_id.rsplit("-", 1) for env_id in ENV_IDS)
+
+
+def with_tasks(data: dict, envs=None) -> dict:
+    """``data`` with ``"tasks"`` first: the version of each task the result measured, from
+    ``envs`` (env ids or names) or, when None, the versioned env ids written in ``data``
+    (none: a physics-only result, ``{}``). Stored results say which task they are on, so a
+    task's next version leaves them recognisably stale (docs/benchmarks/index.md)."""
+    if "tasks" in data:
+        return data
+    current = current_tasks()
+    text = json.dumps(data) if envs is None else " ".join(envs)
+    tasks = {name: version for name, version in current.items() if name.split("/")[-1] in text}
+    return {"tasks": tasks, **data}
+
+
+def write_json(name: str, data: dict, envs=None, folder: Path | None = None) -> Path:
+    """Store a result as ``folder / name`` (default docs/benchmarks/), labelled with the
+    task versions it measured (:func:`with_tasks`)."""
+    folder = RESULTS if folder is None else Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    path.write_text(json.dumps(with_tasks(data, envs), indent=1) + "\n")
     return path
 
 

@@ -130,7 +130,7 @@ def main(argv=None):
         for _ in range(ROUNDS):
             for threads in thread_counts:
                 numba.set_num_threads(threads)
-                per_round[threads].append(median_time(lambda: field.forces(x, out=out), min_reps=3,
+                per_round[threads].append(median_time(lambda f=field: f.forces(x, out=out), min_reps=3,
                                                       budget_s=1.0 / ROUNDS)["median_s"])
         for threads in thread_counts:
             med = float(np.median(per_round[threads]))

@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 
 SCALES = (1.0, 1.1, 1.25, 1.5)
-ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
 
 
 def measure(env_id: str, scale: float, steps: int, seeds: int) -> dict:

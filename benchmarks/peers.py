@@ -46,7 +46,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import heml_gym as hg  # noqa: E402
 import speed_accuracy as sa  # noqa: E402
-from common import IMAGES, RESULTS, machine_info, markdown_table  # noqa: E402
+from common import IMAGES, RESULTS, machine_info, markdown_table, with_tasks, write_json  # noqa: E402
 from heml_gym import materials as M  # noqa: E402
 
 SNH, STVK = "Stable Neo-Hookean", "StVK"
@@ -333,7 +333,8 @@ def main(argv=None):
     add_errors(rows, ref)
     data = {"machine": machine_info(), "versions": versions, "force_checks": checks, "config": cfg,
             "cap_s": args.cap_s, "wall_s": time.perf_counter() - t_start, "results": rows}
-    (out_dir / "speed_accuracy_peers.json").write_text(json.dumps(data, indent=1) + "\n")
+    data = with_tasks(data, envs=())  # physics only: no task
+    write_json("speed_accuracy_peers.json", data, folder=out_dir)
     write_report(data, ref, out_dir, img_dir)
 
 

@@ -134,7 +134,7 @@ def rllib(data: dict) -> str:
             "[scale_out.md](../scale_out.md#measured)).")
 
 
-TISSUE, ORGAN = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1"
 
 
 def _rates(data: dict):
@@ -225,13 +225,13 @@ def agents(data: dict) -> str:
         if g["name"] == "quick_sweep":
             continue
         level = "" if g.get("difficulty", 1) == 1 else f" at difficulty {g['difficulty']}"
-        parts.append(f"{g['algorithm']} on {g['env'].split('/')[-1].replace('-v0', '')}{level}: "
+        parts.append(f"{g['algorithm']} on {g['env'].split('/')[-1].rsplit('-v', 1)[0]}{level}: "
                      f"{g['seeds_at_90_percent']} of {len(g['seeds'])} seeds >= 90 % at "
                      f"{max(s['env_steps'] for s in g['seeds']) // 1000} k steps (IQM {g['iqm']:.0%}, "
                      f"{g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})")
     for m in data["missing"]:
         level = "" if m.get("difficulty", 1) == 1 else f" at difficulty {m['difficulty']}"
-        parts.append(f"{m['algorithm']} on {m['env'].split('/')[-1].replace('-v0', '')}{level}: not run yet")
+        parts.append(f"{m['algorithm']} on {m['env'].split('/')[-1].rsplit('-v', 1)[0]}{level}: not run yet")
     if not parts:
         return ""
     return (f"**Other agents** (default task, difficulty 1, unless named): {'; '.join(parts)} "

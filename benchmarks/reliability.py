@@ -35,7 +35,7 @@ Writes docs/benchmarks/reliability.{json,md} and docs/img/reliability.png.
     python benchmarks/reliability.py [--steps 2000]      # env steps per env (split over the streams)
     python benchmarks/reliability.py --steps 200000,60000 --stream-steps 2000 --targets host,haswell
                                     # the published run: over 1,000,000 env steps in all
-    python benchmarks/reliability.py --envs heml_gym/OrganRetraction-v0 --steps 50000 --merge
+    python benchmarks/reliability.py --envs heml_gym/OrganRetraction-v1 --steps 50000 --merge
                                     # re-soak one env, keeping the stored rows of the others
 """
 
@@ -57,7 +57,7 @@ import heml_gym.envs  # noqa: E402,F401  (registers the envs)
 from common import IMAGES, RESULTS, codegen_target, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym.envs.scripted import scripted_policy  # noqa: E402
 
-ENV_IDS = ("heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
 STREAMS = ("random", "extreme", "toggling", "out_of_range", "push_release", "scripted")
 VECTOR_N = 8
 ACCEPTANCE_STREAMS = ("push_release", "random", "extreme")  # part 1b
@@ -216,7 +216,7 @@ def bad_inputs() -> list[dict]:
     from heml_gym.envs.core import RewardWeights, TaskSettings
     from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractionVectorEnv
 
-    tissue = "heml_gym/TissueRetraction-v0"
+    tissue = "heml_gym/TissueRetraction-v1"
     box = hg.box_mesh((0.02, 0.02, 0.02), 2)
 
     def env_step(action):
@@ -540,9 +540,7 @@ def main(argv=None) -> int:
         IMAGES.mkdir(parents=True, exist_ok=True)
         chart(results, IMAGES / "reliability.png")
     else:
-        import json
-
-        (out / "reliability.json").write_text(json.dumps(results, indent=1) + "\n")
+        write_json("reliability.json", results, folder=out)
     (out / "reliability.md").write_text(report(results))
     failures = sum(r["diverged"] + r["unconverged"] + r["non_finite"] + r["outside_space"] + r["exceptions"]
                    for r in soak_rows)

@@ -1,4 +1,4 @@
-"""RLlib PPO learning on TissueRetraction-v0: the distributed-sampling path learns the task.
+"""RLlib PPO learning on TissueRetraction-v1: the distributed-sampling path learns the task.
 
 Trains ``configs/tissue_rllib_ppo.yaml`` (RLlib PPO, env runners each holding a batched
 vector env of 16 scenes) on a local Ray instance, evaluating every 25 k env steps on 20
@@ -60,7 +60,7 @@ def plot(result: dict, path: Path) -> None:
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("env steps")
     ax.set_ylabel("evaluated success rate")
-    ax.set_title(f"RLlib PPO on TissueRetraction-v0 ({result['machine']['cpu']})", fontsize=9)
+    ax.set_title(f"RLlib PPO on TissueRetraction-v1 ({result['machine']['cpu']})", fontsize=9)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -2,7 +2,7 @@
 
 Starts a real 2-node Ray cluster on this machine (``ray.cluster_utils.Cluster``: a head and
 a worker node, ``--cpus-per-node`` logical CPUs each; it is shut down at the end), builds
-RLlib PPO on ``heml_gym/TissueRetraction-v0`` with ``N`` env runners of ``--scenes``
+RLlib PPO on ``heml_gym/TissueRetraction-v1`` with ``N`` env runners of ``--scenes``
 scenes each (one batched Numba call per step per runner), and measures
 
 * sampling: env steps per second of all runners sampling in parallel (no learning);
@@ -41,7 +41,7 @@ def measure(address: str, runners: int, scenes: int, rounds: int, batch: int) ->
              runtime_env={"env_vars": {"OMP_WAIT_POLICY": "PASSIVE", "NUMBA_NUM_THREADS": "1"}})
     try:
         config = (PPOConfig()
-                  .environment(RUNNER_ENV, env_config={"env_id": "heml_gym/TissueRetraction-v0", "obs_mode": "state"})
+                  .environment(RUNNER_ENV, env_config={"env_id": "heml_gym/TissueRetraction-v1", "obs_mode": "state"})
                   .env_runners(num_env_runners=runners, num_envs_per_env_runner=scenes, num_cpus_per_env_runner=1,
                                gym_env_vectorize_mode="vector_entry_point")
                   .training(train_batch_size_per_learner=batch, minibatch_size=256, num_epochs=1)

@@ -37,13 +37,13 @@ from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # 
 E_GRID = (1e3, 4e3, 8e3, 3e4, 1e5)  # Pa: 4-8 kPa is the scenes' randomisation range
 NU_GRID = (0.3, 0.45, 0.49)
 SCENES = {
-    "heml_gym/TissueRetraction-v0": {"range": (4e3, 8e3, 0.45), "integrators": {
+    "heml_gym/TissueRetraction-v1": {"range": (4e3, 8e3, 0.45), "integrators": {
         "quasi-Newton dt=0.05 (default)": {"integrator": "quasi_newton"},
         "quasi-Newton dt=0.1": {"integrator": "quasi_newton", "max_dt": 0.1},
         "explicit s=0.75": {"integrator": "explicit", "safety": 0.75},
         "explicit s=1.0": {"integrator": "explicit", "safety": 1.0},
         "Newton dt=0.1": {"integrator": "implicit", "max_dt": 0.1, "newton_tol": 1e-3, "max_newton": 20}}},
-    "heml_gym/OrganRetraction-v0": {"range": (4e3, 8e3, 0.45), "integrators": {
+    "heml_gym/OrganRetraction-v1": {"range": (4e3, 8e3, 0.45), "integrators": {
         "quasi-Newton dt=0.05 (default)": {"integrator": "quasi_newton"},
         "quasi-Newton dt=0.1": {"integrator": "quasi_newton", "max_dt": 0.1},
         # explicit: on the default mesh (2.5 mm at the jaws) one setting costs about 40 min
@@ -111,7 +111,7 @@ def chart(rows: list, path: Path) -> None:
         ax.set_yticks(range(len(nus)), [f"{n:g}" for n in nus])
         ax.set_xlabel("E (kPa)")
         ax.set_ylabel("nu")
-        ax.set_title(f"{env_id.split('/')[-1].replace('-v0', '')}: {name}", fontsize=9)
+        ax.set_title(f"{env_id.split('/')[-1].rsplit('-v', 1)[0]}: {name}", fontsize=9)
     for ax in axes.ravel()[len(panels):]:
         ax.axis("off")
     fig.suptitle("Failures (divergences + unconverged solves) per run of random and extreme actions; "

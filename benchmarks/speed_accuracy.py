@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import heml_gym as hg  # noqa: E402
-from common import IMAGES, RESULTS, machine_info, markdown_table  # noqa: E402
+from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym import materials as M  # noqa: E402
 from heml_gym.mesh import signed_volumes  # noqa: E402
 
@@ -364,7 +364,7 @@ def load_reference(path: Path, cfg: dict, laws_static, laws_dynamic, recompute: 
     ref = compute_reference(cfg, laws_static, laws_dynamic, ref)
     ref["machine"] = machine_info()
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(ref, indent=1) + "\n")
+    write_json(path.name, ref, envs=(), folder=path.parent)
     return ref
 
 
@@ -782,7 +782,7 @@ def main(argv=None):
     if args.stage == "report":
         data = json.loads(res_path.read_text())
         add_errors(data["results"], data["reference"])  # deterministic: refreshes derived numbers
-        res_path.write_text(json.dumps(data, indent=1) + "\n")
+        write_json(res_path.name, data, envs=(), folder=out_dir)
         write_report(data, out_dir, img_dir)
         return
     t_start = time.perf_counter()
@@ -806,7 +806,7 @@ def main(argv=None):
         "reference": ref,
         "results": rows,
     }
-    res_path.write_text(json.dumps(data, indent=1) + "\n")
+    write_json(res_path.name, data, envs=(), folder=out_dir)
     write_report(data, out_dir, img_dir)
     print(f"sweep {data['sweep_wall_s']:.0f} s, total {data['total_wall_s']:.0f} s; wrote {res_path}")
 

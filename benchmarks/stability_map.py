@@ -44,7 +44,7 @@ import warnings  # noqa: E402
 
 # the map counts unconverged steps itself; the facade's warnings would flood the log
 warnings.simplefilter("ignore", hg.NotConvergedWarning)
-from common import IMAGES, RESULTS, machine_info, markdown_table  # noqa: E402
+from common import IMAGES, RESULTS, machine_info, markdown_table, write_json  # noqa: E402
 from heml_gym import materials as M  # noqa: E402
 from heml_gym.kinematics import volume_ratios  # noqa: E402
 
@@ -448,9 +448,7 @@ def main(argv=None):
         "setup": setups,
         "results": records,
     }
-    import json
-
-    (res_dir / "stability_map.json").write_text(json.dumps(data, indent=1) + "\n")
+    write_json("stability_map.json", data, envs=(), folder=res_dir)
     write_report(data, res_dir, img_dir)
     print(f"total wall time {total:.0f} s")
 

@@ -18,8 +18,8 @@ import heml_gym.envs  # noqa: E402,F401  (registers the envs)
 from common import IMAGES  # noqa: E402
 from heml_gym.envs.scripted import scripted_policy  # noqa: E402
 
-ENVS = {"heml_gym/TissueRetraction-v0": "TissueRetraction: fold the fat flap back off the tumour",
-        "heml_gym/OrganRetraction-v0": "OrganRetraction: fold the liver lobe back off the tumour"}
+ENVS = {"heml_gym/TissueRetraction-v1": "TissueRetraction: fold the fat flap back off the tumour",
+        "heml_gym/OrganRetraction-v1": "OrganRetraction: fold the liver lobe back off the tumour"}
 SIZE = (300, 400)  # pixels
 
 

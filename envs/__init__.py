@@ -2,11 +2,14 @@
 
 Importing this package registers:
 
-* ``heml_gym/TissueRetraction-v0`` (:class:`~heml_gym.envs.tissue_retraction.TissueRetractionEnv`)
-* ``heml_gym/OrganRetraction-v0`` (:class:`~heml_gym.envs.organ_retraction.OrganRetractionEnv`)
+* ``heml_gym/TissueRetraction-v1`` (:class:`~heml_gym.envs.tissue_retraction.TissueRetractionEnv`)
+* ``heml_gym/OrganRetraction-v1`` (:class:`~heml_gym.envs.organ_retraction.OrganRetractionEnv`)
 
 each with a batched implementation for ``gymnasium.make_vec(...,
-vectorization_mode="vector_entry_point")``.
+vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` 100 (the tasks'
+``settings.max_steps``). The version changes whenever a task's behaviour does (each
+env's docstring keeps a version history); ``-v0`` named several former tasks and is
+no longer registered: asking for it is a one-line error naming ``-v1``.
 """
 
 import gymnasium as gym
@@ -17,7 +20,9 @@ from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec
 from .spec import SpecError
 
 __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec", "GripperSpec",
-           "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC"]
+           "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC",
+           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "ENV_IDS", "MAX_EPISODE_STEPS", "episode_steps",
+           "unknown_env_message"]
 
 #: Arguments set by other means than ``env.kwargs`` (the run config's own keys, gym.make's).
 RESERVED_KWARGS = ("obs_mode", "num_envs", "render_mode", "max_episode_steps")
@@ -35,7 +40,7 @@ def check_env_kwargs(env_id: str, kwargs: dict, path: str = "env.kwargs"):
     if not isinstance(kwargs, dict):
         raise SpecError(f"{path}: must be a mapping of keyword arguments, got {type(kwargs).__name__}")
     if env_id not in gym.registry:
-        raise SpecError(f"unknown environment {env_id!r}")
+        raise SpecError(unknown_env_message(env_id))
     cls = load_env_creator(gym.registry[env_id].entry_point)
     known = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
     for key in kwargs:
@@ -51,14 +56,50 @@ def check_env_kwargs(env_id: str, kwargs: dict, path: str = "env.kwargs"):
         raise SpecError(message if message.startswith(path) else f"{path}.{message}") from None
 
 
+#: The registered ids of today's tasks, and the episode length their specs register
+#: (``TaskSettings.max_steps``'s default: gym.make's TimeLimit and the env's own
+#: truncation agree).
+TISSUE_RETRACTION = "heml_gym/TissueRetraction-v1"
+ORGAN_RETRACTION = "heml_gym/OrganRetraction-v1"
+ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION)
+MAX_EPISODE_STEPS = TaskSettings().max_steps
+
+#: Ids no longer registered, and what replaced them.
+RETIRED_IDS = {"heml_gym/TissueRetraction-v0": TISSUE_RETRACTION, "heml_gym/OrganRetraction-v0": ORGAN_RETRACTION}
+
+
+def unknown_env_message(env_id: str) -> str:
+    """The one-line error for an id that is not registered: a retired version names its
+    successor, anything else lists the known heml_gym ids."""
+    if env_id in RETIRED_IDS:
+        return (f"{env_id} is retired (-v0 meant several former tasks): use {RETIRED_IDS[env_id]}, "
+                "today's task (its version history is in the env's docstring)")
+    return f"unknown environment {env_id!r} (known: {', '.join(ENV_IDS)})"
+
+
+def episode_steps(kwargs: dict) -> int | None:
+    """The episode length that env keyword arguments ask for (``settings.max_steps``,
+    given as a mapping or a :class:`TaskSettings`), or None when they leave the default.
+    Pass it to ``gym.make`` / ``gym.make_vec`` as ``max_episode_steps`` so that gymnasium's
+    TimeLimit and the env's own truncation agree."""
+    settings = (kwargs or {}).get("settings")
+    if isinstance(settings, dict) and "max_steps" in settings:
+        return settings["max_steps"]
+    if isinstance(settings, TaskSettings) and settings.max_steps != MAX_EPISODE_STEPS:
+        return settings.max_steps
+    return None
+
+
 gym.register(
-    id="heml_gym/TissueRetraction-v0",
+    id=TISSUE_RETRACTION,
     entry_point="heml_gym.envs.tissue_retraction:TissueRetractionEnv",
     vector_entry_point="heml_gym.envs.tissue_retraction:TissueRetractionVectorEnv",
+    max_episode_steps=MAX_EPISODE_STEPS,
 )
 
 gym.register(
-    id="heml_gym/OrganRetraction-v0",
+    id=ORGAN_RETRACTION,
     entry_point="heml_gym.envs.organ_retraction:OrganRetractionEnv",
     vector_entry_point="heml_gym.envs.organ_retraction:OrganRetractionVectorEnv",
+    max_episode_steps=MAX_EPISODE_STEPS,
 )

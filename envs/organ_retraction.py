@@ -1,4 +1,4 @@
-"""OrganRetraction-v0: fold a liver lobe back about its base to expose what lies beneath it.
+"""OrganRetraction-v1: fold a liver lobe back about its base to expose what lies beneath it.
 
 ## Description
 
@@ -25,7 +25,7 @@ resolve.
 
 ## Action Space, Observation Space, Rewards, Episode End
 
-As for ``TissueRetraction-v0`` (see :mod:`heml_gym.envs.tissue_retraction`): the same
+As for ``TissueRetraction-v1`` (see :mod:`heml_gym.envs.tissue_retraction`): the same
 4-D action, 24-D state (the four tracked points are the lobe's thin-edge corners and
 middle, and its top centre), the same reward terms and thresholds, strain over the same
 15 mm gauge. Closed jaws hold the lobe's top face over their footprint, a 6 x 40 mm patch
@@ -60,18 +60,20 @@ limit (the edge in front of it droops further on every finer mesh), a patch does
 
 ## Version History
 
-v0: initial version; the scene as described here since the convergence redesign (base
-hinge, line grasp, gravity on a support plane, 7 mm mesh; it was a 16 mm lobe clamped
-over its thick third, without gravity). Since 2026-11-24: difficulty 1 (hold 2 s) is the
-default, and the lobe is stepped by the quasi-Newton solver (was explicit sub-steps).
-Later the same day: the jaws hold their 6 x 40 mm footprint (was the 40 mm line through
-it), on an 8 mm mesh refined to 2.5 mm at the jaws (was 7 mm throughout), the first
-default with a converged fine-mesh reference. Since 2026-11-25: a fold, not a lift: the
-target lies beneath the lobe's base third (was x -35..-10 mm, behind the thin edge,
-exposed by lifting the edge 2 cm: 26 scripted steps), the underside is stuck to the
-support 0-40 mm out from the base (drawn per episode; was free), the scripted fold goes
-up to 1.2 rad about the base (was 0.8), and the mesh is 10 mm away from the jaws (was
-8 mm: on the new task the cheaper mesh is within 5 %).
+v1 (2026-11-26): the task described here, unchanged since 2026-11-25 15:38 UTC, when it
+was still registered as v0: fold the lobe back about its base (up to 1.2 rad scripted)
+to a target beneath its base third; the underside stuck 0-40 mm out from the base,
+drawn per episode; jaws holding their 6 x 40 mm footprint; a 10 mm mesh refined to
+2.5 mm at the jaws, stepped by the quasi-Newton solver; difficulty 1 (hold 2 s) by
+default. Registered with ``max_episode_steps`` 100.
+
+v0 (retired 2026-11-26): named several tasks over time: a 16 mm lobe clamped over its
+thick third without gravity (explicit sub-steps); since the convergence redesign a base
+hinge, line grasp, gravity on a support plane on a 7 mm mesh; since 2026-11-24
+difficulty 1, the quasi-Newton solver, then the 6 x 40 mm jaw footprint on an 8 mm / 2.5
+mm mesh and a lift of the thin edge (target at x -35..-10 mm); since 2026-11-25 15:38
+the v1 task. ``FORMER_TASK`` restores the lift's target and free underside. A result
+quoted for v0 is on the task of its date (docs/benchmarks/index.md says which).
 """
 
 from __future__ import annotations

@@ -319,8 +319,10 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
 class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
     """N retraction scenes advanced by one batched Numba call (next-step autoreset).
 
-    Arguments as the single env's, plus ``num_envs`` and ``max_episode_steps`` (a
-    shorthand for ``settings.max_steps``; the caller's settings are not modified).
+    Arguments as the single env's, plus ``num_envs`` and ``max_episode_steps`` (the
+    episode length, ``settings.max_steps``; ``gym.make_vec`` passes the registered 100
+    unless given, and a ``settings.max_steps`` that disagrees with it is an error; the
+    caller's settings are not modified).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"]}
@@ -336,10 +338,17 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
+        asked = settings.get("max_steps") if isinstance(settings, dict) else None
         settings = as_settings(settings, TaskSettings, "settings")
         if max_episode_steps is not None:
             if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)):
                 raise ValueError(f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}")
+            if asked is None and settings.max_steps != TaskSettings.max_steps:
+                asked = settings.max_steps
+            if asked is not None and asked != max_episode_steps:
+                raise ValueError(f"settings.max_steps={asked} disagrees with max_episode_steps={max_episode_steps} "
+                                 "(gym.make_vec passes the registered spec's unless given): give "
+                                 f"max_episode_steps={asked} instead")
             settings = settings_with(settings, max_steps=int(max_episode_steps))  # a copy: never the caller's
         settings, spec = apply_difficulty(difficulty, settings, self.resolve(scene, physics, **size))
         self.difficulty = difficulty

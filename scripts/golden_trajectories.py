@@ -24,21 +24,21 @@ import numpy as np
 
 #: (env id, physics overrides, env steps[, vector scenes, obs mode])
 CASES = [
-    ("heml_gym/TissueRetraction-v0", {}, 100),
-    ("heml_gym/TissueRetraction-v0", {"scheme": "bdf2"}, 100),
-    ("heml_gym/TissueRetraction-v0", {"integrator": "implicit"}, 100),
-    ("heml_gym/TissueRetraction-v0", {"integrator": "explicit"}, 100),
-    ("heml_gym/OrganRetraction-v0", {}, 100),
-    ("heml_gym/OrganRetraction-v0", {"integrator": "implicit"}, 40),
-    ("heml_gym/OrganRetraction-v0", {"integrator": "explicit"}, 20),
+    ("heml_gym/TissueRetraction-v1", {}, 100),
+    ("heml_gym/TissueRetraction-v1", {"scheme": "bdf2"}, 100),
+    ("heml_gym/TissueRetraction-v1", {"integrator": "implicit"}, 100),
+    ("heml_gym/TissueRetraction-v1", {"integrator": "explicit"}, 100),
+    ("heml_gym/OrganRetraction-v1", {}, 100),
+    ("heml_gym/OrganRetraction-v1", {"integrator": "implicit"}, 40),
+    ("heml_gym/OrganRetraction-v1", {"integrator": "explicit"}, 20),
     # vector envs: the scenes over threads (quasi-Newton), in SIMD lanes (explicit,
     # Neo-Hookean) and fused (explicit, any law); camera images (serial and parallel)
-    ("heml_gym/TissueRetraction-v0", {}, 30, 4, "state"),
-    ("heml_gym/TissueRetraction-v0", {"integrator": "explicit"}, 20, 6, "state"),
-    ("heml_gym/TissueRetraction-v0", {"integrator": "explicit", "material": "Demiray",
+    ("heml_gym/TissueRetraction-v1", {}, 30, 4, "state"),
+    ("heml_gym/TissueRetraction-v1", {"integrator": "explicit"}, 20, 6, "state"),
+    ("heml_gym/TissueRetraction-v1", {"integrator": "explicit", "material": "Demiray",
                                       "material_options": {"b": 2.0}}, 20, 3, "state"),
-    ("heml_gym/TissueRetraction-v0", {}, 10, 1, "rgbd"),
-    ("heml_gym/OrganRetraction-v0", {}, 10, 2, "rgbd"),
+    ("heml_gym/TissueRetraction-v1", {}, 10, 1, "rgbd"),
+    ("heml_gym/OrganRetraction-v1", {}, 10, 2, "rgbd"),
 ]
 
 

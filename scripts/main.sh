@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The main job: set up the environment (first run only), train the default agent on
-# heml_gym/TissueRetraction-v0 for a short budget, evaluate it, and record a rollout.
+# heml_gym/TissueRetraction-v1 for a short budget, evaluate it, and record a rollout.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 HEML_EXTRAS="${HEML_EXTRAS:-train,viz}" source scripts/setup_env.sh

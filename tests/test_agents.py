@@ -75,6 +75,7 @@ def test_bad_config_bases_are_clear_errors(tmp_path, text, match):
     ({"algorithm": {"nme": "PPO"}}, "algorithm.nme"),
     ({"env": {"num_envs": "eight"}}, "env.num_envs"),
     ({"env": {"id": "heml_gym/Nope-v0"}}, "env.id"),
+    ({"env": {"id": "heml_gym/OrganRetraction-v0"}}, "is retired"),
     ({"algorithm": {"name": "DQN"}}, "algorithm.name"),
     ({"evaluation": {"episodes": 0}}, "evaluation.episodes"),
     ({"seeed": 1}, "seeed"),
@@ -111,9 +112,9 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path, capsys)
     assert result["episodes"] == 2 and len(result["success_ci95"]) == 2
     # a rollout on another env than the run's is refused, one line, nothing written
     rrd = tmp_path / "other.rrd"
-    assert main(["rollout", "--policy", str(run), "--env", "heml_gym/OrganRetraction-v0", "--rrd", str(rrd)]) == 2
+    assert main(["rollout", "--policy", str(run), "--env", "heml_gym/OrganRetraction-v1", "--rrd", str(rrd)]) == 2
     err = capsys.readouterr().err
-    assert "--env heml_gym/OrganRetraction-v0: the policy was trained on" in err and "Traceback" not in err
+    assert "--env heml_gym/OrganRetraction-v1: the policy was trained on" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and not rrd.exists()
     # observation statistics: saved with the model and with every checkpoint, learned from
     # the training observations, and applied by the loaded policy
@@ -188,8 +189,15 @@ def test_an_unknown_env_is_one_line_exit_2_and_nothing_written(tmp_path, capsys,
     argv = [a.format(tmp=tmp_path) for a in argv]
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert "unknown environment" in err and "heml_gym/TissueRetraction-v0" in err  # (the known ones listed)
+    assert "unknown environment" in err and "heml_gym/TissueRetraction-v1" in err  # (the known ones listed)
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_retired_version_names_its_successor(tmp_path, capsys):
+    assert main(["scene", "heml_gym/TissueRetraction-v0", "--out", str(tmp_path / "scene.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "retired" in err and "use heml_gym/TissueRetraction-v1" in err and len(err.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
 
 

@@ -14,7 +14,7 @@ from heml_gym.envs.render import box, icosphere
 from heml_gym.envs.scripted import scripted_policy
 from raycast import first_hits
 
-TISSUE, ORGAN = "heml_gym/TissueRetraction-v0", "heml_gym/OrganRetraction-v0"
+TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1"
 
 
 @pytest.mark.parametrize("env_id", [TISSUE, ORGAN])
@@ -38,7 +38,7 @@ def test_sb3_cnn_and_multi_input_policies_take_them_without_wrappers():
     for mode, policy, camera in (("rgb", "CnnPolicy", {"size": 64}),
                                  ("rgbd", "MultiInputPolicy", {"size": 64, "state": True})):
         vec = gym.make_vec(TISSUE, num_envs=2, vectorization_mode="vector_entry_point", obs_mode=mode, camera=camera,
-                           settings={"max_steps": 8})
+                           max_episode_steps=8)
         model = PPO(policy, RetractionSb3VecEnv(vec.unwrapped), n_steps=16, batch_size=16, n_epochs=1, device="cpu")
         model.learn(32)
         assert model.num_timesteps >= 32

@@ -14,7 +14,7 @@ from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractio
 from heml_gym.envs.spec import SpecError
 from raycast import segments_blocked
 
-ENV_ID = "heml_gym/TissueRetraction-v0"
+ENV_ID = "heml_gym/TissueRetraction-v1"
 
 
 @pytest.mark.parametrize("env_class", [TissueRetractionEnv, OrganRetractionEnv])

@@ -253,7 +253,7 @@ def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
     # the two users build the same solvers from the same settings
     sim = hg.Simulation(hg.HemlForce(model.mesh, M.NeoHookean(E=5e3, nu=0.45)), 1000.0, integrator="quasi_newton")
     assert sim.solver.max_iter == 50 and sim.solver.refinements == (4, 16)
-    env = gym.make("heml_gym/TissueRetraction-v0")
+    env = gym.make("heml_gym/TissueRetraction-v1")
     physics = env.unwrapped.scene.physics
     solver = env.unwrapped.task.solver
     assert (solver.max_iter, solver.newton_tol, solver.scheme) == (physics.max_newton, physics.newton_tol,
@@ -262,10 +262,10 @@ def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
     with pytest.raises(SolverChoiceError, match="^hessian_scale"):
         make_solver(model, "implicit", hessian_scale=2.0)
     # an integrator without an initial Hessian does not read the scene's setting
-    implicit = gym.make("heml_gym/TissueRetraction-v0", physics={"integrator": "implicit"}).unwrapped.task.solver
+    implicit = gym.make("heml_gym/TissueRetraction-v1", physics={"integrator": "implicit"}).unwrapped.task.solver
     assert isinstance(implicit, hg.ImplicitSolver)
     with pytest.raises(Exception, match="PhysicsSpec.scheme|physics.scheme"):
-        gym.make("heml_gym/TissueRetraction-v0", physics={"integrator": "implicit", "scheme": "bdf2"})
+        gym.make("heml_gym/TissueRetraction-v1", physics={"integrator": "implicit", "scheme": "bdf2"})
 
 
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])

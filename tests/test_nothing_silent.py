@@ -23,7 +23,7 @@ from heml_gym.envs.tissue_retraction import TissueRetractionEnv, TissueRetractio
 from heml_gym.mesh import MeshQualityWarning
 
 ROOT = Path(__file__).resolve().parents[1]
-TISSUE = "heml_gym/TissueRetraction-v0"
+TISSUE = "heml_gym/TissueRetraction-v1"
 
 
 # ------------------------------------------------------------------------ actions
@@ -62,9 +62,38 @@ def test_settings_as_mappings_and_a_callers_settings_untouched():
     for _ in range(3):
         *_, truncated, info = env.step(np.zeros(4, dtype=np.float32))
     assert truncated and info["reward_lift"] == 0.0
-    s = TaskSettings(max_steps=50)
+    s = TaskSettings(max_steps=7, hold_time=1.5)
     vec = gym.make_vec(TISSUE, num_envs=2, vectorization_mode="vector_entry_point", settings=s, max_episode_steps=7)
-    assert s.max_steps == 50 and vec.unwrapped.task.settings.max_steps == 7
+    assert vec.unwrapped.task.settings.max_steps == 7 and vec.unwrapped.task.settings is not s
+
+
+@pytest.mark.parametrize("settings, length", [({"max_steps": 20}, None), (TaskSettings(max_steps=50), 7),
+                                              ({"max_steps": 20}, 100)])
+def test_an_episode_length_the_vector_env_was_not_given_is_refused(settings, length):
+    """make_vec passes the registered max_episode_steps (100) unless given: a settings.max_steps
+    that disagrees with it would be overridden without a word, so it is an error naming both."""
+    extra = {} if length is None else {"max_episode_steps": length}
+    with pytest.raises(ValueError, match=r"settings.max_steps=\d+ disagrees with max_episode_steps=\d+"):
+        gym.make_vec(TISSUE, num_envs=2, vectorization_mode="vector_entry_point", settings=settings, **extra)
+
+
+def test_versions_registered_and_retired():
+    from heml_gym.envs import MAX_EPISODE_STEPS, ORGAN_RETRACTION, TISSUE_RETRACTION, episode_steps
+
+    for env_id in (TISSUE_RETRACTION, ORGAN_RETRACTION):
+        assert env_id.endswith("-v1") and gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS == 100
+        env = gym.make(env_id)
+        assert env.spec.max_episode_steps == env.unwrapped.task.settings.max_steps  # TimeLimit == the task's own
+        with pytest.raises(gym.error.Error, match=env_id):  # -v0: gymnasium names the successor
+            gym.make(env_id.replace("-v1", "-v0"))
+    assert episode_steps({"settings": {"max_steps": 20}}) == 20 and episode_steps({}) is None
+    env = gym.make(TISSUE, settings={"max_steps": 150}, max_episode_steps=episode_steps({"settings": {"max_steps": 150}}))
+    env.reset(seed=0)
+    steps, done = 0, False
+    while not done:
+        *_, terminated, truncated, _ = env.step(np.zeros(4, dtype=np.float32))
+        steps, done = steps + 1, terminated or truncated
+    assert steps == 150 and truncated and not terminated
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -138,7 +167,7 @@ def test_resume_refuses_another_env_obs_mode_or_algorithm_and_damaged_statistics
     assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 0
     checkpoint = run / "model.zip"
     data = yaml.safe_load(config.read_text())
-    for change, match in ((("env", "id", "heml_gym/OrganRetraction-v0"), "env.id"),
+    for change, match in ((("env", "id", "heml_gym/OrganRetraction-v1"), "env.id"),
                           (("env", "obs_mode", "pointcloud"), "env.obs_mode"),
                           (("algorithm", "name", "SAC"), "algorithm.name")):
         other = dict(data, **{change[0]: dict(data[change[0]], **{change[1]: change[2]})})

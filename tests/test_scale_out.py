@@ -128,7 +128,7 @@ def test_a_tiny_rllib_run_trains_checkpoints_evaluates_and_resumes_on_a_two_node
 
     config = tmp_path / "rllib.yaml"
     config.write_text(yaml.safe_dump({
-        "env": {"id": "heml_gym/TissueRetraction-v0", "num_envs": 2, "obs_mode": "state",
+        "env": {"id": "heml_gym/TissueRetraction-v1", "num_envs": 2, "obs_mode": "state",
                 "kwargs": {"settings": {"max_steps": 10}}},
         "algorithm": {"name": "RLlibPPO", "total_timesteps": 256,
                       "hyperparameters": {"num_env_runners": 2, "train_batch_size_per_learner": 128,
