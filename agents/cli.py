@@ -5,7 +5,7 @@
     heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
     heml-gym scene [ENV_ID] [--out scene.yaml]
     heml-gym sweep CONFIG --seeds 0,1,2 [--set KEY=VALUE] [--grid KEY=V1,V2] [--address ADDR] [--out DIR]
-    heml-gym bench [force_throughput op_counts simulation_speed ...]
+    heml-gym bench [NAME ...] [--out DIR] [--extra ARGS]   (no name: the benchmarks by group)
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -170,24 +169,19 @@ def _sweep(args) -> int:
     return 0 if summary["failed"] == 0 else 1
 
 
-BENCHMARKS = ["force_throughput", "op_counts", "simulation_speed", "stability_map", "speed_accuracy",
-              "env_throughput", "scene_convergence", "scene_stability", "reliability", "scale_out",
-              "camera_throughput", "time_schemes", "hessian_scale", "solver_paths"]
-
-
 def _bench(args) -> int:
-    root = Path(__file__).resolve().parents[1] / "benchmarks"
-    if not root.is_dir():
-        print("the benchmark scripts live in the source checkout (benchmarks/); "
-              "install heml-gym with `pip install -e .` from a clone to run them", file=sys.stderr)
-        return 2
-    names = args.names or BENCHMARKS
-    for name in names:
-        script = root / f"{name}.py"
-        if not script.is_file():
-            raise ValueError(f"unknown benchmark {name!r} (known: {', '.join(BENCHMARKS)})")
+    from heml_gym import benchmarks
+
+    if not args.names:
+        print(benchmarks.listing())
+        return 0
+    known = benchmarks.studies()
+    for name in args.names:  # every name checked before anything runs
+        if name not in known:
+            raise ValueError(f"unknown benchmark {name!r} (known: {', '.join(known)}; `heml-gym bench` lists them)")
+    for name in args.names:
         print(f"== {name}", flush=True)
-        code = subprocess.call([sys.executable, str(script), *args.extra])
+        code = benchmarks.run(name, args.extra, out=args.out)
         if code:
             return code
     return 0
@@ -245,8 +239,10 @@ def main(argv=None) -> int:
     s.add_argument("--out", help="write it to this file")
     s.set_defaults(func=_scene)
 
-    b = sub.add_parser("bench", help="run benchmark scripts (results go to docs/)")
-    b.add_argument("names", nargs="*", help=f"any of {', '.join(BENCHMARKS)} (default: all)")
+    b = sub.add_parser("bench", help="run benchmarks (no name: list them by group)")
+    b.add_argument("names", nargs="*", help="benchmarks to run, in order (`heml-gym bench` lists them)")
+    b.add_argument("--out", help="folder for the results (default: the checkout's docs/, "
+                                 "else ./heml-gym-results)")
     b.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="arguments for the scripts")
     b.set_defaults(func=_bench)
 

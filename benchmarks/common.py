@@ -1,4 +1,10 @@
-"""Helpers shared by the benchmark scripts: timing, machine description, output paths."""
+"""Helpers shared by the benchmark scripts: timing, machine description, output paths.
+
+Results go to :data:`DOCS` (JSON and tables under ``benchmarks/``, charts under
+``img/``): the folder named by ``HEML_BENCH_OUT`` (``heml-gym bench NAME --out DIR`` sets
+it), else the checkout's ``docs/`` when the package runs from a source checkout, else
+``./heml-gym-results`` in the working directory (an installed package).
+"""
 
 from __future__ import annotations
 
@@ -10,10 +16,32 @@ from pathlib import Path
 
 import numpy as np
 
+#: The source checkout the benchmarks run from (its configs/ and docs/), when they do.
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ROOT / "docs"
+IN_CHECKOUT = (ROOT / "pyproject.toml").is_file() and (ROOT / "docs" / "benchmarks").is_dir()
+
+
+def output_folder() -> Path:
+    """Where results go: ``HEML_BENCH_OUT``, else the checkout's docs/, else ./heml-gym-results."""
+    chosen = os.environ.get("HEML_BENCH_OUT")
+    if chosen:
+        return Path(chosen).expanduser().resolve()
+    return ROOT / "docs" if IN_CHECKOUT else Path.cwd() / "heml-gym-results"
+
+
+DOCS = output_folder()
 RESULTS = DOCS / "benchmarks"
 IMAGES = DOCS / "img"
+
+
+def checkout_file(relative: str) -> Path:
+    """A file of the source checkout (a config, a doc), or a one-line error saying the
+    benchmark needs a checkout (or the path given explicitly)."""
+    path = ROOT / relative
+    if not path.exists():
+        raise SystemExit(f"{relative}: not found (this benchmark reads the source checkout's {relative}; "
+                         "run it from a clone of heml-gym, or give the path)")
+    return path
 
 
 def cpu_avx_flags() -> list[str]:
@@ -105,6 +133,17 @@ def median_time(fn, min_reps: int = 5, max_reps: int = 200, budget_s: float = 1.
         times.append(time.perf_counter() - t0)
     q1, med, q3 = np.percentile(times, [25, 50, 75])
     return {"median_s": float(med), "iqr_s": float(q3 - q1), "reps": len(times)}
+
+
+def parse_arguments(doc: str, flags: dict[str, str] | None = None, argv=None):
+    """Command-line arguments of a study that takes none but ``flags`` (``{"--name":
+    help}``, each a switch): ``--help`` shows ``doc``, anything else is a one-line error."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    for flag, help_text in (flags or {}).items():
+        ap.add_argument(flag, action="store_true", help=help_text)
+    return ap.parse_args(argv)
 
 
 def current_tasks() -> dict[str, str]:

@@ -221,9 +221,9 @@ class BatchedRetraction:
                 self.control.attach(i, stuck, rest)
         idx = np.atleast_1d(scenes)
         self.solver.forget(idx)  # the same seed gives the same episode, whatever came before
-        self.exposure[idx] = self._exposure(idx)
+        self.exposure[idx] = self.measure_exposure(idx)
         self.lift[idx] = self._lift(idx)
-        self.max_strain[idx] = self._max_strain(idx)
+        self.max_strain[idx] = self.measure_strain(idx)
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
@@ -276,9 +276,9 @@ class BatchedRetraction:
         held_reaction = np.where(self.held[:, :, None], stats.reaction, 0.0).sum(axis=1)
         self.grasp_force = np.where(failed[:, None], 0.0, -held_reaction)  # force the tissue pulls the gripper with
         all_scenes = np.arange(self.n)
-        self.exposure = self._exposure(all_scenes)
+        self.exposure = self.measure_exposure(all_scenes)
         self.lift = self._lift(all_scenes)
-        self.max_strain = self._max_strain(all_scenes)
+        self.max_strain = self.measure_strain(all_scenes)
         # reward terms
         terms = {
             "reward_exposure": w.exposure * (self.exposure - prev_exposure),
@@ -371,8 +371,9 @@ class BatchedRetraction:
         return self._graspable[held & (d <= st.grasp_reach)]
 
     # ----------------------------------------------------------- measurements
-    def _exposure(self, scenes) -> np.ndarray:
-        """Fraction of the camera-facing target surface samples the tissue does not hide."""
+    def measure_exposure(self, scenes) -> np.ndarray:
+        """Fraction of the camera-facing target surface samples the tissue does not hide, in
+        each of ``scenes`` (indices), from the current state (the observation's exposure)."""
         scenes = np.atleast_1d(scenes)
         r = self.scene.target_radius
         points = self.target[scenes, None, :] + r * self._sphere[None, :, :]
@@ -402,7 +403,7 @@ class BatchedRetraction:
         progress = (self._fold_angles(x_edge) - self._rest_angle) / self.scene.fold_angle
         return finite(np.clip(progress, 0.0, 1.0), nan=0.0).mean(axis=1)
 
-    def _max_strain(self, scenes) -> np.ndarray:
+    def measure_strain(self, scenes) -> np.ndarray:
         """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per scene."""
         scenes = np.atleast_1d(scenes)
         x = self.state.x if np.array_equal(scenes, np.arange(self.n)) else self.state.x[scenes]

@@ -6,7 +6,7 @@ hold the target exposed, below damage strain, for 2 s of simulated time. Level 2
 stiffness range per episode (half the scene's lowest Young's modulus to 1.5 times its
 highest) and hides the target deeper under the tissue: its region moves halfway towards
 the fold hinge (in x), so the tissue must be folded further back before it is exposed. ``docs/envs.md`` has the scripted baseline's success rate and episode length on
-every level (``python benchmarks/task_difficulty.py``).
+every level (``python benchmarks/learning/task_difficulty.py``).
 """
 
 from __future__ import annotations

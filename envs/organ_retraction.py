@@ -56,7 +56,7 @@ limit (the edge in front of it droops further on every finer mesh), a patch does
 | 1 (default) | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 32 |
 | 2 | as 1, with E drawn in 2-12 kPa, and the target halfway closer to the base (x 47.5-55 mm), next to where the underside may be stuck | 100 % | 33 |
 
-(20 seeded episodes each, ``python benchmarks/task_difficulty.py``.)
+(20 seeded episodes each, ``python benchmarks/learning/task_difficulty.py``.)
 
 ## Version History
 

@@ -106,7 +106,7 @@ and episode length on each level are measured in docs/envs.md):
 | 1 (default) | hold the target exposed, below damage strain, for 2 s (``settings.hold_time``) | 100 % | 43 |
 | 2 | as 1, with tissue E drawn from half the scene's lowest to 1.5x its highest, and the target region moved halfway towards the hinge (x 25-45 mm) | 100 % | 48 |
 
-(20 seeded episodes each, ``python benchmarks/task_difficulty.py``.)
+(20 seeded episodes each, ``python benchmarks/learning/task_difficulty.py``.)
 
 ## Version History
 

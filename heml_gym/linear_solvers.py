@@ -171,7 +171,7 @@ class EnvelopeCholesky:
 
     On the 1,440-dof system of a LapGym-size slab (15 x 15 x 1 cells) this factorises in
     about 2 ms and solves in about 0.06 ms on one core, against 5.8 and 0.17 ms for
-    SuperLU's LU (measured alone; ``benchmarks/simulation_speed.py`` times the whole step). Its cost grows with the square of
+    SuperLU's LU (measured alone; ``benchmarks/speed/simulation_speed.py`` times the whole step). Its cost grows with the square of
     the bandwidth, so it suits meshes with a short dimension (slabs, flaps, lobes); for
     bulky 3D meshes a nested-dissection factorisation has less fill.
     """

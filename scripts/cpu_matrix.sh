@@ -42,7 +42,7 @@ for target in "${targets[@]}"; do
   python -m pytest -q -p no:cacheprovider -n "${HEML_TEST_WORKERS:-auto}" --dist loadgroup $tests || status="FAILED"
   if [ "$soak_steps" != "0" ]; then
     echo "== $target: reliability soak, $soak_steps env steps per env"
-    if python benchmarks/reliability.py --steps "$soak_steps" --out "$out/$target" --no-bad-inputs; then
+    if python benchmarks/reliability/reliability.py --steps "$soak_steps" --out "$out/$target" --no-bad-inputs; then
       soak=$(python -c "import json,sys; r=json.load(open(sys.argv[1])); s=r['soak']; print(f\"{sum(x['env_steps'] for x in s):,} env steps, \" + ', '.join(f'{k} {sum(x[k] for x in s)}' for k in ('diverged','unconverged','non_finite','exceptions')))" "$out/$target/reliability.json")
     else
       soak="soak FAILED"; status="FAILED"

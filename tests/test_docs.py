@@ -1,16 +1,10 @@
-"""The docs say what their stored results say (benchmarks/check_docs.py): generated
+"""The docs say what their stored results say (benchmarks/report/check_docs.py): generated
 blocks equal their stored tables, and every number quoted in the prose has a stored
 source."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-import check_docs  # noqa: E402
+from heml_gym.benchmarks.report import check_docs
 
 
 def test_the_docs_match_their_stored_results():

@@ -8,7 +8,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 #: import name of each source folder (setuptools' package-dir mapping in pyproject.toml)
-PACKAGES = {"heml_gym": ROOT / "heml_gym", "heml_gym.envs": ROOT / "envs", "heml_gym.agents": ROOT / "agents"}
+PACKAGES = {"heml_gym": ROOT / "heml_gym", "heml_gym.envs": ROOT / "envs", "heml_gym.agents": ROOT / "agents",
+            "heml_gym.benchmarks": ROOT / "benchmarks"}
+LAYERS_ABOVE_PHYSICS = ("heml_gym.envs", "heml_gym.agents", "heml_gym.benchmarks")
 
 
 def modules() -> dict[str, tuple[Path, bool]]:
@@ -92,10 +94,10 @@ def test_no_import_cycles_in_the_project():
 def test_the_physics_imports_no_learning_or_visualisation_library():
     """heml_gym's physics depends on numpy, numba, scipy, meshio (and gmsh for organs):
     never on gymnasium, torch, SB3, rerun or Ray, at the top or inside a function."""
-    banned = ("gymnasium", "torch", "stable_baselines3", "rerun", "ray", "heml_gym.envs", "heml_gym.agents")
+    banned = ("gymnasium", "torch", "stable_baselines3", "rerun", "ray", *LAYERS_ABOVE_PHYSICS)
     offenders = []
     for name, (path, _) in modules().items():
-        if name.startswith(("heml_gym.envs", "heml_gym.agents")):
+        if name.startswith(LAYERS_ABOVE_PHYSICS):
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import)
@@ -109,7 +111,7 @@ def numba_kernels() -> list[tuple[str, str, int]]:
     the physics and the envs."""
     found = []
     for name, (path, _) in modules().items():
-        if name.startswith("heml_gym.agents"):
+        if name.startswith(("heml_gym.agents", "heml_gym.benchmarks")):
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.FunctionDef) and any("jit" in ast.unparse(d) for d in node.decorator_list):

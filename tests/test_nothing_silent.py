@@ -306,10 +306,7 @@ def test_pushing_the_grasped_edge_to_the_hinge_and_releasing_does_not_diverge(in
 
 
 def test_a_short_reliability_soak_finds_no_failure():
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import reliability
+    from heml_gym.benchmarks.reliability import reliability
 
     for kind in ("push_release", "extreme", "out_of_range"):
         rec = reliability.soak(TISSUE, vector=True, obs_mode="state", kind=kind, steps=160, seed=0)

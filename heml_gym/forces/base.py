@@ -107,6 +107,13 @@ class ForceField:
         out[...] = self._buf[0]
         return out
 
+    def add_forces(self, x, f) -> None:
+        """Add the elastic forces (N) at positions ``x`` (m) into ``f``, on one thread and
+        without checking either array: for callers that pass arrays of their own kind
+        (the operation counter runs the kernel in Python on counting floats). Use
+        :meth:`forces` otherwise."""
+        self._add_forces_serial(x, f)
+
     def hessian(self, x, project: bool = True):
         """Stiffness matrix ``d2W/dx2`` (N/m) at ``x``, a ``3n x 3n`` scipy CSR matrix.
 

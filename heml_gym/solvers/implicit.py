@@ -53,7 +53,7 @@ class ImplicitSolver(Solver):
         times the scene's load (weight plus external forces; in zero gravity and without
         load, ``E h_min^2``). The default 1e-3 (0.1 % of the weight) moved a 1/30 s
         trajectory of the LapGym-size slab by 0.02 mm from a 1e-9 solve, against a 125 mm
-        sag and 69 mm of time-discretisation error (``benchmarks/simulation_speed.py``).
+        sag and 69 mm of time-discretisation error (``benchmarks/speed/simulation_speed.py``).
     max_newton : int
         Newton iterations per (sub-)step at most. A solve that stops above its tolerance
         is reported in ``StepStats.converged`` (and its residual and tolerance), never

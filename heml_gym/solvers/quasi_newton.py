@@ -107,7 +107,7 @@ class QuasiNewtonSolver(Solver):
         iterations a step takes, never where it converges (to ``newton_tol``). 1 suits
         bulky tissue (the lobe: 12.4 L-BFGS iterations per env step at 1, 12.9 at 1.25);
         the thin two-layer flap, which bends, converges in 16.9 at 1.25 against 22.5 at 1
-        (``TissueRetraction``'s scene sets 1.25; ``benchmarks/hessian_scale.py``,
+        (``TissueRetraction``'s scene sets 1.25; ``benchmarks/speed/hessian_scale.py``,
         2026-11-26).
     max_speed : float, m/s
         A vertex faster than this counts as exploded.

@@ -1,0 +1,1 @@
+"""Accuracy studies (see :mod:`heml_gym.benchmarks`)."""

@@ -1,0 +1,1 @@
+"""Learning studies (see :mod:`heml_gym.benchmarks`)."""

@@ -1,0 +1,1 @@
+"""Reliability studies (see :mod:`heml_gym.benchmarks`)."""

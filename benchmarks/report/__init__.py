@@ -1,0 +1,1 @@
+"""Report studies (see :mod:`heml_gym.benchmarks`)."""

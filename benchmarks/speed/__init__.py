@@ -1,0 +1,1 @@
+"""Speed studies (see :mod:`heml_gym.benchmarks`)."""
