@@ -1,0 +1,394 @@
+"""Replay a recorded control on one scene, and differentiate the replay by the adjoint method.
+
+A :class:`ControlLog` is what drove a scene: for each control step, which vertices were
+held (the jaws' grip, an attachment) and where they were driven. :class:`Replay` steps
+the scene through it by backward Euler, each sub-step minimised by Newton's method with
+the field's exact Hessian to a tight tolerance (the same incremental potential, supports
+and sub-step bookkeeping as :class:`~heml_gym.solvers.QuasiNewtonSolver`, whose
+:func:`~heml_gym.solvers.kernels_quasi_newton.begin_substep` and ``end_substep`` it calls),
+and records what the reverse pass needs.
+
+Gradients. A converged sub-step satisfies ``grad Phi(y; x_hat, p, theta) = 0`` on the
+free vertices, so by the implicit function theorem ``dy = H^-1 (c M dx_hat - H_fp dp +
+df/dtheta dtheta)`` with ``H`` the potential's Hessian at ``y`` (the elastic Hessian
+plus ``c M`` plus the support penalty's). :meth:`Replay.gradient` runs that backwards:
+one sparse solve with ``H`` per sub-step (Hessians evaluated on the stored states), through
+the support projection (a vertex pushed into a plane goes onto it and loses its inward
+velocity: a fixed projection for the step's contact set), the velocities, the held
+vertices' prescribed path and the reaction on them (the step-mean force the jaws feel).
+``df/dtheta``, the elastic forces' derivative in a material constant at a fixed
+configuration, is a central difference in the constant (exact up to rounding for laws
+linear in their constants, as Neo-Hookean, St Venant-Kirchhoff and Mooney-Rivlin are in
+``mu`` and ``lambda`` and so in ``E``; within 1e-9 relative for ``nu``).
+
+Only backward Euler (BDF2's two-step history is not differentiated). Units: m, s, N, Pa.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from ..kernel_data import scene_law
+from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, FreeSubmatrix
+from ..materials import Material
+from ..model import Model
+from ..solvers import kernels_quasi_newton as kq
+from ..solvers.newton import minimize
+
+__all__ = ["ControlLog", "Replay", "ReplayResult", "ReplayError"]
+
+
+class ReplayError(ValueError):
+    """A replay that cannot be made or differentiated (bad log, unconverged step)."""
+
+
+@dataclass
+class ControlLog:
+    """What drove one scene, control step by control step.
+
+    Attributes
+    ----------
+    kinematic : (T, n) bool
+        The vertices held during each control step (gripper and attachments; the model's
+        fixed vertices are held anyway).
+    targets : (T, n, 3) float, m
+        Where the held vertices are at the end of each control step (they move there in
+        a straight line over the step's sub-steps).
+    dt : float, s
+        The control step.
+    substeps : int
+        Backward Euler sub-steps per control step.
+    x0, v0 : (n, 3) float, m and m/s
+        The state the replay starts from.
+    gripped : (T, n) bool, optional
+        Which held vertices the gripper holds (its force is minus their reaction's sum);
+        default: the kinematic ones.
+    """
+
+    kinematic: np.ndarray
+    targets: np.ndarray
+    dt: float
+    substeps: int
+    x0: np.ndarray
+    v0: np.ndarray
+    gripped: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.kinematic = np.asarray(self.kinematic, dtype=bool)
+        self.targets = np.asarray(self.targets, dtype=np.float64)
+        self.x0 = np.asarray(self.x0, dtype=np.float64)
+        self.v0 = np.asarray(self.v0, dtype=np.float64)
+        if self.kinematic.ndim != 2:
+            raise ReplayError(f"kinematic: must be (T, n) bool, got shape {self.kinematic.shape}")
+        T, n = self.kinematic.shape
+        for name, value, shape in (("targets", self.targets, (T, n, 3)), ("x0", self.x0, (n, 3)),
+                                   ("v0", self.v0, (n, 3))):
+            if value.shape != shape:
+                raise ReplayError(f"{name}: must have shape {shape}, got {value.shape}")
+            if not np.all(np.isfinite(value)):
+                raise ReplayError(f"{name}: must be finite")
+        self.gripped = self.kinematic.copy() if self.gripped is None else np.asarray(self.gripped, dtype=bool)
+        if self.gripped.shape != (T, n):
+            raise ReplayError(f"gripped: must have shape {(T, n)}, got {self.gripped.shape}")
+        if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
+            raise ReplayError(f"dt: must be a positive number of seconds, got {self.dt!r}")
+        if isinstance(self.substeps, bool) or not isinstance(self.substeps, (int, np.integer)) or self.substeps < 1:
+            raise ReplayError(f"substeps: must be an integer >= 1, got {self.substeps!r}")
+
+    @property
+    def steps(self) -> int:
+        return self.kinematic.shape[0]
+
+
+@dataclass
+class ReplayResult:
+    """A replay's trajectory: ``x`` (T + 1, n, 3) m, the positions at the control steps
+    (``x[0]``: the start); ``force`` (T, 3) N, the step-mean force the tissue pulls the
+    gripper with; ``iterations`` (Newton, in all); ``residual`` the largest sub-step
+    residual against its ``tolerance`` (N)."""
+
+    x: np.ndarray
+    force: np.ndarray
+    iterations: int
+    residual: float
+    tolerance: float
+    tape: list = field(default_factory=list, repr=False)
+
+
+class Replay:
+    """Replay a :class:`ControlLog` on scene ``scene`` of ``model`` for material constants
+    ``theta``, and give the gradient of a loss on the trajectory in ``theta``.
+
+    Parameters
+    ----------
+    model : Model
+        A HEML model (any law); its scene ``scene``'s material is replaced by
+        ``material_of(theta)`` for each replay.
+    log : ControlLog
+    material_of : callable
+        ``theta`` (a sequence of floats, e.g. ``(E, nu)``) -> :class:`~heml_gym.materials.Material`.
+    steps : sequence of float, optional
+        The central-difference step of each constant for ``df/dtheta`` (default: 1e-6 of
+        its value, or 1e-6 when it is 0).
+    tol : float
+        Each sub-step's force residual (N) on the free vertices is brought below ``tol``
+        times the tissue's weight (the solver's own tolerance is 3e-3 of it: the
+        gradients need the converged step they differentiate).
+    contact_stiffness : float
+        The supports' penalty, as :class:`~heml_gym.solvers.QuasiNewtonSolver`'s.
+    max_iter : int
+        Newton iterations per sub-step at most (a sub-step that stops above its tolerance
+        is a :class:`ReplayError`).
+    """
+
+    def __init__(self, model: Model, log: ControlLog, material_of: Callable[[Sequence[float]], Material],
+                 scene: int = 0, steps: Sequence[float] | None = None, tol: float = 1e-8,
+                 contact_stiffness: float = 1000.0, max_iter: int = 60):
+        if not isinstance(log, ControlLog):
+            raise TypeError(f"log must be a ControlLog, got {type(log).__name__}")
+        if log.kinematic.shape[1] != model.n_vertices:
+            raise ReplayError(f"log: {log.kinematic.shape[1]} vertices, the model has {model.n_vertices}")
+        if model.supports.kernel_args().grids.shape[0]:
+            raise ReplayError("replays differentiate plane supports only (a mesh support's curvature is not)")
+        self.model, self.log, self.material_of, self.scene = model, log, material_of, int(scene)
+        self.steps = None if steps is None else np.asarray(steps, dtype=np.float64)
+        self.tol = float(tol) * max(float(np.linalg.norm(model.gravity) * model.mass.sum()), 1e-12)
+        self.contact_stiffness = float(contact_stiffness)
+        self.max_iter = int(max_iter)
+        self._submatrix = FreeSubmatrix()
+        self._add_diagonal = DiagonalAdd()
+        self._add_blocks = DiagonalBlockAdd()
+
+    # ------------------------------------------------------------------ helpers
+    def _set(self, theta) -> None:
+        self.model.set_material(self.scene, self.material_of(tuple(float(t) for t in theta)))
+
+    def _law(self):
+        return scene_law(self.model.heml_laws(), self.scene)
+
+    def _forces(self, x: np.ndarray) -> np.ndarray:
+        f = np.zeros_like(x)
+        kq.elastic_forces(x, f, self.model.heml_body(), self._law())
+        return f
+
+    def _force_derivatives(self, theta, configurations: list[np.ndarray]) -> list[np.ndarray]:
+        """``df/dtheta_j`` (N per unit of the constant) at each configuration: ``(k, n, 3)``."""
+        theta = np.asarray(theta, dtype=np.float64)
+        steps = self.steps if self.steps is not None else np.where(theta != 0, 1e-6 * np.abs(theta), 1e-6)
+        out = [np.zeros((len(theta),) + configurations[0].shape) for _ in configurations]
+        try:
+            for j in range(len(theta)):
+                for sign in (1.0, -1.0):
+                    shifted = theta.copy()
+                    shifted[j] += sign * steps[j]
+                    self._set(shifted)
+                    for d, x in zip(out, configurations):
+                        d[j] += sign * self._forces(x) / (2.0 * steps[j])
+        finally:
+            self._set(theta)
+        return out
+
+    def _elastic_hessian(self, x: np.ndarray):
+        return self.model.fields[self.scene].hessian(x, project=False)
+
+    # ------------------------------------------------------------------ forward
+    def run(self, theta) -> ReplayResult:
+        """Replay the log with material constants ``theta``."""
+        self._set(theta)
+        m, log = self.model, self.log
+        n = m.n_vertices
+        body, law, supports = m.heml_body(), self._law(), m.supports.kernel_args()
+        n_supports = supports.planes.shape[0] + supports.grids.shape[0]
+        h = log.dt / log.substeps
+        x, v = log.x0.copy(), log.v0.copy()
+        xs, forces = [x.copy()], []
+        tape, iterations, worst = [], 0, 0.0
+        ext = np.zeros((n, 3))
+        history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
+        for t in range(log.steps):
+            r_prev = np.zeros((n, 3))
+            reaction = np.zeros((n, 3))
+            start = x.copy(), v.copy()
+            for k in range(1, log.substeps + 1):
+                fraction = 1.0 / (log.substeps - k + 1)
+                sub = kq.Substep(h, fraction, 1, k == 1, 0, self.contact_stiffness)
+                work = kq.substep_work(n, 1)
+                x_n = x.copy()
+                c, _ = kq.begin_substep(x, v, log.targets[t], log.kinematic[t], ext, body, law, sub, history,
+                                        r_prev, work)
+                held = work.held.copy()
+                k_contact = self.contact_stiffness * c
+                args = (body, law, supports, c, work.x_hat, work.load, held, k_contact)
+                g, f = np.zeros((n, 3)), work.f  # (end_substep reads the forces at x from work.f)
+                dist, normal = np.full(n, math.inf), np.zeros((n, 3))
+
+                def potential(y, args=args, g=g, f=f, dist=dist, normal=normal):
+                    return kq.potential_and_gradient(y.reshape(n, 3), False, g, f, dist, normal, *args)
+
+                def gradient(y, args=args, g=g, f=f, dist=dist, normal=normal):
+                    kq.potential_and_gradient(y.reshape(n, 3), True, g, f, dist, normal, *args)
+                    return g.reshape(-1).copy()
+
+                def hessian(y, project, c=c, k_contact=k_contact, held=held, args=args):
+                    return self._step_hessian(y.reshape(n, 3), c, k_contact, held, args, project)
+
+                y0, best = x.copy(), math.inf
+                for candidate in (work.x_n + h * work.v_n, work.x_n.copy()):  # the lower-potential start
+                    candidate[held] = x[held]
+                    phi = potential(candidate)
+                    if phi < best:
+                        y0, best = candidate, phi
+                free = np.repeat(~held, 3)
+                with np.errstate(all="ignore"):
+                    result = minimize(y0, potential, gradient, hessian, free, self.tol, self.max_iter,
+                                      self._submatrix, stall_limit=None)
+                if not (result.finite and result.converged):
+                    raise ReplayError(f"control step {t}, sub-step {k}: Newton stopped at a force residual of "
+                                      f"{result.residual:.3g} N, above the replay's tolerance of {self.tol:.3g} N "
+                                      f"({result.iterations} iterations): the material or the log is outside "
+                                      "what the scene can follow")
+                iterations += result.iterations
+                worst = max(worst, result.residual)
+                y = result.x.reshape(n, 3)
+                x[:] = y
+                kq.potential_and_gradient(x, True, g, f, dist, normal, *args)
+                inside = (dist < 0.0) & ~held if n_supports else np.zeros(n, dtype=bool)
+                x_before = x.copy()
+                kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub,
+                               history)
+                projected = inside & np.any(x != x_before, axis=1)
+                v_pre = (x - work.x_n) / h
+                stopped = inside & (np.einsum("ij,ij->i", v_pre, normal) < 0.0)  # (end_substep's test)
+                tape.append(dict(t=t, k=k, h=h, c=c, fraction=fraction, x_n=x_n, v_n=work.v_n.copy(),
+                                 x_hat=work.x_hat.copy(), y=y.copy(), z=x.copy(), held=held,
+                                 normal=normal.copy(), inside=inside, projected=projected, stopped=stopped,
+                                 k_contact=k_contact, args=args, start=start if k == 1 else None))
+            reaction /= log.substeps
+            forces.append(-reaction[log.gripped[t]].sum(axis=0))
+            xs.append(x.copy())
+        return ReplayResult(np.array(xs), np.array(forces), iterations, worst, self.tol, tape)
+
+    def _step_hessian(self, y, c, k_contact, held, args, project):
+        """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n)."""
+        m = self.model
+        n = m.n_vertices
+        hess = self._add_diagonal(self.model.fields[self.scene].hessian(y, project=project),
+                                  np.repeat(c * m.mass, 3))
+        supports = args[2]
+        if supports.planes.shape[0] + supports.grids.shape[0]:
+            g, f = np.zeros((n, 3)), np.zeros((n, 3))
+            dist, normal = np.full(n, math.inf), np.zeros((n, 3))
+            kq.potential_and_gradient(y, False, g, f, dist, normal, *args)
+            touching = np.flatnonzero((dist < 0.0) & ~held)
+            if touching.size:
+                nrm = normal[touching]
+                blocks = (k_contact * m.mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+                hess = self._add_blocks(hess, touching, blocks)
+        return hess
+
+    # ------------------------------------------------------------------ reverse
+    def gradient(self, theta, result: ReplayResult, x_bar: np.ndarray, force_bar: np.ndarray | None = None
+                 ) -> np.ndarray:
+        """``dL/dtheta`` for a loss ``L`` whose derivative is ``x_bar`` (T + 1, n, 3) in the
+        positions ``result.x`` and ``force_bar`` (T, 3) in ``result.force``, by the adjoint
+        method through every sub-step of ``result`` (a :meth:`run` with the same ``theta``)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        log, m = self.log, self.model
+        n = m.n_vertices
+        T, S = log.steps, log.substeps
+        x_bar = np.asarray(x_bar, dtype=np.float64)
+        if x_bar.shape != (T + 1, n, 3):
+            raise ReplayError(f"x_bar: must have shape {(T + 1, n, 3)}, got {x_bar.shape}")
+        force_bar = np.zeros((T, 3)) if force_bar is None else np.asarray(force_bar, dtype=np.float64)
+        mass = m.mass[:, None]
+        alpha = float(m.damping.alpha)
+        tape = result.tape
+        configurations = [e["z"] for e in tape] + [e["y"] for e in tape] + \
+                         [e["start"][0] for e in tape if e["start"] is not None]
+        dfs = self._force_derivatives(theta, configurations)
+        dz = dfs[:len(tape)]
+        dy = dfs[len(tape):2 * len(tape)]
+        dstart = iter(dfs[2 * len(tape):])
+        dstart = [next(dstart) if e["start"] is not None else None for e in tape]
+        self._set(theta)
+        theta_bar = np.zeros(len(theta))
+        zb = x_bar[T].copy()  # adjoint of the positions after the current sub-step
+        vb = np.zeros((n, 3))  # and of the velocities
+        r_bar = np.zeros((n, 3))  # of the current sub-step's end reaction (held rows)
+        for idx in range(len(tape) - 1, -1, -1):
+            e = tape[idx]
+            t, k, h, c = e["t"], e["k"], e["h"], e["c"]
+            held, gripped = e["held"], log.gripped[t]
+            if k == S:  # the control step's end: its force and reaction adjoints start here
+                # force = -(1/S) sum_k 0.5 (r_{k-1} + r_k) over the gripped rows
+                per_r = np.zeros((n, 3))
+                per_r[gripped] = -force_bar[t] / S
+                r_bar = 0.5 * per_r  # r_S's share (r_k for k < S gets per_r in all, below)
+                r_carry = per_r
+            # ---- the end reaction r_k = m (v - v_n)/h - f(z) - load + alpha m v on held rows
+            rb = np.where(held[:, None], r_bar, 0.0)
+            if rb.any():
+                hz = self._elastic_hessian(e["z"])
+                zb += (hz @ rb.reshape(-1)).reshape(n, 3)  # -df/dz = H
+                theta_bar -= np.einsum("jnd,nd->j", dz[idx], rb)
+                vb += np.where(held[:, None], rb * mass * (1.0 / h + alpha), 0.0)
+                vb_n_from_r = np.where(held[:, None], -rb * mass / h, 0.0)
+            else:
+                vb_n_from_r = np.zeros((n, 3))
+            # ---- velocities: v = Q (z - x_n)/h (free), (z - x_n)/h (held)
+            nrm = e["normal"]
+            vq = vb.copy()
+            st = e["stopped"]
+            if st.any():
+                vq[st] -= np.einsum("id,id->i", vq[st], nrm[st])[:, None] * nrm[st]
+            zb += vq / h
+            xnb = -vq / h + 0.0
+            vnb = vb_n_from_r
+            # ---- projection onto the support: z = P y (projected free rows), z = y (free), z = p (held)
+            yb = np.where(held[:, None], 0.0, zb)
+            pr = e["projected"]
+            if pr.any():
+                yb[pr] -= np.einsum("id,id->i", yb[pr], nrm[pr])[:, None] * nrm[pr]
+            pb = np.where(held[:, None], zb, 0.0)
+            # ---- the minimisation: H w = y_bar on the free rows
+            free = np.repeat(~held, 3)
+            if free.any() and yb.any():
+                hess = self._step_hessian(e["y"], c, e["k_contact"], held, e["args"], False)
+                a = self._submatrix(hess, free)
+                w_free = spla.spsolve(a.tocsc(), yb.reshape(-1)[free])
+                if not np.all(np.isfinite(w_free)):
+                    raise ReplayError(f"control step {t}, sub-step {k}: the step's Hessian is singular")
+                w = np.zeros(3 * n)
+                w[free] = w_free
+                w = w.reshape(n, 3)
+                xhat_b = c * mass * w
+                theta_bar += np.einsum("jnd,nd->j", dy[idx], w)
+                he = self._elastic_hessian(e["y"])
+                pb -= np.where(held[:, None], (he @ w.reshape(-1)).reshape(n, 3), 0.0)
+                xhat_b = np.where(held[:, None], 0.0, xhat_b)
+                xnb += xhat_b
+                vnb += xhat_b * h / (1.0 + alpha * h)
+            # ---- the held path: p = x_n + fraction (target - x_n) for kinematic rows, x_n for fixed
+            kin = log.kinematic[t] & ~m.fixed
+            xnb += np.where(kin[:, None], (1.0 - e["fraction"]) * pb, np.where(held[:, None], pb, 0.0))
+            # ---- the previous sub-step's end reaction, or the step start's holding force
+            if k > 1:
+                r_bar = r_carry.copy()  # r_{k-1} appears in two trapezoids: 0.5 + 0.5
+            else:
+                r0b = np.where(held[:, None], 0.5 * r_carry, 0.0)  # r_0 = -(f(x) + load - alpha m v) on held rows
+                if r0b.any():
+                    xs = e["start"][0]
+                    hs = self._elastic_hessian(xs)
+                    xnb += (hs @ r0b.reshape(-1)).reshape(n, 3)
+                    theta_bar -= np.einsum("jnd,nd->j", dstart[idx], r0b)
+                    vnb += alpha * mass * r0b
+                r_bar = np.zeros((n, 3))
+            zb, vb = xnb, vnb
+            if k == 1:  # reached the control step's start: add the loss's direct term there
+                zb = zb + x_bar[t]
+        return theta_bar
