@@ -5,6 +5,8 @@
     heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
     heml-gym scene [ENV_ID] [--out scene.yaml]
     heml-gym sweep CONFIG --seeds 0,1,2 [--set KEY=VALUE] [--grid KEY=V1,V2] [--address ADDR] [--out DIR]
+    heml-gym observe ENV --out obs.npz [--young-modulus E] [--points 10] [--point-noise 0.0005]
+    heml-gym calibrate ENV obs.npz --out DIR [--fit young_modulus,poisson_ratio]
     heml-gym bench [NAME ...] [--out DIR] [--extra ARGS]   (no name: the benchmarks by group)
 """
 
@@ -169,6 +171,39 @@ def _sweep(args) -> int:
     return 0 if summary["failed"] == 0 else 1
 
 
+def _observe(args) -> int:
+    from .calibrate import observe
+
+    _known_env(args.env, "ENV")
+    out = Path(args.out)
+    if out.exists():
+        raise ValueError(f"--out {out}: exists (give a new file)")
+    summary = observe(args.env, args.out, seed=args.seed, steps=args.steps, points=args.points,
+                      point_noise=args.point_noise, force_noise=args.force_noise, young_modulus=args.young_modulus,
+                      poisson=args.poisson, law=args.law, env_kwargs=args.env_kwargs)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def _calibrate(args) -> int:
+    from .calibrate import calibrate
+
+    if args.env != "-":
+        _known_env(args.env, "ENV")
+    names = tuple(n.strip() for n in args.fit.split(",") if n.strip())
+    record = calibrate(None if args.env == "-" else args.env, args.observation, args.out, names, law=args.law,
+                       env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
+                       force_scale=args.force_scale, progress=not args.no_progress)
+    for name, p in record["parameters"].items():
+        print(f"{name}: {p['value']:.6g} ± {p['std']:.2g} {p['unit']}".rstrip())
+    print(f"residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in record["residual_rms"].items()))
+    print(f"written: {Path(args.out) / 'fit.json'}, {Path(args.out) / 'fit.png'}")
+    if not record["converged"]:
+        print(f"the fit did NOT converge: {record['message']}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _bench(args) -> int:
     from heml_gym import benchmarks
 
@@ -238,6 +273,33 @@ def main(argv=None) -> int:
     s.add_argument("env", nargs="?", default=DEFAULT_ENV)
     s.add_argument("--out", help="write it to this file")
     s.set_defaults(func=_scene)
+
+    o = sub.add_parser("observe", help="record an observation file (.npz) from a simulated scripted retraction")
+    o.add_argument("env", metavar="ENV", help="environment id")
+    o.add_argument("--out", required=True, help="the .npz file to write")
+    o.add_argument("--seed", type=int, default=0)
+    o.add_argument("--steps", type=int, default=30, help="env steps (default 30: 3 s)")
+    o.add_argument("--points", type=int, default=10, help="tracked points on the upper surface (default 10)")
+    o.add_argument("--point-noise", type=float, default=0.0, help="Gaussian noise per coordinate, m")
+    o.add_argument("--force-noise", type=float, default=0.0, help="Gaussian noise per force component, N")
+    o.add_argument("--young-modulus", type=float, help="the tissue's E, Pa (default: drawn as the scene draws it)")
+    o.add_argument("--poisson", type=float, help="the tissue's Poisson ratio (default: the scene's)")
+    o.add_argument("--law", help="the tissue's law (a heml_gym.materials class name; default: the scene's)")
+    o.add_argument("--env-kwargs", help="JSON gym.make keyword arguments (e.g. a finer mesh)")
+    o.set_defaults(func=_observe)
+
+    c = sub.add_parser("calibrate", help="fit a scene's tissue to an observation file")
+    c.add_argument("env", metavar="ENV", help="environment id whose scene is fitted ('-': the observation's)")
+    c.add_argument("observation", help="the .npz observation file")
+    c.add_argument("--out", required=True, help="folder for fit.json and fit.png (new or empty)")
+    c.add_argument("--fit", default="young_modulus,poisson_ratio", help="constants to fit, comma-separated")
+    c.add_argument("--law", help="the law to fit (a heml_gym.materials class name; default: the scene's)")
+    c.add_argument("--env-kwargs", help="JSON gym.make keyword arguments of the fitted scene")
+    c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
+    c.add_argument("--point-scale", type=float, default=1e-3, help="tracked points' residual scale, m")
+    c.add_argument("--force-scale", type=float, default=0.05, help="force residual scale, N")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    c.set_defaults(func=_calibrate)
 
     b = sub.add_parser("bench", help="run benchmarks (no name: list them by group)")
     b.add_argument("names", nargs="*", help="benchmarks to run, in order (`heml-gym bench` lists them)")

@@ -225,6 +225,47 @@ class BatchedRetraction:
         self.lift[idx] = self._lift(idx)
         self.max_strain[idx] = self.measure_strain(idx)
 
+    #: What :meth:`set_episode` can set, with its unit.
+    EPISODE_OPTIONS = {"young_modulus": "Pa", "gripper": "m, (3,)", "adhesion_width": "m"}
+
+    def set_episode(self, i: int, young_modulus: float | None = None, gripper=None,
+                    adhesion_width: float | None = None) -> None:
+        """Set what :meth:`reset` drew for scene ``i``'s episode (before its first step): the
+        tissue's ``young_modulus`` (Pa), the ``gripper``'s start (m, inside the workspace)
+        and how far out the underside is stuck (``adhesion_width``, m; the scene must have
+        adhesion). A replay of a recorded episode (an observation file) starts this way."""
+        s = self.scene
+        if young_modulus is not None:
+            E = float(young_modulus)
+            if not (math.isfinite(E) and E > 0):
+                raise SpecError(f"young_modulus: must be a positive number of pascals, got {young_modulus!r}")
+            self.young_modulus[i] = E
+            self.model.set_material(i, s.physics.material_for(E))
+        if gripper is not None:
+            g = np.asarray(gripper, dtype=np.float64)
+            if g.shape != (3,) or not np.all(np.isfinite(g)):
+                raise SpecError(f"gripper: must be 3 finite coordinates (m), got {gripper!r}")
+            if np.any(g < np.asarray(s.workspace_low) - 1e-12) or np.any(g > np.asarray(s.workspace_high) + 1e-12):
+                raise SpecError(f"gripper: {g.tolist()} lies outside the workspace "
+                                f"{list(s.workspace_low)}..{list(s.workspace_high)} m")
+            self.gripper[i] = g
+        if adhesion_width is not None:
+            if s.adhesion_vertices is None:
+                raise SpecError("adhesion_width: this scene has no adhesion (scene.adhesion is null)")
+            w = float(adhesion_width)
+            if not (math.isfinite(w) and w >= 0):
+                raise SpecError(f"adhesion_width: must be a distance >= 0 (m), got {adhesion_width!r}")
+            self.control.detach(i, np.flatnonzero(self.adhered[i]))
+            self.adhered[i] = False
+            self.adhesion_width[i] = w
+            stuck = s.adhesion_vertices[s.adhesion_distance <= w + 1e-9]
+            self.adhered[i, stuck] = True
+            self.control.attach(i, stuck, s.mesh.vertices)
+        self.solver.forget(np.array([i]))
+        self.exposure[i] = self.measure_exposure([i])[0]
+        self.lift[i] = self._lift([i])[0]
+        self.max_strain[i] = self.measure_strain([i])[0]
+
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
         """Apply ``actions`` (N, 4) in [-1, 1] to every scene; returns reward, terminated,

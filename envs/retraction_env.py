@@ -287,6 +287,14 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
         # seed - i); without one, the scene continues from the env's generator
         scene_seed = seed if seed is not None else int(self.np_random.integers(2**63 - 1))
         self.task.reset([0], seeds=[scene_seed])
+        if options:
+            if not isinstance(options, dict):
+                raise ValueError(f"options: must be a dict, got {type(options).__name__}")
+            unknown = sorted(set(options) - set(self.task.EPISODE_OPTIONS))
+            if unknown:
+                allowed = ", ".join(f"{k} ({u})" for k, u in self.task.EPISODE_OPTIONS.items())
+                raise ValueError(f"options.{unknown[0]}: not a reset option (allowed: {allowed})")
+            self.task.set_episode(0, **options)
         self._new_camera_poses([0])
         return self.observe(), self._info_at_reset()
 

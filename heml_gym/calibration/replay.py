@@ -34,7 +34,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from ..kernel_data import scene_law
-from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, FreeSubmatrix
+from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeCholesky, FreeSubmatrix, LaggedFactorPCG
 from ..materials import Material
 from ..model import Model
 from ..solvers import kernels_quasi_newton as kq
@@ -163,6 +163,10 @@ class Replay:
         self._submatrix = FreeSubmatrix()
         self._add_diagonal = DiagonalAdd()
         self._add_blocks = DiagonalBlockAdd()
+        # Newton's linear solves: CG preconditioned by a lagged Cholesky factor (refactorised
+        # when CG needs more than 30 iterations or the held set changes)
+        self._linear = LaggedFactorPCG(rtol=1e-10, max_iter=30, factorization="cholesky")
+        self._cholesky = None
 
     # ------------------------------------------------------------------ helpers
     def _set(self, theta) -> None:
@@ -246,7 +250,7 @@ class Replay:
                 free = np.repeat(~held, 3)
                 with np.errstate(all="ignore"):
                     result = minimize(y0, potential, gradient, hessian, free, self.tol, self.max_iter,
-                                      self._submatrix, stall_limit=None)
+                                      self._submatrix, self._linear, (free.tobytes(), h), stall_limit=None)
                 if not (result.finite and result.converged):
                     raise ReplayError(f"control step {t}, sub-step {k}: Newton stopped at a force residual of "
                                       f"{result.residual:.3g} N, above the replay's tolerance of {self.tol:.3g} N "
@@ -272,6 +276,22 @@ class Replay:
             forces.append(-reaction[log.gripped[t]].sum(axis=0))
             xs.append(x.copy())
         return ReplayResult(np.array(xs), np.array(forces), iterations, worst, self.tol, tape)
+
+    def _solve(self, a, b: np.ndarray) -> np.ndarray:
+        """``a^-1 b`` for the step's Hessian on the free dofs: a sparse Cholesky factor (the
+        Hessian at a minimum is positive definite), else an LU solve."""
+        try:
+            if self._cholesky is None:
+                self._cholesky = EnvelopeCholesky(a)
+            else:
+                self._cholesky.factor(a)  # (a new pattern is analysed afresh)
+            x = self._cholesky.solve(b)
+            if np.all(np.isfinite(x)):
+                return x
+        except (ValueError, np.linalg.LinAlgError):
+            pass
+        self._cholesky = None
+        return spla.spsolve(a.tocsc(), b)
 
     def _step_hessian(self, y, c, k_contact, held, args, project):
         """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n)."""
@@ -359,8 +379,7 @@ class Replay:
             free = np.repeat(~held, 3)
             if free.any() and yb.any():
                 hess = self._step_hessian(e["y"], c, e["k_contact"], held, e["args"], False)
-                a = self._submatrix(hess, free)
-                w_free = spla.spsolve(a.tocsc(), yb.reshape(-1)[free])
+                w_free = self._solve(self._submatrix(hess, free), yb.reshape(-1)[free])
                 if not np.all(np.isfinite(w_free)):
                     raise ReplayError(f"control step {t}, sub-step {k}: the step's Hessian is singular")
                 w = np.zeros(3 * n)

@@ -1,0 +1,197 @@
+"""``heml-gym observe`` and ``heml-gym calibrate``: record an observation file from a
+simulated retraction, and fit a scene's tissue to one.
+
+The fitting itself is :func:`heml_gym.calibration.fit` (physics only); the env layer turns
+the observation and the scene into a replay (:mod:`heml_gym.envs.observations`); this
+module adds the command line, the progress bar, ``fit.json`` and the chart.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["observe", "calibrate", "physics_overrides"]
+
+
+def physics_overrides(young_modulus=None, poisson=None, law=None) -> dict:
+    """``physics=`` keyword arguments for an env whose tissue is given exactly."""
+    physics = {}
+    if young_modulus is not None:
+        E = float(young_modulus)
+        if not (math.isfinite(E) and E > 0):
+            raise ValueError(f"--young-modulus: must be a positive number of pascals, got {young_modulus!r}")
+        physics["young_modulus"] = [E, E]
+    if poisson is not None:
+        physics["poisson"] = float(poisson)
+    if law is not None:
+        physics["material"] = law
+    return physics
+
+
+def _env_kwargs(text: str | None, argument: str = "--env-kwargs") -> dict:
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{argument}: not JSON ({exc.msg})") from None
+    if not isinstance(value, dict):
+        raise ValueError(f"{argument}: must be a JSON object of gym.make keyword arguments")
+    return value
+
+
+def _make(env_id: str, kwargs: dict, physics: dict | None = None):
+    import gymnasium as gym
+
+    from heml_gym.envs import check_env_kwargs, episode_steps
+
+    kwargs = dict(kwargs)
+    if physics:
+        kwargs["physics"] = {**kwargs.get("physics", {}), **physics}
+    check_env_kwargs(env_id, kwargs, "env kwargs")
+    return gym.make(env_id, max_episode_steps=episode_steps(kwargs), **kwargs)
+
+
+def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
+            force_noise: float = 0.0, young_modulus=None, poisson=None, law=None, env_kwargs: str | None = None
+            ) -> dict:
+    """Record an observation file of ``env_id``'s scripted retraction (the tissue given by
+    ``young_modulus`` / ``poisson`` / ``law``, else drawn as the scene draws it)."""
+    from heml_gym.envs.observations import record, save_observation
+    from heml_gym.envs.scripted import scripted_policy
+
+    for name, value in (("--steps", steps), ("--points", points)):
+        if value < (1 if name == "--steps" else 0):
+            raise ValueError(f"{name}: must be >= {1 if name == '--steps' else 0}, got {value}")
+    for name, value in (("--point-noise", point_noise), ("--force-noise", force_noise)):
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name}: must be >= 0, got {value}")
+    if not str(out).endswith(".npz"):
+        raise ValueError(f"--out: an observation file ends in .npz, got {out!r}")
+    env = _make(env_id, _env_kwargs(env_kwargs), physics_overrides(young_modulus, poisson, law))
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points,
+                 point_noise=point_noise, force_noise=force_noise, env_id=env_id)
+    obs.meta["env_kwargs"] = _env_kwargs(env_kwargs)
+    save_observation(obs, out)
+    return {"out": str(out), "steps": obs.steps, "points": 0 if obs.points is None else obs.points.shape[1],
+            "truth": obs.meta["truth"], "adhesion_width_m": obs.adhesion_width}
+
+
+def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_modulus", "poisson_ratio"),
+              law: str | None = None, env_kwargs: str | None = None, starts: int = 1, point_scale: float = 1e-3,
+              force_scale: float = 0.05, progress: bool = True) -> dict:
+    """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
+    ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. Returns the fit's record."""
+    from heml_gym.calibration import fit
+    from heml_gym.envs import unknown_env_message
+    from heml_gym.envs.observations import FIT_PARAMETERS, calibration_problem, load_observation
+
+    import gymnasium as gym
+
+    obs = load_observation(observation)
+    env_id = env_id or obs.env_id
+    if env_id is None:
+        raise ValueError("ENV: the observation names no env: give one")
+    if env_id not in gym.registry:
+        raise ValueError(f"ENV: {unknown_env_message(env_id)}")
+    if starts < 1:
+        raise ValueError(f"--starts: must be >= 1, got {starts}")
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
+    env = _make(env_id, _env_kwargs(env_kwargs), physics_overrides(law=law))
+    replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
+                                                                 force_scale)
+    first = np.array(start, dtype=np.float64)
+    start_list = [first]
+    rng = np.random.default_rng(0)
+    for _ in range(starts - 1):  # further starts: log-uniform within a factor 2 of the first (E), +-0.05 (nu)
+        s = first.copy()
+        for j, name in enumerate(names):
+            lo, hi = bounds[j]
+            s[j] = np.clip(s[j] * 2.0 ** rng.uniform(-1, 1) if name == "young_modulus" else s[j] + rng.uniform(-0.05, 0.05),
+                           lo, hi)
+        start_list.append(s)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(desc="calibrating", unit="iteration")
+
+    def report(i, loss):
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.4g}")
+
+    t0 = time.perf_counter()
+    try:
+        result = fit(replay, observed, names, start_list, bounds, progress=report)
+    finally:
+        if bar is not None:
+            bar.close()
+    final = replay.run(result.theta)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "parameters": {name: {"value": float(v), "std": float(s), "unit": FIT_PARAMETERS[name][0]}
+                       for name, v, s in zip(names, result.theta, result.std)},
+        "law": env.unwrapped.scene.physics.material,
+        "converged": result.converged, "message": result.message, "loss": result.loss,
+        "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
+        "settings": {"env_id": env_id, "env_kwargs": _env_kwargs(env_kwargs), "observation": str(observation),
+                     "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
+                     "observed": [k for k in ("points", "force") if getattr(obs, k) is not None],
+                     "steps": obs.steps, "mesh": {"vertices": int(replay.model.n_vertices),
+                                                   "tets": int(replay.model.mesh.n_tets)}},
+        "wall_s": time.perf_counter() - t0,
+    }
+    (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
+    _chart(out / "fit.png", result, obs, final, replay, observed)
+    return record
+
+
+def _chart(path: Path, result, obs, final, replay, observed) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from heml_gym.calibration import embed_points
+
+    panels = 1 + (obs.force is not None) + (obs.points is not None)
+    fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 3.4), constrained_layout=True)
+    axes = np.atleast_1d(axes)
+    ax = axes[0]
+    ax.semilogy(range(1, len(result.history) + 1), result.history, "o-", ms=3)
+    ax.set_xlabel("L-BFGS iteration")
+    ax.set_ylabel("loss")
+    ax.set_title("fit")
+    k = 1
+    if obs.force is not None:
+        ax = axes[k]
+        k += 1
+        t = obs.t[1:]
+        for d, (name, colour) in enumerate(zip("xyz", ("tab:red", "tab:green", "tab:blue"))):
+            ax.plot(t, obs.force[1:, d], ".", color=colour, ms=4, label=f"observed {name}")
+            ax.plot(t, final.force[:, d], "-", color=colour, lw=1.2, label=f"fitted {name}")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("force on the jaws (N)")
+        ax.legend(fontsize=7, ncol=2, loc="best")
+    if obs.points is not None:
+        ax = axes[k]
+        B = embed_points(replay.model.mesh, obs.rest_points)
+        fitted = np.stack([B @ x for x in final.x])
+        for j in range(obs.points.shape[1]):
+            line, = ax.plot(obs.t, 1e3 * obs.points[:, j, 2], ".", ms=3)
+            ax.plot(obs.t, 1e3 * fitted[:, j, 2], "-", lw=1, color=line.get_color())
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("tracked point height (mm)")
+        ax.set_title("dots: observed, lines: fitted", fontsize=9)
+    names = ", ".join(f"{n} {v:.4g} ± {s:.2g}" for n, v, s in zip(result.names, result.theta, result.std))
+    fig.suptitle(names, fontsize=9)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

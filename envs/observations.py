@@ -1,0 +1,308 @@
+"""Observation files: what a robot and its sensors saw of a retraction, for calibration.
+
+An observation is an ``.npz`` file with, at the env's control steps ``k = 0..T`` (entry 0:
+the start, before the first step):
+
+=============== ============ =====================================================
+field           shape        meaning
+=============== ============ =====================================================
+``t``           (T+1,)       time, s: ``k * control_dt`` (uniform, from 0)
+``gripper``     (T+1, 3)     the gripper's position, m (world frame of the scene)
+``grasp``       (T+1,)       bool: the jaws closed after step ``k``
+``points``      (T+1, K, 3)  optional: tracked material points, m ...
+``rest_points`` (K, 3)       ... and where each lies on the tissue at rest, m
+``force``       (T+1, 3)     optional: the force the tissue pulls the jaws with, N,
+                             the mean over step ``k`` (entry 0: 0)
+``env_id``      ()           str, optional: the env (and so the scene) observed
+``adhesion_width`` ()        float, optional: how far out the underside was stuck, m
+``meta``        ()           str, optional: JSON, anything else (how it was made)
+=============== ============ =====================================================
+
+``depth`` (T+1, H, W) m with ``intrinsics`` (3, 3) and ``camera_pose`` (4, 4) is read and
+checked but not fitted yet. :func:`record` makes such a file from a simulated episode
+(``heml-gym observe``); :func:`calibration_problem` turns one and a scene into what
+:func:`heml_gym.calibration.fit` takes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from heml_gym.calibration import ControlLog, Observed, Replay
+
+__all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
+           "calibration_problem", "FIT_PARAMETERS"]
+
+#: Constants a calibration can fit: name -> (unit, bounds).
+FIT_PARAMETERS = {"young_modulus": ("Pa", (200.0, 200e3)), "poisson_ratio": ("", (0.0, 0.495))}
+
+
+class ObservationError(ValueError):
+    """A malformed, non-finite, mis-shaped or inconsistent observation file."""
+
+
+@dataclass
+class Observation:
+    """An observation (see the module docstring for the fields and units)."""
+
+    t: np.ndarray
+    gripper: np.ndarray
+    grasp: np.ndarray
+    points: np.ndarray | None = None
+    rest_points: np.ndarray | None = None
+    force: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    intrinsics: np.ndarray | None = None
+    camera_pose: np.ndarray | None = None
+    env_id: str | None = None
+    adhesion_width: float | None = None
+    meta: dict = field(default_factory=dict)
+    source: str = "observation"
+
+    def __post_init__(self):
+        where = self.source
+
+        def bad(name, why):
+            return ObservationError(f"{where}: field '{name}': {why}")
+
+        def array(name, value, ndim, dtype=np.float64):
+            a = np.asarray(value)
+            if a.ndim != ndim:
+                raise bad(name, f"must have {ndim} dimensions, got shape {a.shape}")
+            if dtype is bool:
+                if a.dtype != bool and not np.isin(a, (0, 1)).all():
+                    raise bad(name, "must be booleans (0 or 1)")
+                return a.astype(bool)
+            if not np.issubdtype(a.dtype, np.number):
+                raise bad(name, f"must be numbers, got {a.dtype}")
+            a = a.astype(np.float64)
+            if not np.all(np.isfinite(a)):
+                raise bad(name, "must be finite (NaN or inf found)")
+            return a
+
+        self.t = array("t", self.t, 1)
+        T1 = self.t.shape[0]
+        if T1 < 2:
+            raise bad("t", f"needs at least 2 entries (the start and one step), got {T1}")
+        if self.t[0] != 0.0 or np.any(np.diff(self.t) <= 0):
+            raise bad("t", "must start at 0 and increase")
+        self.gripper = array("gripper", self.gripper, 2)
+        if self.gripper.shape != (T1, 3):
+            raise bad("gripper", f"must have shape ({T1}, 3) (one position per t), got {self.gripper.shape}")
+        self.grasp = array("grasp", self.grasp, 1, bool)
+        if self.grasp.shape != (T1,):
+            raise bad("grasp", f"must have shape ({T1},), got {self.grasp.shape}")
+        if (self.points is None) != (self.rest_points is None):
+            raise bad("points" if self.points is None else "rest_points", "points and rest_points go together")
+        if self.points is not None:
+            self.points = array("points", self.points, 3)
+            self.rest_points = array("rest_points", self.rest_points, 2)
+            K = self.rest_points.shape[0]
+            if self.rest_points.shape != (K, 3) or K < 1:
+                raise bad("rest_points", f"must have shape (K, 3), K >= 1, got {self.rest_points.shape}")
+            if self.points.shape != (T1, K, 3):
+                raise bad("points", f"must have shape ({T1}, {K}, 3) (T+1 times, K points), got {self.points.shape}")
+        if self.force is not None:
+            self.force = array("force", self.force, 2)
+            if self.force.shape != (T1, 3):
+                raise bad("force", f"must have shape ({T1}, 3), got {self.force.shape}")
+        if self.depth is not None:
+            self.depth = array("depth", self.depth, 3)
+            if self.depth.shape[0] != T1:
+                raise bad("depth", f"must have {T1} images, got {self.depth.shape[0]}")
+            for name, shape in (("intrinsics", (3, 3)), ("camera_pose", (4, 4))):
+                value = getattr(self, name)
+                if value is None:
+                    raise bad(name, "depth needs it")
+                value = array(name, value, 2)
+                if value.shape != shape:
+                    raise bad(name, f"must have shape {shape}, got {value.shape}")
+                setattr(self, name, value)
+        if self.points is None and self.force is None and self.depth is None:
+            raise ObservationError(f"{where}: nothing observed: give points (with rest_points), force or depth")
+        if self.adhesion_width is not None:
+            w = float(self.adhesion_width)
+            if not (math.isfinite(w) and w >= 0):
+                raise bad("adhesion_width", f"must be a distance >= 0 (m), got {self.adhesion_width!r}")
+            self.adhesion_width = w
+
+    @property
+    def steps(self) -> int:
+        return self.t.shape[0] - 1
+
+
+def load_observation(path) -> Observation:
+    """Read and check an observation file (one-line :class:`ObservationError` naming the field)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ObservationError(f"{path}: not found")
+    try:
+        data = np.load(path, allow_pickle=False)
+        fields_ = {k: data[k] for k in data.files}
+    except Exception as exc:  # a damaged or foreign file
+        raise ObservationError(f"{path}: not a readable .npz observation ({type(exc).__name__}: {exc})") from None
+    known = {f.name for f in dataclasses.fields(Observation)} - {"source"}
+    unknown = sorted(set(fields_) - known)
+    if unknown:
+        raise ObservationError(f"{path}: field '{unknown[0]}': not an observation field (known: {', '.join(sorted(known))})")
+    for name in ("t", "gripper", "grasp"):
+        if name not in fields_:
+            raise ObservationError(f"{path}: field '{name}': missing")
+    kwargs = dict(fields_)
+    for name in ("env_id", "meta"):
+        if name in kwargs:
+            kwargs[name] = str(kwargs[name])
+    if "meta" in kwargs:
+        try:
+            kwargs["meta"] = json.loads(kwargs["meta"])
+        except json.JSONDecodeError:
+            raise ObservationError(f"{path}: field 'meta': not JSON") from None
+    if "adhesion_width" in kwargs:
+        kwargs["adhesion_width"] = float(np.asarray(kwargs["adhesion_width"]).reshape(-1)[0])
+    return Observation(**kwargs, source=str(path))
+
+
+def save_observation(obs: Observation, path) -> Path:
+    """Write ``obs`` as an ``.npz`` observation file."""
+    path = Path(path)
+    data = {"t": obs.t, "gripper": obs.gripper, "grasp": obs.grasp}
+    for name in ("points", "rest_points", "force", "depth", "intrinsics", "camera_pose"):
+        if getattr(obs, name) is not None:
+            data[name] = getattr(obs, name)
+    if obs.env_id is not None:
+        data["env_id"] = np.array(obs.env_id)
+    if obs.adhesion_width is not None:
+        data["adhesion_width"] = np.array(obs.adhesion_width)
+    data["meta"] = np.array(json.dumps(obs.meta))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as fh:
+        np.savez_compressed(fh, **data)
+    return path
+
+
+def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
+           force_noise: float = 0.0, noise_seed: int = 0, env_id: str | None = None) -> Observation:
+    """Run one episode of the single env ``env`` (``gym.make(...)``) under ``policy``
+    (``obs -> action``) for ``steps`` steps and record what a robot would log: the gripper,
+    the jaws, ``points`` tracked points on the tissue's upper surface (its free vertices,
+    drawn with ``noise_seed``) with Gaussian noise of ``point_noise`` m per coordinate, and
+    the jaws' force with ``force_noise`` N. The truth (law, E, nu, mesh) goes in ``meta``."""
+    task = env.unwrapped.task
+    scene = task.scene
+    obs, _ = env.reset(seed=seed)
+    if hasattr(policy, "reset"):
+        policy.reset()
+    rng = np.random.default_rng(noise_seed)
+    X = scene.mesh.vertices
+    movable = np.setdiff1d(scene.mesh.surface_vertices, scene.fixed)
+    movable = movable[~task.adhered[0, movable]]
+    top = movable[X[movable, 2] >= X[:, 2].max() - 1e-6]
+    pool = top if top.size >= points else movable
+    tracked = rng.choice(pool, size=min(points, pool.size), replace=False) if points else np.zeros(0, dtype=int)
+    log = {"gripper": [task.gripper[0].copy()], "grasp": [bool(task.grasping[0])],
+           "points": [task.x[0, tracked].copy()], "force": [np.zeros(3)]}
+    for _ in range(steps):
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        if info.get("simulation_diverged") or not info.get("solver_converged", True):
+            raise ObservationError(f"recording: the simulation failed at step {len(log['force'])}: "
+                                   "diverged or unconverged (see the env's info)")
+        log["gripper"].append(task.gripper[0].copy())
+        log["grasp"].append(bool(task.grasping[0]))
+        log["points"].append(task.x[0, tracked].copy())
+        log["force"].append(task.grasp_force[0].copy())
+        if terminated or truncated:
+            break
+    T1 = len(log["force"])
+    pts = np.array(log["points"]) + rng.normal(0.0, point_noise, (T1, tracked.size, 3)) if points else None
+    force = np.array(log["force"]) + rng.normal(0.0, force_noise, (T1, 3))
+    force[0] = 0.0
+    ph = scene.physics
+    meta = {"made_by": "heml_gym.envs.observations.record", "seed": seed, "steps": T1 - 1,
+            "truth": {"law": ph.material, "young_modulus": float(task.young_modulus[0]),
+                      "poisson_ratio": float(ph.poisson), "material_options": ph.material_options},
+            "mesh": {"vertices": int(scene.mesh.n_vertices), "tets": int(scene.mesh.n_tets)},
+            "point_noise_m": point_noise, "force_noise_N": force_noise}
+    width = float(task.adhesion_width[0]) if scene.adhesion_vertices is not None else None
+    return Observation(t=np.arange(T1) * task.settings.control_dt, gripper=np.array(log["gripper"]),
+                       grasp=np.array(log["grasp"]), points=pts, rest_points=X[tracked] if points else None,
+                       force=force, env_id=env_id or (env.spec.id if env.spec is not None else None),
+                       adhesion_width=width, meta=meta)
+
+
+def control_log(env, obs: Observation, young_modulus: float | None = None) -> ControlLog:
+    """What drove the tissue in ``obs``, on the scene of the single env ``env``: the env is
+    reset to the observed start (gripper, adhesion) and stepped with the actions that move
+    its gripper along the observed path and close / open its jaws as observed; each step's
+    held vertices and their targets are the log. ``young_modulus`` (Pa): the tissue used
+    to find which vertices the jaws take (default: the scene's upper one)."""
+    task = env.unwrapped.task
+    st = task.settings
+    if not np.allclose(np.diff(obs.t), st.control_dt, rtol=0, atol=1e-9):
+        raise ObservationError(f"{obs.source}: field 't': steps must be the env's control_dt ({st.control_dt} s)")
+    if obs.adhesion_width is None and task.scene.adhesion_vertices is not None:
+        raise ObservationError(f"{obs.source}: field 'adhesion_width': missing, and the scene's underside is stuck "
+                               "over a width drawn per episode (give it, m)")
+    options = {"gripper": obs.gripper[0],
+               "young_modulus": young_modulus if young_modulus is not None else task.scene.physics.young_modulus[1]}
+    if task.scene.adhesion_vertices is not None:
+        options["adhesion_width"] = obs.adhesion_width
+    env.reset(seed=0, options=options)
+    n = task.scene.mesh.n_vertices
+    kinematic, targets, gripped = [], [], []
+    x0 = task.x[0].copy()
+    step = st.max_speed * st.control_dt
+    for k in range(1, obs.t.shape[0]):
+        move = (obs.gripper[k] - obs.gripper[k - 1]) / step
+        if np.any(np.abs(move) > 1.0 + 1e-6):
+            raise ObservationError(f"{obs.source}: field 'gripper': moves {np.abs(move).max() * step:.4g} m in step {k}, "
+                                   f"more than the env's {step:.4g} m per step (max_speed x control_dt)")
+        grasp = 1.0 if obs.grasp[k] else -1.0
+        _, _, terminated, truncated, info = env.step(np.append(np.clip(move, -1, 1), grasp).astype(np.float32))
+        if obs.grasp[k] and not task.grasping[0]:
+            raise ObservationError(f"{obs.source}: field 'grasp': the jaws close at step {k} where the scene has no "
+                                   "tissue within reach of the observed gripper")
+        kinematic.append(task.control.kinematic[0].copy())
+        targets.append(task.control.targets[0].copy())
+        gripped.append(task.held[0].copy())
+        if np.linalg.norm(task.gripper[0] - obs.gripper[k]) > 1e-6:
+            raise ObservationError(f"{obs.source}: field 'gripper': step {k} leaves the scene's workspace or presses "
+                                   f"held tissue below its rest (observed {obs.gripper[k].round(5).tolist()}, the "
+                                   f"scene allows {task.gripper[0].round(5).tolist()})")
+        if (terminated or truncated) and k < obs.t.shape[0] - 1 and info.get("simulation_diverged"):
+            raise ObservationError(f"{obs.source}: the replay diverged at step {k}")
+    return ControlLog(np.array(kinematic), np.array(targets), st.control_dt, task.substeps, x0, np.zeros((n, 3)),
+                      gripped=np.array(gripped))
+
+
+def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_modulus", "poisson_ratio"),
+                        point_scale: float = 1e-3, force_scale: float = 0.05):
+    """``(replay, observed, names, bounds, start)`` for :func:`heml_gym.calibration.fit`:
+    the scene of ``env`` replaying ``obs``, the constants ``fit`` (the others kept at the
+    scene's values) with their bounds, and the scene's own values as the start."""
+    unknown = [name for name in fit if name not in FIT_PARAMETERS]
+    if unknown or not fit:
+        raise ValueError(f"fit: {unknown[0] if unknown else 'nothing'}: can fit {', '.join(FIT_PARAMETERS)}")
+    if obs.points is None and obs.force is None:
+        raise ObservationError(f"{obs.source}: only depth observed: fitting depth is not supported yet "
+                               "(give points or force)")
+    task = env.unwrapped.task
+    ph = task.scene.physics
+    log = control_log(env, obs)
+    E0 = float(np.mean(ph.young_modulus))
+    defaults = {"young_modulus": E0, "poisson_ratio": float(ph.poisson)}
+
+    def material_of(theta):
+        values = dict(defaults, **dict(zip(fit, theta)))
+        return dataclasses.replace(ph, poisson=values["poisson_ratio"]).material_for(values["young_modulus"])
+
+    # the replay's own one-scene model: the env's, whose scene 0 it re-materialises
+    replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0))
+    observed = Observed(points=obs.points, rest_points=obs.rest_points, force=obs.force,
+                        point_scale=point_scale, force_scale=force_scale)
+    return replay, observed, list(fit), [FIT_PARAMETERS[name][1] for name in fit], [defaults[name] for name in fit]

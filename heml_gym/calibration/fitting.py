@@ -1,0 +1,217 @@
+"""Fit a scene's material constants to observed tracked points and gripper forces.
+
+The loss (dimensionless) is the mean of squared residuals of each observed quantity over
+its scale, summed over the quantities::
+
+    L = mean_t,k |p_k(t) - p_obs_k(t)|^2 / s_p^2  +  mean_t |F(t) - F_obs(t)|^2 / s_F^2
+
+with ``p_k(t)`` a tracked material point (a fixed barycentric combination of the vertices
+of the rest tet it lies in), ``F(t)`` the step-mean force the tissue pulls the gripper with,
+``s_p`` (m) and ``s_F`` (N) the scales (by default 1 mm and 0.05 N: the order of the
+noise a tracker and a jaw force sensor have). :func:`fit` minimises it by bounded L-BFGS
+(scipy's L-BFGS-B, the gradient by :meth:`Replay.gradient`) from several starts, and
+reports each constant's standard error from the Gauss-Newton curvature ``J^T J`` of the
+residuals at the optimum (``J`` by central differences of the replay), scaled by the
+residuals' variance. Units: m, N, Pa.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import scipy.optimize as so
+import scipy.sparse as sp
+
+from ..mesh import TetMesh
+from .replay import Replay, ReplayError, ReplayResult
+
+__all__ = ["Observed", "FitResult", "embed_points", "loss_terms", "fit"]
+
+
+def embed_points(mesh: TetMesh, points: np.ndarray) -> sp.csr_matrix:
+    """``B`` (K, n): each point as the barycentric combination of the vertices of the rest
+    tet that holds it (the nearest tet's, clipped to it, for a point just outside the
+    surface), so that ``B @ x`` is where the material points are when the vertices are at ``x``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    X, tets = mesh.vertices, mesh.tets
+    corners = X[tets]  # (m, 4, 3)
+    T = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # (m, 3, 3)
+    T_inv = np.linalg.inv(T)
+    rows, cols, vals = [], [], []
+    for k, p in enumerate(points):
+        lam = np.einsum("mij,mj->mi", T_inv, p - corners[:, 0])
+        bary = np.column_stack([1.0 - lam.sum(axis=1), lam])
+        outside = np.clip(-bary, 0.0, None).sum(axis=1)
+        best = int(np.argmin(outside))
+        b = np.clip(bary[best], 0.0, None)
+        b /= b.sum()
+        rows += [k] * 4
+        cols += list(tets[best])
+        vals += list(b)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), mesh.n_vertices))
+
+
+@dataclass
+class Observed:
+    """What was observed at the control steps ``0..T`` (entry 0: the start), any of:
+    ``points`` (T + 1, K, 3) m of material points at rest places ``rest_points`` (K, 3) m;
+    ``force`` (T + 1, 3) N, the force the tissue pulls the gripper with (entry t: the mean
+    over control step t; entry 0 unused). ``point_scale`` (m) and ``force_scale`` (N)
+    weigh them (see the module docstring)."""
+
+    points: np.ndarray | None = None
+    rest_points: np.ndarray | None = None
+    force: np.ndarray | None = None
+    point_scale: float = 1e-3
+    force_scale: float = 0.05
+
+    def __post_init__(self):
+        if self.points is None and self.force is None:
+            raise ValueError("observed: give points (with rest_points) or force, or both")
+        if (self.points is None) != (self.rest_points is None):
+            raise ValueError("observed: points and rest_points go together")
+        for name in ("point_scale", "force_scale"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"observed.{name}: must be a positive number, got {value!r}")
+
+
+def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matrix | None):
+    """``(loss, residuals, x_bar, force_bar)``: the loss of a replay against the observed,
+    the stacked residuals over their scales (for the Gauss-Newton curvature), and the
+    loss's derivatives in the replay's positions and forces."""
+    x = result.x
+    T1 = x.shape[0]
+    x_bar = np.zeros_like(x)
+    force_bar = np.zeros_like(result.force)
+    loss, residuals = 0.0, []
+    if observed.points is not None:
+        predicted = np.stack([embedding @ x[t] for t in range(T1)])  # (T + 1, K, 3)
+        r = (predicted - observed.points) / observed.point_scale
+        count = r[..., 0].size
+        loss += float((r ** 2).sum() / count)
+        residuals.append(r.reshape(-1))
+        rb = 2.0 * r / (count * observed.point_scale)  # dL/dpredicted
+        for t in range(T1):
+            x_bar[t] += embedding.T @ rb[t]
+    if observed.force is not None:
+        r = (result.force - observed.force[1:]) / observed.force_scale
+        count = r.shape[0]
+        loss += float((r ** 2).sum() / count)
+        residuals.append(r.reshape(-1))
+        force_bar += 2.0 * r / (count * observed.force_scale)
+    return loss, np.concatenate(residuals), x_bar, force_bar
+
+
+@dataclass
+class FitResult:
+    """A fit's outcome: ``theta`` (the constants), ``std`` (their standard errors),
+    ``loss``, ``converged`` with ``message``, ``history`` (loss per iteration of the best
+    start), ``starts`` (each start's theta, loss and iterations), ``residual_rms`` (each
+    observed quantity's RMS residual in its unit: ``points_m``, ``force_N``),
+    ``wall_s``."""
+
+    names: list[str]
+    theta: np.ndarray
+    std: np.ndarray
+    loss: float
+    converged: bool
+    message: str
+    history: list[float] = field(default_factory=list)
+    starts: list[dict] = field(default_factory=list)
+    residual_rms: dict = field(default_factory=dict)
+    wall_s: float = 0.0
+
+
+def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequence[Sequence[float]],
+        bounds: Sequence[tuple[float, float]], max_iter: int = 40, gtol: float = 1e-7,
+        progress: Callable[[int, float], None] | None = None) -> FitResult:
+    """Fit the constants ``names`` (what ``replay.material_of`` takes) to ``observed``,
+    from each of ``starts`` within ``bounds``; the best start wins. ``progress(i, loss)``
+    is called after each iteration (a progress bar)."""
+    t0 = time.perf_counter()
+    embedding = None
+    if observed.points is not None:
+        embedding = embed_points(replay.model.mesh, observed.rest_points)
+    # each constant in units of its first start (or its bounds' span): comparable steps for L-BFGS
+    scale = np.array([abs(s) if s != 0 else (hi - lo) for s, (lo, hi) in zip(starts[0], bounds)], dtype=np.float64)
+    unit_bounds = [(lo / s, hi / s) for (lo, hi), s in zip(bounds, scale)]
+    runs = []
+    calls = [0]
+
+    cache = {}
+
+    def objective(u):
+        key = np.asarray(u, dtype=np.float64).tobytes()
+        if key in cache:  # (the iteration callback asks for the point just evaluated)
+            return cache[key]
+        cache.clear()
+        cache[key] = value = _objective(u)
+        return value
+
+    def _objective(u):
+        theta = u * scale
+        calls[0] += 1
+        try:
+            result = replay.run(theta)
+        except ReplayError:
+            return 1e6, np.zeros_like(u)  # a material the log cannot be followed with: far off
+        loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
+        grad = replay.gradient(theta, result, x_bar, force_bar) * scale
+        return loss, grad
+
+    for start in starts:
+        history = []
+
+        def callback(u, history=history):
+            value = objective(u)[0]
+            history.append(value)
+            if progress is not None:
+                progress(len(history), value)
+
+        u0 = np.asarray(start, dtype=np.float64) / scale
+        res = so.minimize(objective, u0, jac=True, method="L-BFGS-B", bounds=unit_bounds, callback=callback,
+                          options={"maxiter": max_iter, "gtol": gtol, "ftol": 1e-12})
+        runs.append((res, history, np.asarray(start, dtype=np.float64)))
+    best, history, _ = min(runs, key=lambda r: r[0].fun)
+    theta = best.x * scale
+    result = replay.run(theta)
+    loss, residuals, _, _ = loss_terms(result, observed, embedding)
+    std = _standard_errors(replay, observed, embedding, theta, residuals)
+    rms = {}
+    if observed.points is not None:
+        predicted = np.stack([embedding @ x for x in result.x])
+        rms["points_m"] = float(np.sqrt(((predicted - observed.points) ** 2).sum(axis=-1).mean()))
+    if observed.force is not None:
+        rms["force_N"] = float(np.sqrt(((result.force - observed.force[1:]) ** 2).sum(axis=-1).mean()))
+    message = best.message if isinstance(best.message, str) else best.message.decode()
+    return FitResult(list(names), theta, std, float(loss), bool(best.success), message, history,
+                     [{"start": s.tolist(), "theta": (r.x * scale).tolist(), "loss": float(r.fun),
+                       "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
+                     rms, time.perf_counter() - t0)
+
+
+def _standard_errors(replay, observed, embedding, theta, residuals) -> np.ndarray:
+    """Each constant's standard error from ``s^2 (J^T J)^-1`` (``J`` the residuals'
+    Jacobian by central differences of the replay, ``s^2`` their variance)."""
+    p = len(theta)
+    J = np.zeros((residuals.size, p))
+    for j in range(p):
+        step = 1e-4 * abs(theta[j]) if theta[j] != 0 else 1e-6
+        cols = []
+        for sign in (1.0, -1.0):
+            shifted = np.array(theta, dtype=np.float64)
+            shifted[j] += sign * step
+            cols.append(loss_terms(replay.run(shifted), observed, embedding)[1])
+        J[:, j] = (cols[0] - cols[1]) / (2.0 * step)
+    replay.run(theta)  # (the model's material back to theta)
+    variance = float(residuals @ residuals) / max(residuals.size - p, 1)
+    try:
+        covariance = np.linalg.inv(J.T @ J) * variance
+    except np.linalg.LinAlgError:
+        return np.full(p, math.inf)
+    return np.sqrt(np.clip(np.diag(covariance), 0.0, None))

@@ -1,0 +1,190 @@
+"""Tissue calibration: exact gradients of a replay (adjoint vs central differences), the
+observation format's checks, and recovery of a known tissue from its own observations."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import heml_gym as hg
+from heml_gym.agents.cli import main
+from heml_gym.calibration import ControlLog, Observed, Replay, fit, loss_terms
+from heml_gym.contact import PlaneSupport
+from heml_gym.envs import ORGAN_RETRACTION, TISSUE_RETRACTION
+from heml_gym.envs.observations import (Observation, ObservationError, calibration_problem, load_observation, record,
+                                        save_observation)
+from heml_gym.envs.scripted import scripted_policy
+
+
+def _random_loss_gradient_check(replay, theta, steps, rng):
+    """dL/dtheta by the adjoint against central differences, for a random linear loss in
+    every position and force (so that every path of the reverse pass is exercised)."""
+    result = replay.run(theta)
+    x_bar = rng.normal(size=result.x.shape)
+    force_bar = rng.normal(size=result.force.shape)
+    grad = replay.gradient(theta, result, x_bar, force_bar)
+    contacts = [e["inside"] for e in result.tape]
+    for j, step in enumerate(steps):
+        # the loss is smooth while the set of vertices in contact with the support stays the
+        # same (a vertex crossing the plane is a kink): differences that change it are refined
+        for _ in range(4):
+            e = np.zeros(len(theta))
+            e[j] = step
+            values, same_contacts = [], True
+            for sign in (1.0, -1.0):
+                r = replay.run(np.asarray(theta) + sign * e)
+                values.append((x_bar * r.x).sum() + (force_bar * r.force).sum())
+                same_contacts &= all(np.array_equal(a["inside"], b) for a, b in zip(r.tape, contacts))
+            if same_contacts:
+                break
+            step /= 10.0
+        assert same_contacts, f"constant {j}: the contact set changes even for a step of {step}"
+        fd = (values[0] - values[1]) / (2 * step)
+        assert grad[j] == pytest.approx(fd, rel=1e-5), f"constant {j}: adjoint {grad[j]}, central difference {fd}"
+
+
+def test_adjoint_gradients_equal_central_differences_on_a_slab():
+    """A clamped slab on a support plane, pulled up and back by its free edge: damping, two
+    sub-steps per control step, the support's projection and the jaws' force all in the loss."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
+    X = mesh.vertices
+
+    def material_of(theta):
+        return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
+
+    model = hg.Model(mesh, material_of((5e3, 0.45)), n_scenes=1, density=950.0, fixed=X[:, 0] < 1e-9,
+                     damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)])
+    T = 6
+    grip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
+    kinematic = np.zeros((T, mesh.n_vertices), bool)
+    kinematic[:, grip] = True
+    targets = np.zeros((T, mesh.n_vertices, 3))
+    for t in range(T):
+        targets[t, grip] = X[grip] + np.array([-0.002, 0.0, 0.004]) * (t + 1)
+    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of)
+    _random_loss_gradient_check(replay, (5e3, 0.45), (0.5, 1e-5), np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("env_id, steps", [(TISSUE_RETRACTION, 10), (ORGAN_RETRACTION, 8)])
+def test_adjoint_gradients_equal_central_differences_on_the_env_scenes(env_id, steps):
+    """Both envs' default scenes, replaying their scripted retraction (grasp, lift, the
+    stuck underside, the support): d/dE and d/dnu of a loss on positions and jaw force."""
+    env = gym.make(env_id, physics={"young_modulus": [5e3, 5e3]})
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=2, steps=steps, points=4)
+    assert obs.grasp.any()  # the jaws closed: the force path is in the loss
+    replay, *_ = calibration_problem(gym.make(env_id), obs)
+    _random_loss_gradient_check(replay, (5.5e3, 0.44), (0.5, 1e-5), np.random.default_rng(1))
+
+
+def test_a_tissue_is_recovered_from_its_own_observations():
+    """Noise-free points and force of a flap with E 5,200 Pa, nu 0.43 (the scene's mean
+    is 6,000 Pa, 0.45): the fit finds them, and the loss's own curvature is what the
+    standard errors come from (they are small and positive)."""
+    env = gym.make(TISSUE_RETRACTION, physics={"young_modulus": [5200.0, 5200.0], "poisson": 0.43})
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=4, steps=12, points=8)
+    replay, observed, names, bounds, start = calibration_problem(gym.make(TISSUE_RETRACTION), obs)
+    result = fit(replay, observed, names, [start], bounds)
+    assert result.converged
+    # (the observations come from the env's own solver, converged to 3e-3 of the weight: not
+    # to the replay's 1e-8, so the recovery is close, not exact)
+    assert result.theta[0] == pytest.approx(5200.0, rel=0.01)
+    assert result.theta[1] == pytest.approx(0.43, abs=0.005)
+    assert np.all(result.std > 0) and result.std[0] < 50.0
+    assert result.residual_rms["points_m"] < 1e-4
+
+
+def _observation(**change):
+    T1 = 4
+    data = dict(t=np.arange(T1) * 0.1, gripper=np.zeros((T1, 3)), grasp=np.zeros(T1, bool),
+                points=np.zeros((T1, 2, 3)), rest_points=np.zeros((2, 3)), force=np.zeros((T1, 3)))
+    data.update(change)
+    return {k: v for k, v in data.items() if v is not None}
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"points": np.full((4, 2, 3), np.nan)}, "points"),
+    ({"points": np.zeros((4, 3, 3))}, "points"),
+    ({"rest_points": None}, "points"),
+    ({"gripper": np.zeros((3, 3))}, "gripper"),
+    ({"t": np.array([0.0, 0.1, 0.1, 0.3])}, "t"),
+    ({"t": np.array([0.1, 0.2, 0.3, 0.4])}, "t"),
+    ({"grasp": np.array([0, 2, 0, 1])}, "grasp"),
+    ({"force": np.zeros((4, 2))}, "force"),
+    ({"points": None, "rest_points": None, "force": None}, "nothing observed"),
+    ({"velocity": np.zeros(4)}, "velocity"),
+])
+def test_a_bad_observation_file_is_a_one_line_error_naming_the_field(tmp_path, change, field):
+    path = tmp_path / "obs.npz"
+    np.savez(path, **_observation(**change))
+    with pytest.raises(ObservationError, match=field) as info:
+        load_observation(path)
+    assert len(str(info.value).splitlines()) == 1 and str(path) in str(info.value)
+
+
+def test_an_observation_round_trips_and_its_steps_must_be_the_envs(tmp_path):
+    obs = Observation(**_observation(), env_id=TISSUE_RETRACTION, adhesion_width=0.01, meta={"a": 1})
+    back = load_observation(save_observation(obs, tmp_path / "o.npz"))
+    assert back.env_id == TISSUE_RETRACTION and back.adhesion_width == 0.01 and back.meta == {"a": 1}
+    np.testing.assert_array_equal(back.points, obs.points)
+    slow = Observation(**_observation(t=np.arange(4) * 0.2), adhesion_width=0.01)
+    with pytest.raises(ObservationError, match="control_dt"):
+        calibration_problem(gym.make(TISSUE_RETRACTION), slow)
+    fast = Observation(**_observation(gripper=np.outer(np.arange(4), [0.5, 0, 0]) + np.array([0.06, 0, 0.02])),
+                       adhesion_width=0.01)
+    with pytest.raises(ObservationError, match="gripper"):
+        calibration_problem(gym.make(TISSUE_RETRACTION), fast)
+
+
+def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
+    obs = tmp_path / "obs.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(obs), "--young-modulus", "4500", "--steps", "10",
+                 "--points", "6", "--seed", "5"]) == 0
+    truth = json.loads(capsys.readouterr().out)["truth"]
+    assert truth["young_modulus"] == 4500.0
+    out = tmp_path / "fit"
+    assert main(["calibrate", "-", str(obs), "--out", str(out), "--fit", "young_modulus", "--no-progress"]) == 0
+    record = json.loads((out / "fit.json").read_text())
+    assert record["parameters"]["young_modulus"]["value"] == pytest.approx(4500.0, rel=0.01)
+    assert record["converged"] and (out / "fit.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["calibrate", "-", "{tmp}/none.npz", "--out", "{tmp}/fit"], "not found"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "density"], "fit: density"),
+    (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.txt"], "--out"),
+    (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--young-modulus", "-5"], "--young-modulus"),
+    (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--env-kwargs", "[1]"], "--env-kwargs"),
+    (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--env-kwargs", "not json"], "--env-kwargs"),
+])
+def test_calibration_user_errors_are_one_line_and_leave_nothing(tmp_path, capsys, argv, says):
+    good = Observation(**_observation(), env_id=TISSUE_RETRACTION, adhesion_width=0.0)
+    save_observation(good, tmp_path / "obs.npz")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_loss_terms_are_the_documented_means():
+    """The loss is the mean squared scaled residual of each observed quantity (checked on
+    made-up numbers, independently of any replay)."""
+    class Result:
+        x = np.zeros((3, 4, 3))
+        force = np.ones((2, 3))
+
+    mesh = hg.box_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+    rest = mesh.vertices[:1]
+    from heml_gym.calibration import embed_points
+
+    B = embed_points(mesh, rest)
+    points = np.zeros((3, 1, 3))
+    points[:, 0, 2] = 0.002  # 2 mm off in z at every time
+    observed = Observed(points=points, rest_points=rest, force=np.zeros((3, 3)), point_scale=1e-3, force_scale=0.5)
+    Result.x = np.zeros((3, mesh.n_vertices, 3))
+    loss, residuals, *_ = loss_terms(Result, observed, B)
+    assert loss == pytest.approx(4.0 + 3 * 4.0)  # points: (2 mm / 1 mm)^2; force: 3 components of (1/0.5)^2
+    assert residuals.size == 3 * 3 + 2 * 3
