@@ -196,7 +196,7 @@ def _calibrate(args) -> int:
                        force_scale=args.force_scale, progress=not args.no_progress)
     for name, p in record["parameters"].items():
         print(f"{name}: {p['value']:.6g} ± {p['std']:.2g} {p['unit']}".rstrip())
-    print(f"residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in record["residual_rms"].items()))
+    print("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in record["residual_rms"].items()))
     print(f"written: {Path(args.out) / 'fit.json'}, {Path(args.out) / 'fit.png'}")
     if not record["converged"]:
         print(f"the fit did NOT converge: {record['message']}", file=sys.stderr)

@@ -37,7 +37,7 @@ import numpy as np
 from heml_gym.calibration import ControlLog, Observed, Replay
 
 __all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
-           "calibration_problem", "FIT_PARAMETERS"]
+           "calibration_problem", "FIT_PARAMETERS", "physics_from_fit"]
 
 #: Constants a calibration can fit: name -> (unit, bounds).
 FIT_PARAMETERS = {"young_modulus": ("Pa", (200.0, 200e3)), "poisson_ratio": ("", (0.0, 0.495))}
@@ -306,3 +306,34 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
     observed = Observed(points=obs.points, rest_points=obs.rest_points, force=obs.force,
                         point_scale=point_scale, force_scale=force_scale)
     return replay, observed, list(fit), [FIT_PARAMETERS[name][1] for name in fit], [defaults[name] for name in fit]
+
+
+def physics_from_fit(path, spread: float = 2.0) -> dict:
+    """``physics=`` changes that make a scene's tissue the one a calibration found
+    (``heml-gym calibrate``'s ``fit.json``): its law and Poisson ratio, and Young's modulus
+    drawn per episode uniformly within ``spread`` standard errors of the fitted value (the
+    fit's uncertainty as the spread; at least 1 % of the value). ``physics={"fit":
+    "DIR/fit.json"}`` in ``gym.make`` does this."""
+    from .spec import SpecError
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "fit.json"
+    try:
+        record = json.loads(path.read_text())
+        parameters = record["parameters"]
+        law = record["law"]
+    except FileNotFoundError:
+        raise SpecError(f"physics.fit: {path} not found") from None
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise SpecError(f"physics.fit: {path} is not a heml-gym calibrate fit.json ({type(exc).__name__}: {exc})") from None
+    if not record.get("converged", False):
+        raise SpecError(f"physics.fit: {path} records a fit that did not converge ({record.get('message', '?')})")
+    out = {"material": law}
+    if "young_modulus" in parameters:
+        E, s = float(parameters["young_modulus"]["value"]), float(parameters["young_modulus"]["std"])
+        half = max(spread * s, 0.01 * E) if math.isfinite(s) else 0.01 * E
+        out["young_modulus"] = [max(E - half, 0.5 * E), E + half]
+    if "poisson_ratio" in parameters:
+        out["poisson"] = float(parameters["poisson_ratio"]["value"])
+    return out

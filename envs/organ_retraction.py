@@ -37,7 +37,8 @@ that it is the same tissue at any mesh size).
 Tissue at rest on its support, its underside stuck 0-40 mm out from the base (uniform);
 target centre uniform in x 30..45 mm, y -20..20 mm, 23 mm below the lobe's flat face;
 gripper uniform in x -58..-52 mm, y -10..10 mm, z 24-27 mm (above the jaws' footprint);
-E uniform in 4-8 kPa.
+E uniform in 4-8 kPa. ``reset(options=...)`` sets E, the gripper's start and the stuck
+width as for TissueRetraction.
 
 ## Arguments
 

@@ -69,6 +69,14 @@ def resolve_scene(default: Scene, scene=None, physics=None) -> Scene:
         if isinstance(physics, PhysicsSpec):
             new = physics
         elif isinstance(physics, dict):
+            if "fit" in physics:  # a calibration's fit.json: its law, nu and E (spread by its uncertainty)
+                from .observations import physics_from_fit
+
+                fitted = physics_from_fit(physics["fit"])
+                clash = sorted(set(fitted) & set(physics))
+                if clash:
+                    raise SpecError(f"physics.{clash[0]}: given by physics.fit as well; give one of them")
+                physics = {**{k: v for k, v in physics.items() if k != "fit"}, **fitted}
             new = from_mapping(PhysicsSpec, merge(to_mapping(spec.physics), physics), "physics")
         else:
             raise SpecError(f"physics: must be a mapping of PhysicsSpec fields, got {type(physics).__name__}")

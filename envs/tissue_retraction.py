@@ -71,7 +71,10 @@ the flap's underside (its top 12 mm below); gripper uniform in x 108-114 mm, y 4
 z 9-11 mm (just above the free edge); tissue E uniform in 4-8 kPa; the flap's underside
 stuck to the organ from the attached edge out to a width uniform in 0-20 mm
 (``Scene.adhesion``: those vertices are held where they rest, so the flap folds about a
-line up to 20 mm further out than the attached edge). ``reset(seed=...)`` fixes all of them.
+line up to 20 mm further out than the attached edge). ``reset(seed=...)`` fixes all of them;
+``reset(options={"young_modulus": E, "gripper": [x, y, z], "adhesion_width": w})`` sets
+any of E (Pa), the gripper's start (m, inside the workspace) and the stuck width (m)
+instead (a replay of a recorded episode starts this way).
 
 ## Episode End
 
@@ -96,7 +99,9 @@ the episode's draws ``young_modulus`` (Pa) and, with adhesion, ``adhesion_width`
 cells along x, y, z), ``scene`` (a :class:`~heml_gym.envs.scene.Scene`, a mapping of
 changes to this scene, or a scene YAML path: ``configs/scenes/tissue_retraction.yaml``),
 ``physics`` (a mapping of :class:`~heml_gym.envs.scene.PhysicsSpec` fields: ``material``,
-``young_modulus``, ``poisson``, ``field``, ``integrator``, ``safety``, ``max_dt``, ...).
+``young_modulus``, ``poisson``, ``field``, ``integrator``, ``safety``, ``max_dt``, ...; or
+``fit``: a ``heml-gym calibrate`` folder or its fit.json, whose law, Poisson ratio and E,
+drawn within two standard errors of the fitted value, the tissue then has).
 ``difficulty`` (:mod:`heml_gym.envs.difficulty`; the scripted baseline's success rate
 and episode length on each level are measured in docs/envs.md):
 

@@ -149,6 +149,16 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
     record = json.loads((out / "fit.json").read_text())
     assert record["parameters"]["young_modulus"]["value"] == pytest.approx(4500.0, rel=0.01)
     assert record["converged"] and (out / "fit.png").stat().st_size > 10_000
+    # an env whose tissue is the fit: E drawn within two standard errors of the fitted value
+    fitted = record["parameters"]["young_modulus"]
+    env = gym.make(TISSUE_RETRACTION, physics={"fit": str(out)})
+    low, high = env.unwrapped.scene.physics.young_modulus
+    assert low < fitted["value"] < high and high - low == pytest.approx(max(4 * fitted["std"], 0.02 * fitted["value"]))
+    _, info = env.reset(seed=0)
+    assert low <= info["young_modulus"] <= high
+    assert np.isfinite(env.step(env.action_space.sample())[1])
+    with pytest.raises(ValueError, match="physics.young_modulus: given by physics.fit"):
+        gym.make(TISSUE_RETRACTION, physics={"fit": str(out), "young_modulus": [1e3, 2e3]})
 
 
 @pytest.mark.parametrize("argv, says", [
