@@ -1,0 +1,177 @@
+"""Calibration: is a known tissue recovered from what a tracker or a force sensor saw?
+
+For each env, a tissue the scenes do not default to (E 5.5 kPa, nu 0.43) is observed
+(``heml_gym.envs.observations.record``) along the scripted retraction and hold (30 env
+steps, 3 s) on a **finer model** than the one fitted, as a real fit faces model error:
+the flap on 18 x 18 x 3 cells stepped in 0.025 s (the fitted default: 12 x 12 x 2, 0.05 s),
+the lobe meshed at 7 mm (the default: 10 mm, both 2.5 mm at the jaws). The default
+model is then fitted (``heml_gym.calibration.fit``: E and nu, from the scene's own mean
+E and nu) to
+
+* ``points``: 10 tracked points on the upper surface, 0.5 mm Gaussian noise per coordinate;
+* ``force``: the jaws' force, 0.01 N noise per component (E only: the force barely
+  depends on nu).
+
+Prediction: the points fit, replayed on another retraction of the same tissue (another
+seed: another gripper start and grasp place), against that retraction's noise-free
+points (RMS, m). Speed (one thread, same machine): the fit's wall time, and one gradient
+(the reverse pass) against one forward replay of the 3 s trajectory, medians of 3.
+Depth observations are read but not fitted yet: no row.
+
+Writes docs/benchmarks/calibration.{json,md}.
+
+    python benchmarks/accuracy/calibration.py     # ~12 min on one core
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numba
+import numpy as np
+
+from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, write_json
+
+TRUTH = {"young_modulus": 5500.0, "poisson_ratio": 0.43}
+STEPS = 30
+CASES = {
+    "heml_gym/TissueRetraction-v1": {"fine": {"scene": {"tissue": {"cells": [18, 18, 3]}},
+                                              "physics": {"max_dt": 0.025}},
+                                     "fine_label": "18 x 18 x 3 cells, 0.025 s steps",
+                                     "model_label": "12 x 12 x 2 cells, 0.05 s steps (the default)"},
+    "heml_gym/OrganRetraction-v1": {"fine": {"mesh_size": 0.007, "physics": {"max_dt": 0.025}},
+                                    "fine_label": "7 mm mesh, 0.025 s steps",
+                                    "model_label": "10 mm mesh, 0.05 s steps (the default)"},
+}
+SEED, PREDICT_SEED = 1, 7
+POINT_NOISE, FORCE_NOISE = 5e-4, 0.01
+
+
+def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float):
+    import gymnasium as gym
+
+    from heml_gym.envs.observations import record
+    from heml_gym.envs.scripted import scripted_policy
+
+    physics = {**kwargs.get("physics", {}), "young_modulus": [TRUTH["young_modulus"]] * 2,
+               "poisson": TRUTH["poisson_ratio"]}
+    env = gym.make(env_id, **{**kwargs, "physics": physics})
+    return record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=STEPS, points=10,
+                  point_noise=point_noise, force_noise=force_noise, noise_seed=seed, env_id=env_id)
+
+
+def fit_case(env_id: str, obs, names, use):
+    import gymnasium as gym
+
+    from heml_gym.calibration import fit
+    from heml_gym.envs.observations import calibration_problem
+
+    if use == "points":
+        obs.force = None
+    else:
+        obs.points = obs.rest_points = None
+    replay, observed, names, bounds, start = calibration_problem(gym.make(env_id), obs, names)
+    t0 = time.perf_counter()
+    result = fit(replay, observed, names, [start], bounds)
+    return replay, result, time.perf_counter() - t0
+
+
+def measure() -> dict:
+    import copy
+
+    import gymnasium as gym
+
+    from heml_gym.calibration import embed_points
+    from heml_gym.envs.observations import calibration_problem
+
+    numba.set_num_threads(1)
+    rows, timing = [], []
+    for env_id, case in CASES.items():
+        obs = observe(env_id, case["fine"], SEED, POINT_NOISE, FORCE_NOISE)
+        for use, names in (("points", ("young_modulus", "poisson_ratio")), ("force", ("young_modulus",))):
+            replay, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use)
+            row = {"env": env_id, "observed": use, "fine_model": case["fine_label"], "fitted_model": case["model_label"],
+                   "fit": list(names), "converged": result.converged, "message": result.message,
+                   "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms}
+            for j, name in enumerate(names):
+                row[name] = float(result.theta[j])
+                row[f"{name}_std"] = float(result.std[j])
+            row["young_modulus_error"] = row["young_modulus"] / TRUTH["young_modulus"] - 1.0
+            if "poisson_ratio" in names:
+                row["poisson_ratio_error"] = row["poisson_ratio"] - TRUTH["poisson_ratio"]
+            if use == "points":  # prediction of another retraction of the same tissue
+                other = observe(env_id, case["fine"], PREDICT_SEED, 0.0, 0.0)
+                other.force = None
+                replay2, *_ = calibration_problem(gym.make(env_id), other, names)
+                predicted = replay2.run(result.theta)
+                B = embed_points(replay2.model.mesh, other.rest_points)
+                pts = np.stack([B @ x for x in predicted.x])
+                row["prediction_rms_m"] = float(np.sqrt(((pts - other.points) ** 2).sum(axis=-1).mean()))
+                # speed: one forward replay and one gradient, medians of 3
+                forward, backward = [], []
+                theta = result.theta
+                for _ in range(3):
+                    t0 = time.perf_counter()
+                    r = replay.run(theta)
+                    t1 = time.perf_counter()
+                    replay.gradient(theta, r, np.ones_like(r.x), np.ones_like(r.force))
+                    forward.append(t1 - t0)
+                    backward.append(time.perf_counter() - t1)
+                timing.append({"env": env_id, "forward_s": float(np.median(forward)),
+                               "gradient_s": float(np.median(backward)),
+                               "gradient_over_forward": float(np.median(backward) / np.median(forward)),
+                               "vertices": int(replay.model.n_vertices)})
+            rows.append(row)
+            print(f"{env_id} {use}: " + ", ".join(f"{n} {row[n]:.5g} ± {row[n + '_std']:.2g}" for n in names)
+                  + f" ({wall:.0f} s)", flush=True)
+    return {"machine": machine_info(), "truth": TRUTH, "steps": STEPS, "seed": SEED, "predict_seed": PREDICT_SEED,
+            "point_noise_m": POINT_NOISE, "force_noise_N": FORCE_NOISE, "results": rows, "timing": timing}
+
+
+def report(data: dict) -> str:
+    m = data["machine"]
+    lines = [f"Generated by `benchmarks/accuracy/calibration.py` on {m['cpu']} ({m['vector_isa']}, one thread), "
+             f"{m['date']}. Truth: E {data['truth']['young_modulus']:,.0f} Pa, nu {data['truth']['poisson_ratio']}, "
+             f"observed on the finer model along the scripted retraction and hold ({data['steps']} env steps, seed "
+             f"{data['seed']}); points: 10 tracked, {data['point_noise_m'] * 1e3:g} mm noise; force: "
+             f"{data['force_noise_N']:g} N noise. Method: the script's docstring.\n"]
+    rows = []
+    for r in data["results"]:
+        nu = (f"{r['poisson_ratio']:.3f} ± {r['poisson_ratio_std']:.3f} ({r['poisson_ratio_error']:+.3f})"
+              if "poisson_ratio" in r else "not fitted")
+        rms = ", ".join(f"{k.split('_')[0]} {v * (1e3 if k == 'points_m' else 1):.2f} "
+                        f"{'mm' if k == 'points_m' else 'N'}" for k, v in r["residual_rms"].items())
+        rows.append([r["env"].split("/")[-1], r["observed"], r["fine_model"], r["fitted_model"],
+                     f"{r['young_modulus']:,.0f} ± {r['young_modulus_std']:,.0f} ({100 * r['young_modulus_error']:+.1f} %)",
+                     nu, rms, f"{r['prediction_rms_m'] * 1e3:.2f} mm" if "prediction_rms_m" in r else "",
+                     "yes" if r["converged"] else "NO", r["iterations"], f"{r['wall_s']:.0f}"])
+    lines.append(markdown_table(["env", "observed", "observed on", "fitted model", "E (Pa), error",
+                                 "nu, error", "residual RMS", "prediction RMS (another retraction)", "converged",
+                                 "iterations", "fit s"], rows))
+    lines.append("\nOne forward replay (3 s) and one gradient (its reverse pass), medians of 3:\n")
+    lines.append(markdown_table(["env", "vertices", "forward s", "gradient s", "gradient / forward"],
+                                [[t["env"].split("/")[-1], t["vertices"], f"{t['forward_s']:.2f}",
+                                  f"{t['gradient_s']:.2f}", f"{t['gradient_over_forward']:.2f}"]
+                                 for t in data["timing"]]))
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored JSON")
+    args = ap.parse_args(argv)
+    import json
+
+    if args.from_json:
+        data = json.loads((RESULTS / "calibration.json").read_text())
+    else:
+        data = measure()
+        write_json("calibration.json", data)
+    (RESULTS / "calibration.md").write_text(report(data) + "\n")
+    print(report(data))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
