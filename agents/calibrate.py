@@ -142,6 +142,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "law": env.unwrapped.scene.physics.material,
         "converged": result.converged, "message": result.message, "loss": result.loss,
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
+        "failed_trials": result.failed_trials,
         "settings": {"env_id": env_id, "env_kwargs": _env_kwargs(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
                      "observed": [k for k in ("points", "force") if getattr(obs, k) is not None],

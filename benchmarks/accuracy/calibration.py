@@ -93,7 +93,8 @@ def measure() -> dict:
             replay, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use)
             row = {"env": env_id, "observed": use, "fine_model": case["fine_label"], "fitted_model": case["model_label"],
                    "fit": list(names), "converged": result.converged, "message": result.message,
-                   "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms}
+                   "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms,
+                   "failed_trials": result.failed_trials}
             for j, name in enumerate(names):
                 row[name] = float(result.theta[j])
                 row[f"{name}_std"] = float(result.std[j])

@@ -125,6 +125,7 @@ class FitResult:
     starts: list[dict] = field(default_factory=list)
     residual_rms: dict = field(default_factory=dict)
     wall_s: float = 0.0
+    failed_trials: int = 0
 
 
 def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequence[Sequence[float]],
@@ -141,7 +142,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     scale = np.array([abs(s) if s != 0 else (hi - lo) for s, (lo, hi) in zip(starts[0], bounds)], dtype=np.float64)
     unit_bounds = [(lo / s, hi / s) for (lo, hi), s in zip(bounds, scale)]
     runs = []
-    calls = [0]
+    calls, failures = [0], [0]
 
     cache = {}
 
@@ -158,10 +159,11 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
         calls[0] += 1
         try:
             result = replay.run(theta)
+            loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
+            grad = replay.gradient(theta, result, x_bar, force_bar) * scale
         except ReplayError:
-            return 1e6, np.zeros_like(u)  # a material the log cannot be followed with: far off
-        loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
-        grad = replay.gradient(theta, result, x_bar, force_bar) * scale
+            failures[0] += 1
+            return 1e6, np.zeros_like(u)  # a material the log cannot be followed with: far off (the line search backs off)
         return loss, grad
 
     for start in starts:
@@ -192,7 +194,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     return FitResult(list(names), theta, std, float(loss), bool(best.success), message, history,
                      [{"start": s.tolist(), "theta": (r.x * scale).tolist(), "loss": float(r.fun),
                        "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
-                     rms, time.perf_counter() - t0)
+                     rms, time.perf_counter() - t0, failures[0])
 
 
 def _standard_errors(replay, observed, embedding, theta, residuals) -> np.ndarray:
