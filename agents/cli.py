@@ -5,6 +5,7 @@
     heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
     heml-gym scene [ENV_ID] [--out scene.yaml]
     heml-gym sweep CONFIG --seeds 0,1,2 [--set KEY=VALUE] [--grid KEY=V1,V2] [--address ADDR] [--out DIR]
+    heml-gym export RUN --out policy.onnx [--speed-limit 0.02] [--workspace x0,y0,z0,x1,y1,z1]
     heml-gym observe ENV --out obs.npz [--young-modulus E] [--points 10] [--point-noise 0.0005]
     heml-gym calibrate ENV obs.npz --out DIR [--fit young_modulus,poisson_ratio]
     heml-gym bench [NAME ...] [--out DIR] [--extra ARGS]   (no name: the benchmarks by group)
@@ -82,7 +83,15 @@ def _eval(args) -> int:
 
     if args.env:
         _known_env(args.env)
-    policy, _, cfg = load_policy(args.run_or_model, trust_pickle=args.trust_pickle)
+    if str(args.run_or_model).endswith(".onnx"):
+        from .export import OnnxPolicy
+
+        policy, cfg = OnnxPolicy(args.run_or_model), None
+        if args.env and args.env != policy.env_id:
+            raise ValueError(f"--env {args.env}: the policy was exported for {policy.env_id}")
+        args.env = policy.env_id
+    else:
+        policy, _, cfg = load_policy(args.run_or_model, trust_pickle=args.trust_pickle)
     env_id = args.env or (cfg.env.id if cfg else DEFAULT_ENV)
     obs_mode = cfg.env.obs_mode if cfg else "state"
     kwargs = cfg.env.kwargs if cfg and env_id == cfg.env.id else {}
@@ -108,6 +117,14 @@ def _rollout(args) -> int:
 
         env = gym.make(args.env or DEFAULT_ENV)
         policy = scripted_policy(env.unwrapped.scene)
+    elif str(args.policy).endswith(".onnx"):
+        from .export import OnnxPolicy
+
+        policy = OnnxPolicy(args.policy)
+        if args.env and args.env != policy.env_id:
+            raise ValueError(f"--env {args.env}: the policy was exported for {policy.env_id} (its observations and "
+                             "actions are that env's); omit --env to roll it out there")
+        env = gym.make(policy.env_id)
     else:
         from .train import load_policy, make_env
 
@@ -204,6 +221,35 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _export(args) -> int:
+    from .export import ExportError, export_policy
+    from .train import load_run, make_env, model_file
+
+    out = Path(args.out)
+    if out.suffix != ".onnx":
+        raise ValueError(f"--out: an ONNX policy file ends in .onnx, got {args.out!r}")
+    workspace = None
+    if args.workspace:
+        try:
+            values = [float(v) for v in args.workspace.split(",")]
+        except ValueError:
+            raise ValueError(f"--workspace: six numbers (m), x0,y0,z0,x1,y1,z1, got {args.workspace!r}") from None
+        if len(values) != 6:
+            raise ValueError(f"--workspace: six numbers (m), x0,y0,z0,x1,y1,z1, got {len(values)}")
+        workspace = (values[:3], values[3:])
+    path, cfg = model_file(args.run)
+    if cfg is None:
+        raise ExportError(f"{path}: no run config beside it (export reads a run folder or a checkpoint of one)")
+    if cfg.env.obs_mode != "state":
+        raise ExportError(f"{args.run}: trained on {cfg.env.obs_mode!r} observations; only state policies export")
+    model, normalizer = load_run(path, cfg, trust_pickle=args.trust_pickle)
+    max_speed = make_env(cfg).unwrapped.task.settings.max_speed
+    export_policy(model, normalizer, out, cfg.env.id, run=str(path), speed_limit=args.speed_limit,
+                  workspace=workspace, max_speed=max_speed)
+    print(f"written: {out}  (heml-gym rollout --policy {out} --rrd r.rrd)")
+    return 0
+
+
 def _bench(args) -> int:
     from heml_gym import benchmarks
 
@@ -238,7 +284,7 @@ def main(argv=None) -> int:
     t.set_defaults(func=_train)
 
     e = sub.add_parser("eval", help="success rate of a trained model or run folder")
-    e.add_argument("run_or_model")
+    e.add_argument("run_or_model", help="a run folder, a model .zip or an exported .onnx policy")
     e.add_argument("--episodes", type=int, default=50)
     e.add_argument("--seed", type=int, default=10_000)
     e.add_argument("--env", help="environment id (default: the run's)")
@@ -247,7 +293,7 @@ def main(argv=None) -> int:
     e.set_defaults(func=_eval)
 
     r = sub.add_parser("rollout", help="roll a policy out and record it to rerun")
-    r.add_argument("--policy", default="scripted", help="'scripted', a model .zip or a run folder")
+    r.add_argument("--policy", default="scripted", help="'scripted', a model .zip, a run folder or an exported .onnx")
     r.add_argument("--env", help=f"environment id (default: the run's; {DEFAULT_ENV} for 'scripted')")
     r.add_argument("--episodes", type=int, default=2)
     r.add_argument("--seed", type=int, default=0)
@@ -273,6 +319,14 @@ def main(argv=None) -> int:
     s.add_argument("env", nargs="?", default=DEFAULT_ENV)
     s.add_argument("--out", help="write it to this file")
     s.set_defaults(func=_scene)
+
+    x = sub.add_parser("export", help="a trained policy as one ONNX graph (normalisation and limits inside)")
+    x.add_argument("run", help="a run folder, its model.zip or a checkpoint")
+    x.add_argument("--out", required=True, help="the .onnx file to write")
+    x.add_argument("--speed-limit", type=float, help="the gripper's speed at most, m/s (clipped in the graph)")
+    x.add_argument("--workspace", help="x0,y0,z0,x1,y1,z1 (m): no velocity that leaves this box")
+    x.add_argument("--trust-pickle", action="store_true", help=TRUST_HELP)
+    x.set_defaults(func=_export)
 
     o = sub.add_parser("observe", help="record an observation file (.npz) from a simulated scripted retraction")
     o.add_argument("env", metavar="ENV", help="environment id")

@@ -106,6 +106,7 @@ class SuccessEvalCallback(BaseCallback):
         self.path.write_text(json.dumps(self.history, indent=1))
         self.logger.record("eval/success_rate", result["success_rate"])
         self.logger.record("eval/mean_final_exposure", result["mean_final_exposure"])
+        self.logger.record("eval/mean_damage", result["mean_damage"])
         return result
 
 
@@ -266,16 +267,29 @@ def load_policy(path: str | Path, trust_pickle: bool = False):
             raise UntrustedPickle(f"{model_path} has no run config (config.yaml) beside it to rebuild the model from, "
                                   "and loading it whole would unpickle it: pass --trust-pickle if you trust it")
         return model_policy(algorithm_class(_algorithm_of(model_path)).load(model_path, device="cpu")), None, None
+    model, normalizer = load_run(model_path, cfg, trust_pickle)
+    return model_policy(model, normalizer), model, cfg
+
+
+def load_run(model_path: Path, cfg: RunConfig, trust_pickle: bool = False):
+    """``(model, normalizer)`` of an SB3 model file with its run config: the model rebuilt
+    from the config with its weights, the observation statistics (None when the run did not
+    normalise observations)."""
     model = load_model(model_path, cfg, make_env(cfg))
+    if not cfg.env.normalize_observations:
+        return model, None
     stats = normalizer_path(model_path)
-    if cfg.env.normalize_observations:
-        try:
-            normalizer = load_normalizer(stats, trust_pickle=trust_pickle)
-        except FileNotFoundError:
-            raise FileNotFoundError(f"{model_path} was trained on normalised observations, but their "
-                                    f"statistics are missing: {stats}") from None
-        return model_policy(model, normalizer), model, cfg
-    return model_policy(model), model, cfg
+    try:
+        return model, load_normalizer(stats, trust_pickle=trust_pickle)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{model_path} was trained on normalised observations, but their "
+                                f"statistics are missing: {stats}") from None
+
+
+def model_file(path: str | Path) -> tuple[Path, RunConfig | None]:
+    """The model file of a run folder, checkpoint or ``.zip``, and its run config (None
+    when there is none beside it)."""
+    return _model_file(Path(path))
 
 
 def _model_file(path: Path) -> tuple[Path, RunConfig | None]:

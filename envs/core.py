@@ -80,6 +80,10 @@ class TaskSettings:
     grasp_reach: float = 0.012  # m: closing grasps tissue only if the grasp patch (or a surface vertex) is this close
     jaw_radius: float = 0.005  # m: the jaws hold every surface vertex this close (at least the nearest)
     damage_strain: float = 0.5  # gauge strain above which the strain penalty applies
+    #: gauge strain above which info["cost"] counts harm: 0.18, the lower end (mean - 1 SD)
+    #: of the ultimate local strain of human liver capsule in uniaxial tension, 0.47 +- 0.29
+    #: (Brunon, Bruyere-Garnier and Coret, J Biomech 43(11), 2010, 2221-2227)
+    safe_strain: float = 0.18
     tear_strain: float = 1.0  # gauge strain that ends the episode (tissue torn)
     success_exposure: float = 0.8  # fraction of the target visible for success
     hold_time: float = 0.0  # s the success condition must hold, continuously, before success (0: at once)
@@ -92,6 +96,10 @@ class TaskSettings:
             _positive(self, name, getattr(self, name))
         if self.control_dt > 10.0:
             raise SpecError(f"TaskSettings.control_dt: must be at most 10 s, got {self.control_dt}")
+        s = self.safe_strain
+        if isinstance(s, bool) or not isinstance(s, (int, float)) or not (0.0 <= s < self.damage_strain):
+            raise SpecError(f"TaskSettings.safe_strain: must be a number in [0, damage_strain = {self.damage_strain}), "
+                            f"got {s!r}")
         if not self.tear_strain > self.damage_strain:
             raise SpecError(f"TaskSettings.tear_strain: must exceed damage_strain ({self.damage_strain}), "
                             f"got {self.tear_strain}")
@@ -176,6 +184,7 @@ class BatchedRetraction:
         self.lift = np.zeros(n)
         self.max_strain = np.zeros(n)
         self.grasp_force = np.zeros((n, 3))
+        self.damage = np.zeros(n)  # strain x s: the episode's summed info["cost"]
         self.young_modulus = np.full(n, E_high)
         self.steps = np.zeros(n, dtype=np.int64)
         self.grasped_once = np.zeros(n, dtype=bool)
@@ -213,6 +222,7 @@ class BatchedRetraction:
             self.grasped_once[i] = False
             self.held_steps[i] = 0
             self.grasp_force[i] = 0.0
+            self.damage[i] = 0.0
             self.adhered[i] = False
             if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
                 self.adhesion_width[i] = rng.uniform(*s.spec.adhesion.width)
@@ -343,8 +353,14 @@ class BatchedRetraction:
         torn = (self.max_strain >= st.tear_strain) & ~failed
         terminated = success | torn | failed
         truncated = (self.steps >= st.max_steps) & ~terminated
+        # harm (Safety-Gymnasium's convention: a per-step cost beside the reward): the time
+        # integral of the gauge strain's excess over the safe strain, strain x s
+        cost = np.where(failed, 0.0, st.control_dt * np.maximum(0.0, self.max_strain - st.safe_strain))
+        self.damage = self.damage + cost
         info = {
             **terms,
+            "cost": cost,
+            "damage": self.damage.copy(),
             "exposure": self.exposure.copy(),
             "lift": self.lift.copy(),
             "max_strain": self.max_strain.copy(),
@@ -382,6 +398,7 @@ class BatchedRetraction:
         return {**{f"reward_{term.name}": zero.copy() for term in fields(RewardWeights)},
                 "exposure": self.exposure[scenes].copy(), "lift": self.lift[scenes].copy(),
                 "max_strain": self.max_strain[scenes].copy(), "grasp_force": zero.copy(),
+                "cost": zero.copy(), "damage": zero.copy(),
                 "grasping": self.grasping[scenes].copy(), "is_success": no.copy(), "hold_time": zero.copy(),
                 "tissue_torn": no.copy(), "simulation_diverged": no.copy(), "solver_converged": ~no,
                 "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),

@@ -88,6 +88,14 @@ observation stays finite. Truncated after 100 steps (10 s). ``info["substep_refi
 says when the solver had to re-take a step in shorter sub-steps (strongly compressed
 tissue), ``info["solver_fallback"]`` when the quasi-Newton solver took it again by
 Newton's method (its fallback), ``info["newton_iterations"]`` what an implicit step cost.
+
+Harm, as Safety-Gymnasium reports it (a cost beside the reward; the reward does not
+include it): ``info["cost"]`` is ``control_dt * max(0, gauge strain - safe_strain)``
+(strain x s) per step, ``info["damage"]`` its sum over the episode so far.
+``settings.safe_strain`` is 0.18 by default: the lower end (mean - 1 SD) of the ultimate
+local strain of human liver capsule in tension, 0.47 +- 0.29 (Brunon, Bruyere-Garnier and
+Coret, J Biomech 43(11), 2010). The jaws hold tissue kinematically: there is no squeeze
+force to cost.
 ``info`` has the same keys at reset (every reward term 0) and at every step, including
 the episode's draws ``young_modulus`` (Pa) and, with adhesion, ``adhesion_width`` (m).
 

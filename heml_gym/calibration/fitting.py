@@ -138,9 +138,10 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     embedding = None
     if observed.points is not None:
         embedding = embed_points(replay.model.mesh, observed.rest_points)
-    # each constant in units of its first start (or its bounds' span): comparable steps for L-BFGS
-    scale = np.array([abs(s) if s != 0 else (hi - lo) for s, (lo, hi) in zip(starts[0], bounds)], dtype=np.float64)
-    unit_bounds = [(lo / s, hi / s) for (lo, hi), s in zip(bounds, scale)]
+    # L-BFGS-B's first step is one unit long: in these units a unit is a 10 % change of a
+    # positive constant (searched in log space) or a tenth of its bounds' span
+    transform = _Units(bounds)
+    unit_bounds = transform.bounds
     runs = []
     calls, failures = [0], [0]
 
@@ -155,12 +156,12 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
         return value
 
     def _objective(u):
-        theta = u * scale
+        theta = transform.theta(u)
         calls[0] += 1
         try:
             result = replay.run(theta)
             loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
-            grad = replay.gradient(theta, result, x_bar, force_bar) * scale
+            grad = replay.gradient(theta, result, x_bar, force_bar) * transform.dtheta_du(u)
         except ReplayError:
             failures[0] += 1
             return 1e6, np.zeros_like(u)  # a material the log cannot be followed with: far off (the line search backs off)
@@ -175,12 +176,12 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
             if progress is not None:
                 progress(len(history), value)
 
-        u0 = np.asarray(start, dtype=np.float64) / scale
+        u0 = transform.u(np.asarray(start, dtype=np.float64))
         res = so.minimize(objective, u0, jac=True, method="L-BFGS-B", bounds=unit_bounds, callback=callback,
                           options={"maxiter": max_iter, "gtol": gtol, "ftol": 1e-12})
         runs.append((res, history, np.asarray(start, dtype=np.float64)))
     best, history, _ = min(runs, key=lambda r: r[0].fun)
-    theta = best.x * scale
+    theta = transform.theta(best.x)
     result = replay.run(theta)
     loss, residuals, _, _ = loss_terms(result, observed, embedding)
     std = _standard_errors(replay, observed, embedding, theta, residuals)
@@ -192,9 +193,31 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
         rms["force_N"] = float(np.sqrt(((result.force - observed.force[1:]) ** 2).sum(axis=-1).mean()))
     message = best.message if isinstance(best.message, str) else best.message.decode()
     return FitResult(list(names), theta, std, float(loss), bool(best.success), message, history,
-                     [{"start": s.tolist(), "theta": (r.x * scale).tolist(), "loss": float(r.fun),
+                     [{"start": s.tolist(), "theta": transform.theta(r.x).tolist(), "loss": float(r.fun),
                        "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
                      rms, time.perf_counter() - t0, failures[0])
+
+
+class _Units:
+    """The search's units: ``u = 10 ln(theta)`` for a constant with positive bounds, else
+    ``u = 10 theta / (hi - lo)``."""
+
+    def __init__(self, bounds):
+        self.log = np.array([lo > 0 for lo, _ in bounds])
+        self.span = np.array([hi - lo for lo, hi in bounds], dtype=np.float64)
+        self.bounds = [(10.0 * math.log(lo), 10.0 * math.log(hi)) if lo > 0 else (10.0 * lo / s, 10.0 * hi / s)
+                       for (lo, hi), s in zip(bounds, self.span)]
+
+    def u(self, theta):
+        theta = np.asarray(theta, dtype=np.float64)
+        return np.where(self.log, 10.0 * np.log(np.where(self.log, theta, 1.0)), 10.0 * theta / self.span)
+
+    def theta(self, u):
+        u = np.asarray(u, dtype=np.float64)
+        return np.where(self.log, np.exp(u / 10.0), u * self.span / 10.0)
+
+    def dtheta_du(self, u):
+        return np.where(self.log, self.theta(u) / 10.0, self.span / 10.0)
 
 
 def _standard_errors(replay, observed, embedding, theta, residuals) -> np.ndarray:

@@ -1,0 +1,206 @@
+"""``heml-gym export``: a trained policy as one ONNX graph, limits included.
+
+The graph maps the env's raw state observation (``(batch, 24)`` float32, the fields of
+``heml_gym.envs.STATE_SPEC`` with their units in the file's metadata) to the action
+(``(batch, 4)`` float32 in [-1, 1]: gripper velocity as a fraction of the env's
+``max_speed`` along x, y, z, and the grasp command): the run's observation normalisation
+and clipping, the deterministic policy (PPO: the Gaussian's mean; SAC: the squashed mean),
+the action box, and optionally
+
+* a **speed limit** (m/s): the gripper's velocity components clipped to it;
+* a **workspace box** (m): a velocity component that would carry the gripper further
+  outside the box is zeroed (the gripper's position is the observation's first three
+  fields).
+
+It is built node by node from the policy's weights (Gemm and activation layers), so it
+needs ``onnx`` only, not torch's exporter; ``onnxruntime`` runs it
+(:class:`OnnxPolicy`: what ``heml-gym rollout/eval --policy policy.onnx`` use). Only MLP
+policies on state observations export (pixel policies: not yet).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["export_policy", "OnnxPolicy", "ExportError"]
+
+ACTIVATIONS = {"Tanh": "Tanh", "ReLU": "Relu", "ELU": "Elu", "Sigmoid": "Sigmoid", "LeakyReLU": "LeakyRelu"}
+
+
+class ExportError(ValueError):
+    """A policy or option that cannot be exported."""
+
+
+def _layers(module) -> list[tuple[str, object]]:
+    """``[("gemm", (W, b)) | ("act", onnx op), ...]`` of a torch MLP (Sequential/Linear/activations)."""
+    import torch.nn as nn
+
+    out = []
+    mods = list(module) if isinstance(module, nn.Sequential) else [module]
+    for m in mods:
+        if isinstance(m, nn.Sequential):
+            out += _layers(m)
+        elif isinstance(m, nn.Linear):
+            out.append(("gemm", (m.weight.detach().cpu().numpy().astype(np.float32),
+                                 m.bias.detach().cpu().numpy().astype(np.float32))))
+        elif isinstance(m, nn.Identity):
+            continue
+        elif type(m).__name__ in ACTIVATIONS:
+            out.append(("act", ACTIVATIONS[type(m).__name__]))
+        else:
+            raise ExportError(f"layer {type(m).__name__} has no ONNX translation here (MLP policies only)")
+    return out
+
+
+def policy_layers(model) -> tuple[list, bool]:
+    """The deterministic policy's layers from the (normalised) observation to the action,
+    and whether its output is squashed by tanh (SAC)."""
+    from stable_baselines3 import PPO, SAC
+
+    policy = model.policy
+    if isinstance(model, PPO):
+        if type(policy.features_extractor).__name__ != "FlattenExtractor":
+            raise ExportError("only state-observation (MLP) policies export; this one reads images")
+        if getattr(policy, "squash_output", False):
+            raise ExportError("a squashed PPO policy does not export here")
+        return _layers(policy.mlp_extractor.policy_net) + _layers(policy.action_net), False
+    if isinstance(model, SAC):
+        actor = policy.actor
+        if type(actor.features_extractor).__name__ != "FlattenExtractor":
+            raise ExportError("only state-observation (MLP) policies export; this one reads images")
+        return _layers(actor.latent_pi) + _layers(actor.mu), True
+    raise ExportError(f"{type(model).__name__} policies do not export (PPO and SAC do)")
+
+
+def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limit: float | None = None,
+                  workspace: tuple | None = None, max_speed: float = 0.05) -> Path:
+    """Write ``model`` (SB3 PPO / SAC) with ``normalizer`` (the run's VecNormalize statistics,
+    or None) as an ONNX graph at ``out``; ``max_speed`` (m/s) is the env's, which a
+    ``speed_limit`` (m/s) is a fraction of. Returns the path."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from heml_gym.envs import STATE_SPEC
+
+    obs_dim = int(model.observation_space.shape[0]) if model.observation_space.shape else None
+    if obs_dim != len(STATE_SPEC):
+        raise ExportError(f"the policy reads {model.observation_space} observations; only the state observation "
+                          f"({len(STATE_SPEC)} fields) exports")
+    layers, squash = policy_layers(model)
+    nodes, inits = [], []
+
+    def const(name, value):
+        inits.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
+        return name
+
+    x = "observation"
+    if normalizer is not None:
+        rms = normalizer.obs_rms
+        scale = 1.0 / np.sqrt(rms.var + normalizer.epsilon)
+        nodes.append(helper.make_node("Sub", [x, const("obs_mean", rms.mean)], ["obs_centred"]))
+        nodes.append(helper.make_node("Mul", ["obs_centred", const("obs_scale", scale)], ["obs_scaled"]))
+        c = float(normalizer.clip_obs)
+        nodes.append(helper.make_node("Clip", ["obs_scaled", const("obs_low", -c), const("obs_high", c)],
+                                      ["obs_normalised"]))
+        x = "obs_normalised"
+    for k, (kind, value) in enumerate(layers):
+        if kind == "gemm":
+            W, b = value
+            nodes.append(helper.make_node("Gemm", [x, const(f"W{k}", W), const(f"b{k}", b)], [f"h{k}"], transB=1))
+        else:
+            nodes.append(helper.make_node(value, [x], [f"h{k}"]))
+        x = f"h{k}"
+    if squash:
+        nodes.append(helper.make_node("Tanh", [x], ["squashed"]))
+        x = "squashed"
+    nodes.append(helper.make_node("Clip", [x, const("act_low", -1.0), const("act_high", 1.0)], ["action_box"]))
+    x = "action_box"
+    metadata = {"env_id": env_id, "run": run, "observation": "state: " + ", ".join(
+        f"{name} ({unit})" for name, _, _, unit in STATE_SPEC),
+        "action": "[vx, vy, vz] gripper velocity as a fraction of max_speed in [-1, 1]; grasp command "
+                  "(> 0 closes, < release_command opens)",
+        "max_speed_m_per_s": str(max_speed), "normalised_inside": str(normalizer is not None)}
+    if speed_limit is not None or workspace is not None:
+        nodes.append(helper.make_node("Slice", [x, const_i(inits, "s0", [0]), const_i(inits, "s3", [3]),
+                                                const_i(inits, "ax1", [1])], ["velocity"]))
+        nodes.append(helper.make_node("Slice", [x, const_i(inits, "s3b", [3]), const_i(inits, "s4", [4]),
+                                                const_i(inits, "ax1b", [1])], ["grasp"]))
+        v = "velocity"
+        if speed_limit is not None:
+            if not (np.isfinite(speed_limit) and speed_limit > 0):
+                raise ExportError(f"--speed-limit: must be a positive speed in m/s, got {speed_limit}")
+            f = min(float(speed_limit) / max_speed, 1.0)
+            nodes.append(helper.make_node("Clip", [v, const("v_low", -f), const("v_high", f)], ["velocity_limited"]))
+            v = "velocity_limited"
+            metadata["speed_limit_m_per_s"] = str(speed_limit)
+        if workspace is not None:
+            lo, hi = (np.asarray(w, dtype=np.float32).reshape(3) for w in workspace)
+            if not np.all(lo < hi):
+                raise ExportError(f"--workspace: low {lo.tolist()} must lie below high {hi.tolist()} on every axis")
+            nodes.append(helper.make_node("Slice", ["observation", const_i(inits, "p0", [0]),
+                                                    const_i(inits, "p3", [3]), const_i(inits, "ax1c", [1])],
+                                          ["gripper_position"]))
+            nodes += [helper.make_node("GreaterOrEqual", ["gripper_position", const("ws_high", hi)], ["at_high"]),
+                      helper.make_node("LessOrEqual", ["gripper_position", const("ws_low", lo)], ["at_low"]),
+                      helper.make_node("Greater", [v, const("zero", 0.0)], ["moving_up"]),
+                      helper.make_node("Less", [v, const("zero_b", 0.0)], ["moving_down"]),
+                      helper.make_node("And", ["at_high", "moving_up"], ["out_high"]),
+                      helper.make_node("And", ["at_low", "moving_down"], ["out_low"]),
+                      helper.make_node("Or", ["out_high", "out_low"], ["leaving"]),
+                      helper.make_node("Where", ["leaving", const("zero_c", 0.0), v], ["velocity_inside"])]
+            v = "velocity_inside"
+            metadata["workspace_m"] = json.dumps([[float(v) for v in w] for w in workspace])
+        nodes.append(helper.make_node("Concat", [v, "grasp"], ["limited"], axis=1))
+        x = "limited"
+    nodes.append(helper.make_node("Identity", [x], ["action"]))
+    graph = helper.make_graph(nodes, "heml_gym_policy",
+                              [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", obs_dim])],
+                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", 4])], inits)
+    onnx_model = helper.make_model(graph, producer_name="heml-gym", opset_imports=[helper.make_opsetid("", 17)])
+    onnx_model.ir_version = 8
+    for key, value in metadata.items():
+        entry = onnx_model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(onnx_model, full_check=True)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(onnx_model, out)
+    return out
+
+
+def const_i(inits, name, value):
+    from onnx import numpy_helper
+
+    inits.append(numpy_helper.from_array(np.asarray(value, dtype=np.int64), name))
+    return name
+
+
+class OnnxPolicy:
+    """An exported policy as an ``obs -> action`` callable (onnxruntime, one thread);
+    ``metadata`` holds the file's ``env_id``, observation and action descriptions, limits."""
+
+    def __init__(self, path):
+        import onnxruntime as ort
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ONNX policy not found: {path}")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # not an ONNX file, or a broken one
+            raise ExportError(f"{path}: not a loadable ONNX policy ({type(exc).__name__})") from None
+        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
+        if "env_id" not in self.metadata:
+            raise ExportError(f"{path}: not a heml-gym policy (no env_id in its metadata)")
+        self.env_id = self.metadata["env_id"]
+
+    def __call__(self, obs) -> np.ndarray:
+        batch = np.asarray(obs, dtype=np.float32)
+        single = batch.ndim == 1
+        out = self.session.run(["action"], {"observation": batch[None] if single else batch})[0]
+        return out[0] if single else out
