@@ -104,6 +104,10 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
+    selection = None
+    if law == "auto":
+        law, selection = select_law(env_id, obs, tuple(fit_names), _env_kwargs(env_kwargs), point_scale, force_scale,
+                                    progress)
     env = _make(env_id, _env_kwargs(env_kwargs), physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
                                                                  force_scale)
@@ -143,6 +147,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "converged": result.converged, "message": result.message, "loss": result.loss,
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
+        "law_selection": selection,
         "settings": {"env_id": env_id, "env_kwargs": _env_kwargs(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
                      "observed": [k for k in ("points", "force") if getattr(obs, k) is not None],
@@ -153,6 +158,51 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     _chart(out / "fit.png", result, obs, final, replay, observed)
     return record
+
+
+def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,
+               progress: bool = True) -> tuple[str, list[dict]]:
+    """``--law auto``: fit each law of :mod:`heml_gym.materials` to half the tracked points
+    (and the force) and keep the one that predicts the other half best (held-out RMS, m).
+    Returns the law's name and every law's record."""
+    import copy
+
+    from heml_gym.calibration import ReplayError, embed_points, fit
+    from heml_gym.envs.observations import calibration_problem
+    from heml_gym.envs.scene import LAWS
+
+    if obs.points is None or obs.points.shape[1] < 4:
+        raise ValueError("--law auto: needs at least 4 tracked points (half fit, half held out)")
+    K = obs.points.shape[1]
+    train, held = np.arange(0, K, 2), np.arange(1, K, 2)
+    part = copy.deepcopy(obs)
+    part.points, part.rest_points = obs.points[:, train], obs.rest_points[train]
+    records = []
+    laws = list(LAWS)
+    iterator = laws
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(laws, desc="laws", unit="law")
+    for name in iterator:
+        env = _make(env_id, env_kwargs, physics_overrides(law=name))
+        try:
+            replay, observed, names, bounds, start = calibration_problem(env, part, fit_names, point_scale, force_scale)
+            result = fit(replay, observed, names, [start], bounds)
+            predicted = replay.run(result.theta)
+        except ReplayError as exc:
+            records.append({"law": name, "error": str(exc)})
+            continue
+        B = embed_points(replay.model.mesh, obs.rest_points[held])
+        pts = np.stack([B @ x for x in predicted.x])
+        rms = float(np.sqrt(((pts - obs.points[:, held]) ** 2).sum(axis=-1).mean()))
+        records.append({"law": name, "theta": dict(zip(names, map(float, result.theta))),
+                        "std": dict(zip(names, map(float, result.std))), "converged": result.converged,
+                        "heldout_rms_m": rms, "fit_loss": result.loss})
+    usable = [r for r in records if "heldout_rms_m" in r and r["converged"]]
+    if not usable:
+        raise ValueError("--law auto: no law could be fitted (see each law's record)")
+    return min(usable, key=lambda r: r["heldout_rms_m"])["law"], records
 
 
 def _chart(path: Path, result, obs, final, replay, observed) -> None:

@@ -214,6 +214,10 @@ def _calibrate(args) -> int:
     for name, p in record["parameters"].items():
         print(f"{name}: {p['value']:.6g} ± {p['std']:.2g} {p['unit']}".rstrip())
     print("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in record["residual_rms"].items()))
+    if record["law_selection"]:
+        print(f"law: {record['law']} (held-out RMS: " + ", ".join(
+            f"{r['law']} {r['heldout_rms_m'] * 1e3:.3f} mm" if "heldout_rms_m" in r else f"{r['law']} failed"
+            for r in record["law_selection"]) + ")")
     print(f"written: {Path(args.out) / 'fit.json'}, {Path(args.out) / 'fit.png'}")
     if not record["converged"]:
         print(f"the fit did NOT converge: {record['message']}", file=sys.stderr)
@@ -347,7 +351,8 @@ def main(argv=None) -> int:
     c.add_argument("observation", help="the .npz observation file")
     c.add_argument("--out", required=True, help="folder for fit.json and fit.png (new or empty)")
     c.add_argument("--fit", default="young_modulus,poisson_ratio", help="constants to fit, comma-separated")
-    c.add_argument("--law", help="the law to fit (a heml_gym.materials class name; default: the scene's)")
+    c.add_argument("--law", help="the law to fit (a heml_gym.materials class name; default: the scene's), or "
+                                 "'auto': the one that predicts held-out tracked points best")
     c.add_argument("--env-kwargs", help="JSON gym.make keyword arguments of the fitted scene")
     c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
     c.add_argument("--point-scale", type=float, default=1e-3, help="tracked points' residual scale, m")

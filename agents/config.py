@@ -38,6 +38,7 @@ algorithm's constructor, all before anything is written.
 from __future__ import annotations
 
 import inspect
+import math
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
@@ -82,11 +83,22 @@ class CheckpointConfig:
 
 
 @dataclass
+class ConstraintConfig:
+    """A damage budget (strain x s per episode: the summed ``info["cost"]``); None: no
+    constraint. See :mod:`heml_gym.agents.constraint`."""
+
+    budget: float | None = None
+    multiplier_lr: float = 0.05
+    multiplier_init: float = 0.0
+
+
+@dataclass
 class RunConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    constraint: ConstraintConfig = field(default_factory=ConstraintConfig)
     seed: int = 0
     name: str = "run"
 
@@ -118,6 +130,12 @@ def _build(cls, data: Any, path: str):
         if is_dataclass(expected):
             kwargs[name] = _build(expected, value, key)
             continue
+        optional = expected == (float | None)
+        if optional:
+            if value is None:
+                kwargs[name] = None
+                continue
+            expected = float
         if expected is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if expected is int and isinstance(value, float) and value.is_integer():
@@ -135,6 +153,18 @@ def validate(cfg: RunConfig) -> RunConfig:
     """Check values beyond types; raises :class:`ConfigError` naming the key."""
     if cfg.algorithm.name not in ALGORITHMS:
         raise ConfigError(f"config key 'algorithm.name' must be one of {tuple(ALGORITHMS)}, got {cfg.algorithm.name!r}")
+    c = cfg.constraint
+    if c.budget is not None:
+        if BACKENDS[cfg.algorithm.name] != "sb3":
+            raise ConfigError(f"config key 'constraint.budget': constrained training runs on PPO or SAC, "
+                              f"not {cfg.algorithm.name}")
+        for key, value, low in (("budget", c.budget, 0.0), ("multiplier_lr", c.multiplier_lr, None),
+                                ("multiplier_init", c.multiplier_init, 0.0)):
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
+                value >= low if low is not None else value > 0)
+            if not ok:
+                raise ConfigError(f"config key 'constraint.{key}' must be a finite number "
+                                  f"{'>= 0' if low is not None else '> 0'}, got {value!r}")
     if cfg.env.obs_mode not in OBS_MODES:
         raise ConfigError(f"config key 'env.obs_mode' must be one of {OBS_MODES}, got {cfg.env.obs_mode!r}")
     for key, value in [("env.num_envs", cfg.env.num_envs),

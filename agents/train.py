@@ -110,6 +110,19 @@ class SuccessEvalCallback(BaseCallback):
         return result
 
 
+def _resumed_multiplier(resume, cfg: RunConfig) -> float:
+    """The Lagrange multiplier to start from: the resumed run's last (its constraint.json),
+    else the config's ``constraint.multiplier_init``."""
+    if resume is not None:
+        folder = Path(resume).parent.parent if Path(resume).parent.name == "checkpoints" else Path(resume).parent
+        record = folder / "constraint.json"
+        if record.is_file():
+            history = json.loads(record.read_text()).get("history", [])
+            if history:
+                return float(history[-1]["multiplier"])
+    return float(cfg.constraint.multiplier_init)
+
+
 def run_directory(cfg: RunConfig, root: str | Path = "runs") -> Path:
     return Path(root) / f"{cfg.name}-seed{cfg.seed}"
 
@@ -188,6 +201,11 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     torch.set_num_threads(1)
     env = make_vec_env(cfg)
     env.seed(cfg.seed)
+    penalty = None
+    if cfg.constraint.budget is not None:  # reward - lambda cost (heml_gym.agents.constraint)
+        from .constraint import CostPenalty
+
+        env = penalty = CostPenalty(env, _resumed_multiplier(resume, cfg))
     algo = algorithm_class(cfg.algorithm.name)
     if cfg.env.normalize_observations:
         if resume is not None:  # continue with the statistics the checkpoint was trained with
@@ -225,6 +243,11 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     evaluator = SuccessEvalCallback(cfg, run_dir / "evaluations.json")
     callbacks = [Checkpoints(max(1, cfg.checkpoint.every_steps // cfg.env.num_envs), str(run_dir / "checkpoints")),
                  evaluator]
+    if penalty is not None:
+        from .constraint import MultiplierUpdate
+
+        callbacks.append(MultiplierUpdate(penalty, cfg.constraint.budget, cfg.constraint.multiplier_lr,
+                                          run_dir / "constraint.json"))
     remaining = cfg.algorithm.total_timesteps - (model.num_timesteps if resume is not None else 0)
     if remaining > 0:
         model.learn(total_timesteps=remaining, callback=CallbackList(callbacks),

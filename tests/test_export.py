@@ -44,6 +44,27 @@ def test_the_onnx_graph_acts_as_the_policy(run, tmp_path):
     assert onnx_policy.metadata["env_id"] == cfg.env.id and "gripper" in onnx_policy.metadata["observation"]
 
 
+def test_a_sac_policy_exports_with_its_squash(tmp_path):
+    import yaml
+
+    from test_agents import ROOT
+
+    cfg = yaml.safe_load((ROOT / "configs" / "tissue_sac.yaml").read_text())
+    cfg["env"].update(num_envs=4, kwargs={"settings": {"max_steps": 20}})
+    cfg["algorithm"]["total_timesteps"] = 160
+    cfg["algorithm"]["hyperparameters"].update(learning_starts=40, batch_size=32, buffer_size=1000, gradient_steps=1)
+    cfg["evaluation"] = {"every_steps": 160, "episodes": 1}
+    cfg["checkpoint"] = {"every_steps": 160}
+    config = tmp_path / "sac.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    assert main(["train", str(config), "--run-dir", str(tmp_path / "sac"), "--no-progress"]) == 0
+    assert main(["export", str(tmp_path / "sac"), "--out", str(tmp_path / "sac.onnx")]) == 0
+    sb3_policy, _, _ = load_policy(tmp_path / "sac")
+    obs = observations(seed=2)
+    np.testing.assert_allclose(OnnxPolicy(tmp_path / "sac.onnx")(obs), np.array([sb3_policy(o) for o in obs]),
+                               atol=1e-5)
+
+
 def test_limits_are_applied_in_the_graph(run, tmp_path):
     out = tmp_path / "limited.onnx"
     assert main(["export", str(run), "--out", str(out), "--speed-limit", "0.0003",

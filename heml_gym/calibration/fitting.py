@@ -129,11 +129,15 @@ class FitResult:
 
 
 def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequence[Sequence[float]],
-        bounds: Sequence[tuple[float, float]], max_iter: int = 40, gtol: float = 1e-7,
+        bounds: Sequence[tuple[float, float]], max_iter: int = 40, gtol: float = 1e-7, ftol: float = 1e-8,
         progress: Callable[[int, float], None] | None = None) -> FitResult:
     """Fit the constants ``names`` (what ``replay.material_of`` takes) to ``observed``,
-    from each of ``starts`` within ``bounds``; the best start wins. ``progress(i, loss)``
-    is called after each iteration (a progress bar)."""
+    from each of ``starts`` within ``bounds``; the best start wins. A start stops when the
+    projected gradient is below ``gtol`` or an iteration lowers the loss by less than
+    ``ftol`` (absolute below a loss of 1, else relative): the loss has kinks where a vertex
+    enters or leaves contact with the support, next to which L-BFGS would otherwise
+    bounce between both sides. ``progress(i, loss)`` is called after each iteration (a
+    progress bar)."""
     t0 = time.perf_counter()
     embedding = None
     if observed.points is not None:
@@ -178,7 +182,8 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
 
         u0 = transform.u(np.asarray(start, dtype=np.float64))
         res = so.minimize(objective, u0, jac=True, method="L-BFGS-B", bounds=unit_bounds, callback=callback,
-                          options={"maxiter": max_iter, "gtol": gtol, "ftol": 1e-12})
+                          options={"maxiter": max_iter, "maxfun": 4 * max_iter, "maxls": 10, "gtol": gtol,
+                                   "ftol": ftol})
         runs.append((res, history, np.asarray(start, dtype=np.float64)))
     best, history, _ = min(runs, key=lambda r: r[0].fun)
     theta = transform.theta(best.x)
