@@ -39,6 +39,7 @@ from ..materials import Material
 from ..model import Model
 from ..solvers import kernels_quasi_newton as kq
 from ..solvers.newton import minimize
+from ..solvers.quasi_newton import incremental_hessian
 
 __all__ = ["ControlLog", "Replay", "ReplayResult", "ReplayError"]
 
@@ -294,22 +295,9 @@ class Replay:
         return spla.spsolve(a.tocsc(), b)
 
     def _step_hessian(self, y, c, k_contact, held, args, project):
-        """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n)."""
-        m = self.model
-        n = m.n_vertices
-        hess = self._add_diagonal(self.model.fields[self.scene].hessian(y, project=project),
-                                  np.repeat(c * m.mass, 3))
-        supports = args[2]
-        if supports.planes.shape[0] + supports.grids.shape[0]:
-            g, f = np.zeros((n, 3)), np.zeros((n, 3))
-            dist, normal = np.full(n, math.inf), np.zeros((n, 3))
-            kq.potential_and_gradient(y, False, g, f, dist, normal, *args)
-            touching = np.flatnonzero((dist < 0.0) & ~held)
-            if touching.size:
-                nrm = normal[touching]
-                blocks = (k_contact * m.mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
-                hess = self._add_blocks(hess, touching, blocks)
-        return hess
+        """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n): the solver's own."""
+        return incremental_hessian(self.model.fields[self.scene], self.model.mass, y, c, k_contact, held, args,
+                                   project, self._add_diagonal, self._add_blocks)
 
     # ------------------------------------------------------------------ reverse
     def gradient(self, theta, result: ReplayResult, x_bar: np.ndarray, force_bar: np.ndarray | None = None

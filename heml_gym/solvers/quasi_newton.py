@@ -54,7 +54,30 @@ from . import kernels_quasi_newton as kq
 from .base import Solver, StepStats
 from .newton import minimize
 
-__all__ = ["QuasiNewtonSolver"]
+__all__ = ["QuasiNewtonSolver", "incremental_hessian"]
+
+
+def incremental_hessian(field, mass, y, c, k_contact, held, potential_args, project, add_diagonal, add_blocks):
+    """The Hessian (CSR, 3n x 3n) at ``y`` (m) of a sub-step's incremental potential: the
+    ``field``'s stiffness (its per-element projection if ``project``), ``c M`` (1/s^2 times
+    the lumped ``mass``) and the support penalty ``k_contact m_i n n^T`` of the free
+    vertices inside a support; ``potential_args`` are :func:`~.kernels_quasi_newton.potential_and_gradient`'s
+    (they locate the supports); ``add_diagonal`` / ``add_blocks``: a
+    :class:`~heml_gym.linear_solvers.DiagonalAdd` and :class:`~heml_gym.linear_solvers.DiagonalBlockAdd`
+    (they cache the pattern). The Newton fallback and the calibration's replay use it."""
+    n = y.shape[0]
+    hess = add_diagonal(field.hessian(y, project=project), np.repeat(c * mass, 3))
+    supports = potential_args[2]
+    if supports.planes.shape[0] + supports.grids.shape[0]:
+        g, f = np.zeros((n, 3)), np.zeros((n, 3))
+        dist, normal = np.full(n, math.inf), np.zeros((n, 3))
+        kq.potential_and_gradient(y, False, g, f, dist, normal, *potential_args)
+        touching = np.flatnonzero((dist < 0.0) & ~held)
+        if touching.size:
+            nrm = normal[touching]
+            blocks = (k_contact * mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+            hess = add_blocks(hess, touching, blocks)
+    return hess
 
 
 class QuasiNewtonSolver(Solver):
@@ -493,19 +516,9 @@ class QuasiNewtonSolver(Solver):
             kq.potential_and_gradient(y.reshape(n, 3), True, g, f, dist, normal, *potential_args)
             return g.reshape(-1).copy()
 
-        inertia_diagonal = np.repeat(c * m.mass, 3)
-
         def hessian(y, project):
-            y = y.reshape(n, 3)
-            hess = self._add_diagonal(field.hessian(y, project=project), inertia_diagonal)
-            if n_supports:
-                kq.potential_and_gradient(y, False, g, f, dist, normal, *potential_args)
-                touching = np.flatnonzero((dist < 0.0) & ~held)
-                if touching.size:
-                    nrm = normal[touching]
-                    blocks = (k_contact * m.mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
-                    hess = self._add_blocks(hess, touching, blocks)
-            return hess
+            return incremental_hessian(field, m.mass, y.reshape(n, 3), c, k_contact, held, potential_args, project,
+                                       self._add_diagonal, self._add_blocks)
 
         start, best = None, math.inf
         for candidate in (x_n + h * v_n, x_n.copy()):
