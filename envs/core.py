@@ -97,9 +97,8 @@ class TaskSettings:
         if self.control_dt > 10.0:
             raise SpecError(f"TaskSettings.control_dt: must be at most 10 s, got {self.control_dt}")
         s = self.safe_strain
-        if isinstance(s, bool) or not isinstance(s, (int, float)) or not (0.0 <= s < self.damage_strain):
-            raise SpecError(f"TaskSettings.safe_strain: must be a number in [0, damage_strain = {self.damage_strain}), "
-                            f"got {s!r}")
+        if isinstance(s, bool) or not isinstance(s, (int, float)) or not (0.0 <= s < math.inf):
+            raise SpecError(f"TaskSettings.safe_strain: must be a finite number >= 0, got {s!r}")
         if not self.tear_strain > self.damage_strain:
             raise SpecError(f"TaskSettings.tear_strain: must exceed damage_strain ({self.damage_strain}), "
                             f"got {self.tear_strain}")
