@@ -155,9 +155,44 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
                                                    "tets": int(replay.model.mesh.n_tets)}},
         "wall_s": time.perf_counter() - t0,
     }
-    (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     _chart(out / "fit.png", result, obs, final, replay, observed)
+    record["recording"] = _record(out / "fit.rrd", obs, final, replay, env.unwrapped.task.scene.surface_faces)
+    (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+def _record(path: Path, obs, final, replay, faces) -> str | None:
+    """``fit.rrd``: the fitted tissue (its surface mesh), the observed and the fitted tracked
+    points, and the observed and fitted jaw force, at each control step (timeline
+    ``sim_time``, s). None (and nothing written) without the rerun SDK."""
+    try:
+        import rerun as rr
+    except ImportError:
+        return None
+    from heml_gym.calibration import embed_points
+    from heml_gym.envs import palette
+
+    rec = rr.RecordingStream("heml_gym_calibration")
+    rec.set_log_time_enabled(False)
+    rec.save(str(path))
+    fitted_points = None
+    if obs.points is not None:
+        B = embed_points(replay.model.mesh, obs.rest_points)
+        fitted_points = np.stack([B @ x for x in final.x])
+    for k, t in enumerate(obs.t):
+        rec.set_time("sim_time", duration=float(t))
+        rec.log("world/fitted_tissue", rr.Mesh3D(vertex_positions=final.x[k], triangle_indices=faces,
+                                                 vertex_colors=np.tile(palette.TISSUE, (final.x.shape[1], 1))))
+        if fitted_points is not None:
+            rec.log("world/observed_points", rr.Points3D(obs.points[k], radii=0.0015, colors=[[220, 40, 40]]))
+            rec.log("world/fitted_points", rr.Points3D(fitted_points[k], radii=0.0015, colors=[[40, 160, 60]]))
+        rec.log("world/gripper", rr.Points3D([obs.gripper[k]], radii=0.003, colors=[[60, 60, 60]]))
+        if obs.force is not None and k > 0:
+            for d, axis in enumerate("xyz"):
+                rec.log(f"plots/force/observed_{axis}", rr.Scalars(float(obs.force[k, d])))
+                rec.log(f"plots/force/fitted_{axis}", rr.Scalars(float(final.force[k - 1, d])))
+    rec.flush()
+    return str(path)
 
 
 def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,

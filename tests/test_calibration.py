@@ -149,6 +149,7 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
     record = json.loads((out / "fit.json").read_text())
     assert record["parameters"]["young_modulus"]["value"] == pytest.approx(4500.0, rel=0.01)
     assert record["converged"] and (out / "fit.png").stat().st_size > 10_000
+    assert record["recording"] == str(out / "fit.rrd") and (out / "fit.rrd").stat().st_size > 10_000
     # an env whose tissue is the fit: E drawn within two standard errors of the fitted value
     fitted = record["parameters"]["young_modulus"]
     env = gym.make(TISSUE_RETRACTION, physics={"fit": str(out)})
