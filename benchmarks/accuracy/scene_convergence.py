@@ -489,25 +489,34 @@ def charts(results: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(results), 2, figsize=(12.5, 4.4 * len(results)), squeeze=False)
+    fig, axes = plt.subplots(len(results), 2, figsize=(13, 4.8 * len(results)), squeeze=False)
+    floor = 0.1  # % (a log axis: errors of 0 are drawn here)
     for row, (scene, res) in zip(axes, results.items()):
-        for i, r in enumerate(res["table"]):
+        table = res["table"]
+        # labelled: the default, and the cheapest other model within 5 % (the table has every model)
+        green = sorted((r for r in table if r["within_5pct"] and not r["default"]), key=lambda r: r["cpu_ms_per_step"])
+        labelled = {id(r) for r in green[:1]} | {id(r) for r in table if r["default"]}
+        for r in table:
             c = "tab:green" if r["within_5pct"] else "tab:red"
             for a, key in zip(row, ("force", "exposure")):
-                a.plot(r["cpu_ms_per_step"], 100 * r[key], "*" if r["default"] else "o", color=c,
-                       ms=12 if r["default"] else 7)
-                a.annotate(r["model"], (r["cpu_ms_per_step"], 100 * r[key]), fontsize=7,
-                           xytext=(5, 3 - 10 * (i % 2)), textcoords="offset points")
+                y = max(100 * r[key], floor)
+                a.plot(r["cpu_ms_per_step"], y, "*" if r["default"] else "o", color=c,
+                       ms=14 if r["default"] else 6, mec="k" if r["default"] else c, zorder=3 if r["default"] else 2)
+                if id(r) in labelled:
+                    a.annotate(("default: " if r["default"] else "") + r["model"], (r["cpu_ms_per_step"], y),
+                               fontsize=7, xytext=(6, 9 if r["default"] else -14), textcoords="offset points",
+                               bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8})
         for a, title in zip(row, ("grasp force: max |F - F_ref| / max F_ref",
                                   "exposure: max |e - e_ref|, half a step of timing tolerance")):
             a.axhline(100 * TOLERANCE, color="k", ls="--", lw=1, label="5 % tolerance")
             a.set_xscale("log")
+            a.set_yscale("log")
+            a.set_ylim(floor * 0.8, 150)
             a.set_xlabel("cost: CPU ms per env step (one thread, median)")
             a.set_ylabel("worst error over seeds (%)")
-            a.set_title(f"{scene} vs {res['reference']}: {title}", fontsize=9)
+            a.set_title(f"{scene} vs {res['reference']}\n{title}", fontsize=9)
             a.grid(alpha=0.3, which="both")
-            a.set_ylim(bottom=0)
-            a.legend(fontsize=8)
+            a.legend(fontsize=8, loc="upper right")
     fig.suptitle("Error against a fine model vs cost (green within 5 %, red not; star: the default)", fontsize=10)
     fig.tight_layout()
     fig.savefig(IMAGES / "scene_convergence.png", dpi=110)
