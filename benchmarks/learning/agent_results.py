@@ -189,8 +189,13 @@ def markdown(results: dict) -> str:
     return md
 
 
+RENAMED = "runs trained under the ids -v0 (2026-11-25), the tasks registered as -v1 since 2026-11-26"
+
+
 def main() -> int:
     results = collect()
+    # the runs on record were trained before the tasks' ids became -v1 (2026-11-26), on the same tasks
+    results = {"renamed": RENAMED, **results}
     write_json("agent_results.json", results)
     text = markdown(results)
     (RESULTS / "agent_results.md").write_text(text)
