@@ -83,6 +83,10 @@ def _eval(args) -> int:
 
     if args.env:
         _known_env(args.env)
+    if args.run_or_model == "pretrained":
+        from .export import pretrained_path
+
+        args.run_or_model = str(pretrained_path(args.env or DEFAULT_ENV))
     if str(args.run_or_model).endswith(".onnx"):
         from .export import OnnxPolicy
 
@@ -117,10 +121,10 @@ def _rollout(args) -> int:
 
         env = gym.make(args.env or DEFAULT_ENV)
         policy = scripted_policy(env.unwrapped.scene)
-    elif str(args.policy).endswith(".onnx"):
-        from .export import OnnxPolicy
+    elif args.policy == "pretrained" or str(args.policy).endswith(".onnx"):
+        from .export import OnnxPolicy, pretrained_path
 
-        policy = OnnxPolicy(args.policy)
+        policy = OnnxPolicy(pretrained_path(args.env or DEFAULT_ENV) if args.policy == "pretrained" else args.policy)
         if args.env and args.env != policy.env_id:
             raise ValueError(f"--env {args.env}: the policy was exported for {policy.env_id} (its observations and "
                              "actions are that env's); omit --env to roll it out there")
@@ -288,7 +292,7 @@ def main(argv=None) -> int:
     t.set_defaults(func=_train)
 
     e = sub.add_parser("eval", help="success rate of a trained model or run folder")
-    e.add_argument("run_or_model", help="a run folder, a model .zip or an exported .onnx policy")
+    e.add_argument("run_or_model", help="a run folder, a model .zip, an exported .onnx policy or 'pretrained'")
     e.add_argument("--episodes", type=int, default=50)
     e.add_argument("--seed", type=int, default=10_000)
     e.add_argument("--env", help="environment id (default: the run's)")
@@ -297,7 +301,8 @@ def main(argv=None) -> int:
     e.set_defaults(func=_eval)
 
     r = sub.add_parser("rollout", help="roll a policy out and record it to rerun")
-    r.add_argument("--policy", default="scripted", help="'scripted', a model .zip, a run folder or an exported .onnx")
+    r.add_argument("--policy", default="scripted", help="'scripted', 'pretrained' (shipped with the package), a "
+                                                        "model .zip, a run folder or an exported .onnx")
     r.add_argument("--env", help=f"environment id (default: the run's; {DEFAULT_ENV} for 'scripted')")
     r.add_argument("--episodes", type=int, default=2)
     r.add_argument("--seed", type=int, default=0)

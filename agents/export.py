@@ -25,7 +25,21 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["export_policy", "OnnxPolicy", "ExportError"]
+__all__ = ["export_policy", "OnnxPolicy", "ExportError", "pretrained_path", "PRETRAINED"]
+
+#: Where the shipped policies live (package data), one per env id: ``<name>-v<k>.onnx``.
+PRETRAINED = Path(__file__).resolve().parent / "pretrained"
+
+
+def pretrained_path(env_id: str) -> Path:
+    """The shipped ONNX policy of ``env_id``'s default task, or a one-line error naming
+    the envs that have one."""
+    path = PRETRAINED / (env_id.split("/")[-1] + ".onnx")
+    if not path.is_file():
+        have = sorted("heml_gym/" + p.stem for p in PRETRAINED.glob("*.onnx"))
+        raise FileNotFoundError(f"--policy pretrained: no pretrained policy for {env_id} "
+                                f"(there is one for: {', '.join(have) or 'none yet'})")
+    return path
 
 ACTIVATIONS = {"Tanh": "Tanh", "ReLU": "Relu", "ELU": "Elu", "Sigmoid": "Sigmoid", "LeakyReLU": "LeakyRelu"}
 

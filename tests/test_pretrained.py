@@ -1,0 +1,32 @@
+"""The pretrained policies shipped with the package load, name their env, and still do
+the task they were trained on (a shipped file that no longer fits its env fails here)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from heml_gym.agents.cli import main
+from heml_gym.agents.export import PRETRAINED, OnnxPolicy
+from heml_gym.envs import ENV_IDS
+
+SHIPPED = sorted(PRETRAINED.glob("*.onnx"))
+
+
+def test_every_env_has_a_pretrained_policy():
+    assert sorted("heml_gym/" + p.stem for p in SHIPPED) == sorted(ENV_IDS)
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_a_pretrained_policy_does_its_task(path, capsys):
+    policy = OnnxPolicy(path)
+    assert policy.env_id == "heml_gym/" + path.stem
+    assert main(["eval", "pretrained", "--env", policy.env_id, "--episodes", "5", "--seed", "777"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["env"] == policy.env_id and result["success_rate"] >= 0.8
+
+
+def test_rollout_pretrained_records(tmp_path):
+    assert main(["rollout", "--policy", "pretrained", "--episodes", "1", "--rrd", str(tmp_path / "r.rrd")]) == 0
+    assert (tmp_path / "r.rrd").stat().st_size > 0
