@@ -6,6 +6,7 @@
     heml-gym scene [ENV_ID] [--out scene.yaml]
     heml-gym sweep CONFIG --seeds 0,1,2 [--set KEY=VALUE] [--grid KEY=V1,V2] [--address ADDR] [--out DIR]
     heml-gym export RUN --out policy.onnx [--speed-limit 0.02] [--workspace x0,y0,z0,x1,y1,z1]
+    heml-gym demos ENV --out NAME [--policy scripted|pretrained|RUN|policy.onnx] [--episodes 20]
     heml-gym observe ENV --out obs.npz [--young-modulus E] [--points 10] [--point-noise 0.0005]
     heml-gym calibrate ENV obs.npz --out DIR [--fit young_modulus,poisson_ratio]
     heml-gym bench [NAME ...] [--out DIR] [--extra ARGS]   (no name: the benchmarks by group)
@@ -258,6 +259,16 @@ def _export(args) -> int:
     return 0
 
 
+def _demos(args) -> int:
+    from .demos import collect_demos
+
+    _known_env(args.env, "ENV")
+    summary = collect_demos(args.env, args.policy, args.episodes, args.out, seed=args.seed, root=args.root,
+                            reference_episodes=args.reference_episodes)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
 def _bench(args) -> int:
     from heml_gym import benchmarks
 
@@ -336,6 +347,16 @@ def main(argv=None) -> int:
     x.add_argument("--workspace", help="x0,y0,z0,x1,y1,z1 (m): no velocity that leaves this box")
     x.add_argument("--trust-pickle", action="store_true", help=TRUST_HELP)
     x.set_defaults(func=_export)
+
+    d = sub.add_parser("demos", help="demonstrations as a Minari dataset (minari.load_dataset(NAME))")
+    d.add_argument("env", metavar="ENV", help="environment id")
+    d.add_argument("--policy", default="scripted", help="'scripted', 'pretrained', a run folder or a .onnx")
+    d.add_argument("--episodes", type=int, default=20)
+    d.add_argument("--out", required=True, help="the dataset id, e.g. heml-gym/tissue-retraction/scripted-v0")
+    d.add_argument("--seed", type=int, default=0, help="episode k is reset with seed + k")
+    d.add_argument("--root", help="the Minari datasets folder (default: MINARI_DATASETS_PATH or ~/.minari/datasets)")
+    d.add_argument("--reference-episodes", type=int, default=5, help="random episodes for Minari's ref_min_score")
+    d.set_defaults(func=_demos)
 
     o = sub.add_parser("observe", help="record an observation file (.npz) from a simulated scripted retraction")
     o.add_argument("env", metavar="ENV", help="environment id")
