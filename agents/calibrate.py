@@ -87,7 +87,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
               force_scale: float = 0.05, progress: bool = True) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. Returns the fit's record."""
-    from heml_gym.calibration import fit
+    from heml_gym.calibration import embed_points, fit
     from heml_gym.envs import unknown_env_message
     from heml_gym.envs.observations import FIT_PARAMETERS, calibration_problem, load_observation
 
@@ -155,13 +155,17 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
                                                    "tets": int(replay.model.mesh.n_tets)}},
         "wall_s": time.perf_counter() - t0,
     }
-    _chart(out / "fit.png", result, obs, final, replay, observed)
-    record["recording"] = _record(out / "fit.rrd", obs, final, replay, env.unwrapped.task.scene.surface_faces)
+    fitted_points = None  # the tracked points where the fitted tissue puts them, (T + 1, K, 3) m
+    if obs.points is not None:
+        B = embed_points(replay.model.mesh, obs.rest_points)
+        fitted_points = np.stack([B @ x for x in final.x])
+    _chart(out / "fit.png", result, obs, final, fitted_points)
+    record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
 
 
-def _record(path: Path, obs, final, replay, faces) -> str | None:
+def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
     """``fit.rrd``: the fitted tissue (its surface mesh), the observed and the fitted tracked
     points, and the observed and fitted jaw force, at each control step (timeline
     ``sim_time``, s). None (and nothing written) without the rerun SDK."""
@@ -169,16 +173,11 @@ def _record(path: Path, obs, final, replay, faces) -> str | None:
         import rerun as rr
     except ImportError:
         return None
-    from heml_gym.calibration import embed_points
     from heml_gym.envs import palette
 
     rec = rr.RecordingStream("heml_gym_calibration")
     rec.set_log_time_enabled(False)
     rec.save(str(path))
-    fitted_points = None
-    if obs.points is not None:
-        B = embed_points(replay.model.mesh, obs.rest_points)
-        fitted_points = np.stack([B @ x for x in final.x])
     for k, t in enumerate(obs.t):
         rec.set_time("sim_time", duration=float(t))
         rec.log("world/fitted_tissue", rr.Mesh3D(vertex_positions=final.x[k], triangle_indices=faces,
@@ -240,13 +239,11 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
     return min(usable, key=lambda r: r["heldout_rms_m"])["law"], records
 
 
-def _chart(path: Path, result, obs, final, replay, observed) -> None:
+def _chart(path: Path, result, obs, final, fitted_points) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from heml_gym.calibration import embed_points
 
     panels = 1 + (obs.force is not None) + (obs.points is not None)
     fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 3.4), constrained_layout=True)
@@ -269,11 +266,9 @@ def _chart(path: Path, result, obs, final, replay, observed) -> None:
         ax.legend(fontsize=7, ncol=2, loc="best")
     if obs.points is not None:
         ax = axes[k]
-        B = embed_points(replay.model.mesh, obs.rest_points)
-        fitted = np.stack([B @ x for x in final.x])
         for j in range(obs.points.shape[1]):
             line, = ax.plot(obs.t, 1e3 * obs.points[:, j, 2], ".", ms=3)
-            ax.plot(obs.t, 1e3 * fitted[:, j, 2], "-", lw=1, color=line.get_color())
+            ax.plot(obs.t, 1e3 * fitted_points[:, j, 2], "-", lw=1, color=line.get_color())
         ax.set_xlabel("time (s)")
         ax.set_ylabel("tracked point height (mm)")
         ax.set_title("dots: observed, lines: fitted", fontsize=9)

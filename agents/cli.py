@@ -84,16 +84,8 @@ def _eval(args) -> int:
 
     if args.env:
         _known_env(args.env)
-    if args.run_or_model == "pretrained":
-        from .export import pretrained_path
-
-        args.run_or_model = str(pretrained_path(args.env or DEFAULT_ENV))
-    if str(args.run_or_model).endswith(".onnx"):
-        from .export import OnnxPolicy
-
-        policy, cfg = OnnxPolicy(args.run_or_model), None
-        if args.env and args.env != policy.env_id:
-            raise ValueError(f"--env {args.env}: the policy was exported for {policy.env_id}")
+    policy, cfg = _exported(args.run_or_model, args.env), None
+    if policy is not None:
         args.env = policy.env_id
     else:
         policy, _, cfg = load_policy(args.run_or_model, trust_pickle=args.trust_pickle)
@@ -122,14 +114,8 @@ def _rollout(args) -> int:
 
         env = gym.make(args.env or DEFAULT_ENV)
         policy = scripted_policy(env.unwrapped.scene)
-    elif args.policy == "pretrained" or str(args.policy).endswith(".onnx"):
-        from .export import OnnxPolicy, pretrained_path
-
-        policy = OnnxPolicy(pretrained_path(args.env or DEFAULT_ENV) if args.policy == "pretrained" else args.policy)
-        if args.env and args.env != policy.env_id:
-            raise ValueError(f"--env {args.env}: the policy was exported for {policy.env_id} (its observations and "
-                             "actions are that env's); omit --env to roll it out there")
-        env = gym.make(policy.env_id)
+    elif (exported := _exported(args.policy, args.env)) is not None:
+        policy, env = exported, gym.make(exported.env_id)
     else:
         from .train import load_policy, make_env
 
@@ -144,6 +130,12 @@ def _rollout(args) -> int:
     if args.rrd:
         print(f"recording: {args.rrd}  (open with: rerun {args.rrd})")
     return 0
+
+
+def _exported(spec: str, env_id: str | None):
+    from .export import exported_policy
+
+    return exported_policy(spec, env_id, DEFAULT_ENV)
 
 
 def _scene(args) -> int:

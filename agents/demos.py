@@ -27,12 +27,10 @@ def _policy(spec: str, env_id: str):
         from heml_gym.envs.scripted import scripted_policy
 
         return scripted_policy(gym.make(env_id).unwrapped.scene), "scripted fold (heml_gym.envs.scripted)"
-    from .export import OnnxPolicy, pretrained_path
+    from .export import exported_policy
 
-    if spec == "pretrained" or spec.endswith(".onnx"):
-        policy = OnnxPolicy(pretrained_path(env_id) if spec == "pretrained" else spec)
-        if policy.env_id != env_id:
-            raise ValueError(f"--policy {spec}: exported for {policy.env_id}, not {env_id}")
+    policy = exported_policy(spec, env_id, env_id)
+    if policy is not None:
         return policy, f"ONNX policy ({policy.metadata.get('run', spec)})"
     from .train import load_policy
 

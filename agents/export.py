@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["export_policy", "OnnxPolicy", "ExportError", "pretrained_path", "PRETRAINED"]
+__all__ = ["export_policy", "OnnxPolicy", "ExportError", "exported_policy", "pretrained_path", "PRETRAINED"]
 
 #: Where the shipped policies live (package data), one per env id: ``<name>-v<k>.onnx``.
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
@@ -106,8 +106,8 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
     layers, squash = policy_layers(model)
     nodes, inits = [], []
 
-    def const(name, value):
-        inits.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
+    def const(name, value, dtype=np.float32):
+        inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
         return name
 
     x = "observation"
@@ -138,10 +138,10 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
                   "(> 0 closes, < release_command opens)",
         "max_speed_m_per_s": str(max_speed), "normalised_inside": str(normalizer is not None)}
     if speed_limit is not None or workspace is not None:
-        nodes.append(helper.make_node("Slice", [x, const_i(inits, "s0", [0]), const_i(inits, "s3", [3]),
-                                                const_i(inits, "ax1", [1])], ["velocity"]))
-        nodes.append(helper.make_node("Slice", [x, const_i(inits, "s3b", [3]), const_i(inits, "s4", [4]),
-                                                const_i(inits, "ax1b", [1])], ["grasp"]))
+        i0, i3, i4, axis1 = (const(f"index{k}", [k], np.int64) for k in (0, 3, 4, 1))
+        zero = const("zero", 0.0)
+        nodes.append(helper.make_node("Slice", [x, i0, i3, axis1], ["velocity"]))
+        nodes.append(helper.make_node("Slice", [x, i3, i4, axis1], ["grasp"]))
         v = "velocity"
         if speed_limit is not None:
             if not (np.isfinite(speed_limit) and speed_limit > 0):
@@ -154,17 +154,15 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
             lo, hi = (np.asarray(w, dtype=np.float32).reshape(3) for w in workspace)
             if not np.all(lo < hi):
                 raise ExportError(f"--workspace: low {lo.tolist()} must lie below high {hi.tolist()} on every axis")
-            nodes.append(helper.make_node("Slice", ["observation", const_i(inits, "p0", [0]),
-                                                    const_i(inits, "p3", [3]), const_i(inits, "ax1c", [1])],
-                                          ["gripper_position"]))
+            nodes.append(helper.make_node("Slice", ["observation", i0, i3, axis1], ["gripper_position"]))
             nodes += [helper.make_node("GreaterOrEqual", ["gripper_position", const("ws_high", hi)], ["at_high"]),
                       helper.make_node("LessOrEqual", ["gripper_position", const("ws_low", lo)], ["at_low"]),
-                      helper.make_node("Greater", [v, const("zero", 0.0)], ["moving_up"]),
-                      helper.make_node("Less", [v, const("zero_b", 0.0)], ["moving_down"]),
+                      helper.make_node("Greater", [v, zero], ["moving_up"]),
+                      helper.make_node("Less", [v, zero], ["moving_down"]),
                       helper.make_node("And", ["at_high", "moving_up"], ["out_high"]),
                       helper.make_node("And", ["at_low", "moving_down"], ["out_low"]),
                       helper.make_node("Or", ["out_high", "out_low"], ["leaving"]),
-                      helper.make_node("Where", ["leaving", const("zero_c", 0.0), v], ["velocity_inside"])]
+                      helper.make_node("Where", ["leaving", zero, v], ["velocity_inside"])]
             v = "velocity_inside"
             metadata["workspace_m"] = json.dumps([[float(v) for v in w] for w in workspace])
         nodes.append(helper.make_node("Concat", [v, "grasp"], ["limited"], axis=1))
@@ -185,11 +183,22 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
     return out
 
 
-def const_i(inits, name, value):
-    from onnx import numpy_helper
-
-    inits.append(numpy_helper.from_array(np.asarray(value, dtype=np.int64), name))
-    return name
+def exported_policy(spec: str, env_id: str | None, default_env: str):
+    """The :class:`OnnxPolicy` that ``spec`` names (``"pretrained"``: the one shipped for
+    ``env_id``, else ``default_env``; or a path ending in ``.onnx``), checked to be for
+    ``env_id`` when one is given; None when ``spec`` names something else (a run folder, a
+    model file, the scripted policy). What ``eval``, ``rollout`` and ``demos`` read."""
+    if spec == "pretrained":
+        path = pretrained_path(env_id or default_env)
+    elif str(spec).endswith(".onnx"):
+        path = spec
+    else:
+        return None
+    policy = OnnxPolicy(path)
+    if env_id and env_id != policy.env_id:
+        raise ValueError(f"--env {env_id}: the policy was exported for {policy.env_id} (its observations and "
+                         "actions are that env's); omit --env to use it there")
+    return policy
 
 
 class OnnxPolicy:

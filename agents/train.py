@@ -114,8 +114,7 @@ def _resumed_multiplier(resume, cfg: RunConfig) -> float:
     """The Lagrange multiplier to start from: the resumed run's last (its constraint.json),
     else the config's ``constraint.multiplier_init``."""
     if resume is not None:
-        folder = Path(resume).parent.parent if Path(resume).parent.name == "checkpoints" else Path(resume).parent
-        record = folder / "constraint.json"
+        record = _run_folder(Path(resume)) / "constraint.json"
         if record.is_file():
             history = json.loads(record.read_text()).get("history", [])
             if history:
@@ -137,10 +136,14 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     return best
 
 
+def _run_folder(checkpoint: Path) -> Path:
+    """The run folder of a model file: ``RUN/model.zip`` or ``RUN/checkpoints/model_N_steps.zip``."""
+    return checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else checkpoint.parent
+
+
 def _checkpoint_config(checkpoint: Path) -> RunConfig | None:
     """The run config beside a checkpoint (its run folder's ``config.yaml``), if any."""
-    folder = checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else checkpoint.parent
-    path = folder / "config.yaml"
+    path = _run_folder(checkpoint) / "config.yaml"
     return load_config(path) if path.is_file() else None
 
 

@@ -224,10 +224,7 @@ class BatchedRetraction:
             self.damage[i] = 0.0
             self.adhered[i] = False
             if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
-                self.adhesion_width[i] = rng.uniform(*s.spec.adhesion.width)
-                stuck = s.adhesion_vertices[s.adhesion_distance <= self.adhesion_width[i] + 1e-9]
-                self.adhered[i, stuck] = True
-                self.control.attach(i, stuck, rest)
+                self._stick(i, rng.uniform(*s.spec.adhesion.width))
         idx = np.atleast_1d(scenes)
         self.solver.forget(idx)  # the same seed gives the same episode, whatever came before
         self.exposure[idx] = self.measure_exposure(idx)
@@ -266,14 +263,19 @@ class BatchedRetraction:
                 raise SpecError(f"adhesion_width: must be a distance >= 0 (m), got {adhesion_width!r}")
             self.control.detach(i, np.flatnonzero(self.adhered[i]))
             self.adhered[i] = False
-            self.adhesion_width[i] = w
-            stuck = s.adhesion_vertices[s.adhesion_distance <= w + 1e-9]
-            self.adhered[i, stuck] = True
-            self.control.attach(i, stuck, s.mesh.vertices)
+            self._stick(i, w)
         self.solver.forget(np.array([i]))
         self.exposure[i] = self.measure_exposure([i])[0]
         self.lift[i] = self._lift([i])[0]
         self.max_strain[i] = self.measure_strain([i])[0]
+
+    def _stick(self, i: int, width: float) -> None:
+        """Hold scene ``i``'s underside where it rests, out to ``width`` (m) from the attachment."""
+        s = self.scene
+        self.adhesion_width[i] = width
+        stuck = s.adhesion_vertices[s.adhesion_distance <= width + 1e-9]
+        self.adhered[i, stuck] = True
+        self.control.attach(i, stuck, s.mesh.vertices)
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):

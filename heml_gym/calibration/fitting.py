@@ -147,7 +147,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     transform = _Units(bounds)
     unit_bounds = transform.bounds
     runs = []
-    calls, failures = [0], [0]
+    failures = [0]
 
     cache = {}
 
@@ -161,7 +161,6 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
 
     def _objective(u):
         theta = transform.theta(u)
-        calls[0] += 1
         try:
             result = replay.run(theta)
             loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
