@@ -1,0 +1,197 @@
+"""Cost-constrained PPO against PPO: success and tissue damage across seeds (issue 36, item 3).
+
+Trains, on one env, its PPO config and the same config with a damage budget
+(PPO-Lagrangian, :mod:`heml_gym.agents.constraint`) for the same seeds and env steps on a
+local Ray instance (one CPU per trial, finished trials are kept), then stores per seed
+and method the final success on 20 fresh episodes (95 % Wilson interval) and the mean
+episode damage (strain x s above the safe strain, the summed ``info["cost"]``) of those
+episodes; across seeds the IQM of each with a 95 % bootstrap interval; and a chart:
+success against damage for every seed (the Pareto view) beside damage and success
+against env steps.
+
+Writes docs/benchmarks/constrained_ENV.json, .md and docs/img/constrained_ENV.png.
+
+    python -m heml_gym.benchmarks.learning.constrained --env tissue [--seeds 0,1,2,3,4] [--steps 240000] [--out runs/constrained-tissue]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json
+
+#: per env: the unconstrained config and its constrained twin (same algorithm and settings)
+CONFIGS = {
+    "tissue": ("configs/quick.yaml", "configs/tissue_ppo_lagrangian.yaml"),
+    "organ": ("configs/organ_ppo.yaml", "configs/organ_ppo_lagrangian.yaml"),
+}
+METHODS = ("PPO", "PPO-Lagrangian")
+
+
+def collect_seed(trial) -> dict:
+    """One finished trial's final evaluation and histories (success, damage, multiplier)."""
+    if not (trial.run_dir / "result.json").is_file():
+        raise SystemExit(f"{trial.name} did not finish (no {trial.run_dir / 'result.json'}): see the sweep's "
+                         "output above; run the same command again to resume")
+    record = json.loads((trial.run_dir / "result.json").read_text())
+    history = json.loads((trial.run_dir / "evaluations.json").read_text())
+    final = history[-1]
+    out = {"seed": trial.seed, "env_steps": record["env_steps"], "wall_s": record["wall_s"],
+           "success_rate": final["success_rate"], "success_ci95": final["success_ci95"],
+           "mean_damage": final["mean_damage"], "episodes_with_damage": final["episodes_with_damage"],
+           "episodes": final["episodes"],
+           "evaluations": [{"env_steps": e["timesteps"], "success_rate": e["success_rate"],
+                            "mean_damage": e["mean_damage"]} for e in history]}
+    constraint = trial.run_dir / "constraint.json"
+    if constraint.is_file():
+        steps = json.loads(constraint.read_text())["history"]
+        out["multiplier_final"] = steps[-1]["multiplier"] if steps else 0.0
+        out["multiplier"] = [{"env_steps": s["timesteps"], "multiplier": s["multiplier"],
+                              "episode_cost": s["episode_cost"]} for s in steps]
+    return out
+
+
+def summarise(seeds: list[dict]) -> dict:
+    from heml_gym.agents.stats import iqm, iqm_interval
+
+    success = [s["success_rate"] for s in seeds]
+    damage = [s["mean_damage"] for s in seeds]
+    return {"seeds": seeds, "seeds_at_90_percent": sum(x >= 0.9 for x in success),
+            "success_iqm": iqm(success), "success_iqm_ci95": list(iqm_interval(success)),
+            "damage_iqm": iqm(damage), "damage_iqm_ci95": list(iqm_interval(damage))}
+
+
+def table(result: dict) -> str:
+    m = result["machine"]
+    head = (f"PPO and PPO-Lagrangian (damage budget {result['budget']:g} strain x s per episode) on "
+            f"`{result['env_id']}`, {len(result['methods']['PPO']['seeds'])} seeds, {result['env_steps']:,} env "
+            f"steps each, on {m['cpu']} ({m['cores']} cores), {m['date']}, one CPU per run "
+            f"(`{result['command']}`). Final success and damage: 20 fresh seeded evaluation episodes, "
+            "deterministic policy; damage is the episode's summed `info[\"cost\"]` (strain x s above the safe "
+            f"strain {result['safe_strain']:g}), averaged over the episodes.\n\n")
+    rows = []
+    for method in METHODS:
+        for s in result["methods"][method]["seeds"]:
+            lo, hi = s["success_ci95"]
+            rows.append([method, s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['mean_damage']:.3f}",
+                         f"{s['episodes_with_damage']} / {s['episodes']}",
+                         f"{s['multiplier_final']:.2f}" if "multiplier_final" in s else "-",
+                         f"{s['wall_s'] / 60:.1f}"])
+    summary_rows = []
+    for method in METHODS:
+        r = result["methods"][method]
+        summary_rows.append([method, f"{r['seeds_at_90_percent']} of {len(r['seeds'])}",
+                             f"{r['success_iqm']:.0%} ({r['success_iqm_ci95'][0]:.0%}-{r['success_iqm_ci95'][1]:.0%})",
+                             f"{r['damage_iqm']:.3f} ({r['damage_iqm_ci95'][0]:.3f}-{r['damage_iqm_ci95'][1]:.3f})"])
+    verdict = result["verdict"]
+    text = (head + markdown_table(["method", "seed", "final success", "mean damage (strain x s)",
+                                   "episodes with damage", "final multiplier", "wall min"], rows)
+            + "\n\nAcross seeds (IQM, 95 % bootstrap interval):\n\n"
+            + markdown_table(["method", "seeds >= 90 %", "success", "damage (strain x s)"], summary_rows)
+            + f"\n\n**{verdict['text']}**\n"
+            + f"\n![success vs damage per seed; damage and success vs env steps](../img/{result['name']}.png)\n")
+    return text
+
+
+def verdict(result: dict) -> dict:
+    """The issue's bar: PPO-Lagrangian lowers the mean damage against PPO at success within 10 points."""
+    ppo, lag = result["methods"]["PPO"], result["methods"]["PPO-Lagrangian"]
+    lower = lag["damage_iqm"] < ppo["damage_iqm"]
+    close = lag["success_iqm"] >= ppo["success_iqm"] - 0.10
+    ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
+    text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the damage (IQM {lag['damage_iqm']:.3f} vs "
+            f"{ppo['damage_iqm']:.3f} strain x s, x{ratio:.2f}) at success {lag['success_iqm']:.0%} vs "
+            f"{ppo['success_iqm']:.0%} ({'within' if close else 'not within'} 10 points): the bar is "
+            f"{'met' if lower and close else 'missed'}")
+    return {"damage_lower": bool(lower), "success_within_10_points": bool(close), "met": bool(lower and close),
+            "damage_ratio": ratio, "text": text}
+
+
+def chart(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {"PPO": "#1f77b4", "PPO-Lagrangian": "#d62728"}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4))
+    pareto, damage_ax, success_ax = axes
+    for method in METHODS:
+        r = result["methods"][method]
+        c = colours[method]
+        xs = [s["mean_damage"] for s in r["seeds"]]
+        ys = [s["success_rate"] for s in r["seeds"]]
+        pareto.scatter(xs, ys, color=c, alpha=0.6, label=f"{method}: each seed")
+        pareto.errorbar([r["damage_iqm"]], [r["success_iqm"]],
+                        xerr=[[r["damage_iqm"] - r["damage_iqm_ci95"][0]], [r["damage_iqm_ci95"][1] - r["damage_iqm"]]],
+                        yerr=[[r["success_iqm"] - r["success_iqm_ci95"][0]],
+                              [r["success_iqm_ci95"][1] - r["success_iqm"]]],
+                        color=c, marker="D", markersize=8, capsize=4, label=f"{method}: IQM, 95 % CI")
+        for i, s in enumerate(r["seeds"]):
+            steps = [e["env_steps"] / 1e3 for e in s["evaluations"]]
+            damage_ax.plot(steps, [e["mean_damage"] for e in s["evaluations"]], color=c, alpha=0.7, marker="o", ms=3,
+                           label=method if i == 0 else None)
+            success_ax.plot(steps, [e["success_rate"] for e in s["evaluations"]], color=c, alpha=0.7, marker="o", ms=3,
+                            label=method if i == 0 else None)
+    damage_ax.axhline(result["budget"], color="grey", ls="--", label=f"budget {result['budget']:g}")
+    pareto.set_xlim(left=0)
+    damage_ax.set_ylim(bottom=0)
+    pareto.set(xlabel="mean episode damage (strain x s)", ylabel="final success rate", ylim=(-0.05, 1.05),
+               title="success vs damage (up and left is better)")
+    damage_ax.set(xlabel="env steps (k)", ylabel="mean episode damage (strain x s)", title="damage while training")
+    success_ax.set(xlabel="env steps (k)", ylabel="success rate", ylim=(-0.05, 1.05), title="success while training")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"{result['env_id']}: PPO vs PPO-Lagrangian, {len(result['methods']['PPO']['seeds'])} seeds each")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--env", choices=sorted(CONFIGS), required=True)
+    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--steps", type=int, default=240_000, help="env steps per run (both methods)")
+    ap.add_argument("--out", default=None, help="run folders (default runs/constrained-ENV)")
+    args = ap.parse_args(argv)
+    if args.steps <= 0:
+        ap.error(f"--steps: give a positive number of env steps, not {args.steps}")
+
+    from heml_gym.agents.config import load_config
+    from heml_gym.agents.sweep import plan_sweep, run_sweep
+    from heml_gym.envs import TaskSettings
+
+    seeds = [int(s) for s in args.seeds.split(",")]
+    out = Path(args.out or ROOT / "runs" / f"constrained-{args.env}")
+    plain, constrained = (ROOT / p for p in CONFIGS[args.env])
+    sets = {"algorithm.total_timesteps": args.steps}
+    arms = {"PPO": plan_sweep(plain, seeds, sets, {}, out), "PPO-Lagrangian": plan_sweep(constrained, seeds, sets, {}, out)}
+    run_sweep([t for trials in arms.values() for t in trials], out, verbose=True)
+    cfg = load_config(constrained)
+    name = f"constrained_{args.env}"
+    result = {"name": name, "machine": machine_info(), "env_id": cfg.env.id, "env_steps": args.steps,
+              "configs": {m: str(Path(p).relative_to(ROOT)) for m, p in zip(METHODS, (plain, constrained))},
+              "budget": cfg.constraint.budget, "multiplier_lr": cfg.constraint.multiplier_lr,
+              "safe_strain": TaskSettings().safe_strain, "cpus_per_trial": 1,
+              "trials_at_once": os.cpu_count() or 1,
+              "command": f"python -m heml_gym.benchmarks.learning.constrained --env {args.env}"
+                         + (f" --seeds {args.seeds}" if args.seeds != ap.get_default("seeds") else "")
+                         + (f" --steps {args.steps}" if args.steps != ap.get_default("steps") else ""),
+              "methods": {m: summarise([collect_seed(t) for t in trials]) for m, trials in arms.items()}}
+    result["verdict"] = verdict(result)
+    write_json(f"{name}.json", result, envs=[cfg.env.id])
+    text = table(result)
+    (RESULTS / f"{name}.md").write_text(text)
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    chart(result, IMAGES / f"{name}.png")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
