@@ -2,7 +2,7 @@
 env of this project (``algorithm.name: RLlibPPO``).
 
 Each RLlib env runner builds ``gym.make_vec(env_id, num_envs=env.num_envs,
-vectorization_mode="vector_entry_point", **env.kwargs)``: the scenes of a runner are
+vectorization_mode="vector_entry_point", **env.kwargs)``: the envs of a runner are
 stepped by one Numba call, as in ``heml-gym train``, and ``algorithm.hyperparameters.
 num_env_runners`` runners sample in parallel, on this machine or across a Ray cluster
 (``heml-gym train CONFIG --address ADDRESS``). Observations are normalised by each
@@ -48,7 +48,7 @@ RUNNER_ENV = f"{__name__}:{VECTOR_ENV_ID}"
 
 
 def make_vector_env(num_envs: int, env_id: str, **kwargs):
-    """The env runners' env: the project's vector env of ``env_id`` (``num_envs`` scenes,
+    """The env runners' env: the project's vector env of ``env_id`` (``num_envs`` envs,
     one Numba call per step), observations normalised by their running mean and variance."""
     import gymnasium as gym
     from gymnasium.wrappers.vector import NormalizeObservation

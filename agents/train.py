@@ -34,7 +34,7 @@ from .vec_env import RetractionSb3VecEnv
 
 
 def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
-    """The SB3 VecEnv of a config: one batched Numba call for all scenes, with episode stats."""
+    """The SB3 VecEnv of a config: one batched Numba call for all envs, with episode stats."""
     vector_env = gym.make_vec(cfg.env.id, num_envs=num_envs or cfg.env.num_envs,
                               vectorization_mode="vector_entry_point", obs_mode=cfg.env.obs_mode,
                               max_episode_steps=episode_steps(cfg.env.kwargs), **cfg.env.kwargs)

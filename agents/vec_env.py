@@ -1,10 +1,10 @@
-"""Stable-Baselines3 VecEnv over the batched retraction task (one Numba call for N scenes).
+"""Stable-Baselines3 VecEnv over the batched retraction task (one Numba call for N envs).
 
-SB3 expects same-step auto-reset: when a scene's episode ends, the returned observation
+SB3 expects same-step auto-reset: when an env's episode ends, the returned observation
 is already the first of its next episode, and ``infos[i]["terminal_observation"]`` holds
 the last one (with ``infos[i]["TimeLimit.truncated"]`` set on truncation, so that value
 bootstrapping is right). This adapter provides exactly that on top of the vector env's
-public batch interface (``reset_scenes``, ``step_scenes``, ``observations``), with no
+public batch interface (``reset_envs``, ``step_envs``, ``observations``), with no
 copy of the task logic. Actions are checked there: a non-finite or misshapen action
 raises ``ValueError`` instead of reaching the physics.
 """
@@ -34,7 +34,7 @@ class RetractionSb3VecEnv(VecEnv):
         return self._seeds
 
     def reset(self):
-        self.venv.reset_scenes(np.arange(self.num_envs), self._seeds)
+        self.venv.reset_envs(np.arange(self.num_envs), self._seeds)
         self._seeds = [None] * self.num_envs
         return self.venv.observations()
 
@@ -42,7 +42,7 @@ class RetractionSb3VecEnv(VecEnv):
         self._actions = actions
 
     def step_wait(self):
-        reward, terminated, truncated, info = self.venv.step_scenes(self._actions)
+        reward, terminated, truncated, info = self.venv.step_envs(self._actions)
         obs = self.venv.observations()
         done = terminated | truncated
         infos = [{k: (v[i].item() if isinstance(v, np.ndarray) else v) for k, v in info.items()}
@@ -52,7 +52,7 @@ class RetractionSb3VecEnv(VecEnv):
             for i in ended:
                 infos[i]["terminal_observation"] = _index(obs, i)
                 infos[i]["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
-            self.venv.reset_scenes(ended)
+            self.venv.reset_envs(ended)
             obs = self.venv.observations()
         return obs, reward.astype(np.float32), done, infos
 

@@ -1,9 +1,9 @@
-"""Camera observations: RGB, depth and segmentation of N scenes in one parallel Numba call.
+"""Camera observations: RGB, depth and segmentation of N worlds in one parallel Numba call.
 
 The task camera (the scene's ``camera``: the one the target's exposure is measured from)
-sees the tissue surface, the target, the gripper's jaws and the support. Every scene is
-drawn by :func:`render_scenes` (z-buffered triangles, flat headlight shading: the
-rasteriser of :mod:`heml_gym.envs.render`), scenes over threads, no GPU and no OpenGL.
+sees the tissue surface, the target, the gripper's jaws and the support. Every world is
+drawn by :func:`render_worlds` (z-buffered triangles, flat headlight shading: the
+rasteriser of :mod:`heml_gym.envs.render`), worlds over threads, no GPU and no OpenGL.
 
 * RGB: ``(H, W, 3)`` uint8;
 * depth: ``(H, W, 1)`` float32, metres along the camera's optical axis (``z`` in the
@@ -11,7 +11,7 @@ rasteriser of :mod:`heml_gym.envs.render`), scenes over threads, no GPU and no O
 * segmentation: ``(H, W, 1)`` uint8, :data:`SEGMENT_IDS` (background, tissue, target,
   instrument, support).
 
-``jitter`` (m) moves each scene's camera eye by a uniform offset in
+``jitter`` (m) moves each world's camera eye by a uniform offset in
 ``[-jitter, jitter]^3`` per episode (the same look-at point), for sim-to-real
 robustness. Units: m.
 """
@@ -30,7 +30,7 @@ from .palette import BACKGROUND, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OP
 from .render import box, draw_triangles, icosphere, look_at
 from .spec import invalid
 
-__all__ = ["ImageSpec", "CameraRenderer", "SEGMENT_IDS", "render_scenes"]
+__all__ = ["ImageSpec", "CameraRenderer", "SEGMENT_IDS", "render_worlds"]
 
 #: Segmentation labels.
 SEGMENT_IDS = {"background": 0, "tissue": 1, "target": 2, "instrument": 3, "support": 4}
@@ -63,9 +63,9 @@ class ImageSpec:
 
 
 class SceneMeshes(NamedTuple):
-    """What every scene draws, as triangles and colours (``(1, 3)`` rows in [0, 1]): the
-    tissue's surface ``faces`` (over each scene's vertices), the target sphere and the jaw
-    box templates (placed per scene), the support, and the background colour ``(3,)``
+    """What every world draws, as triangles and colours (``(1, 3)`` rows in [0, 1]): the
+    tissue's surface ``faces`` (over each world's vertices), the target sphere and the jaw
+    box templates (placed per world), the support, and the background colour ``(3,)``
     uint8."""
 
     faces: np.ndarray
@@ -81,8 +81,8 @@ class SceneMeshes(NamedTuple):
     background: np.ndarray
 
 
-class ScenePoses(NamedTuple):
-    """Per scene (leading axis N): the tissue's vertices ``x`` (m), the target's and the
+class WorldPoses(NamedTuple):
+    """Per world (leading axis N): the tissue's vertices ``x`` (m), the target's and the
     gripper's places (m), the jaws' colour (``(N, 3)``), the camera's eye (m) and its
     world-to-camera rotation ``rots (N, 3, 3)``."""
 
@@ -156,19 +156,19 @@ def _render_one(s, poses, meshes, lens, images):
 
 
 @nb.njit(cache=True, parallel=True)
-def render_scenes(poses, meshes, lens, images):
-    """Draw every scene ``s`` (tissue ``poses.x[s]`` over ``meshes.faces``, the target
+def render_worlds(poses, meshes, lens, images):
+    """Draw every world ``s`` (tissue ``poses.x[s]`` over ``meshes.faces``, the target
     sphere at ``poses.targets[s]``, the jaw box at ``poses.grippers[s]`` in
     ``poses.jaw_colours[s]``, the support) from its camera (``poses.eyes[s]``,
-    ``poses.rots[s]``) through ``lens`` into ``images`` (:class:`ScenePoses`,
-    :class:`SceneMeshes`, :class:`Lens`, :class:`Images`), scenes over threads."""
+    ``poses.rots[s]``) through ``lens`` into ``images`` (:class:`WorldPoses`,
+    :class:`SceneMeshes`, :class:`Lens`, :class:`Images`), worlds over threads."""
     for s in prange(poses.x.shape[0]):
         _render_one(s, poses, meshes, lens, images)
 
 
 @nb.njit(cache=True)
-def render_scenes_serial(poses, meshes, lens, images):
-    """:func:`render_scenes` scene after scene (one scene: no thread launch)."""
+def render_worlds_serial(poses, meshes, lens, images):
+    """:func:`render_worlds` world after world (one world: no thread launch)."""
     for s in range(poses.x.shape[0]):
         _render_one(s, poses, meshes, lens, images)
 
@@ -178,11 +178,11 @@ def _row(colour) -> np.ndarray:
 
 
 class CameraRenderer:
-    """Camera images of every scene of a :class:`~heml_gym.envs.core.BatchedRetraction`.
+    """Camera images of every world of a :class:`~heml_gym.envs.core.BatchedRetraction`.
 
     ``spec``: :class:`ImageSpec`. :meth:`render` fills :attr:`rgb`, :attr:`depth` and
-    :attr:`segmentation` (arrays with a leading scene axis) and returns them;
-    :meth:`new_pose` draws scene ``i``'s camera jitter (called at each reset).
+    :attr:`segmentation` (arrays with a leading world axis) and returns them;
+    :meth:`new_pose` draws world ``i``'s camera jitter (called at each reset).
     """
 
     def __init__(self, task, spec: ImageSpec):
@@ -238,17 +238,17 @@ class CameraRenderer:
         return np.ascontiguousarray(np.concatenate(verts)), np.ascontiguousarray(np.concatenate(faces), dtype=np.int64)
 
     def new_pose(self, i: int, rng: np.random.Generator) -> None:
-        """Scene ``i``'s camera for a new episode: the scene's, its eye moved by the jitter."""
+        """World ``i``'s camera for a new episode: the scene's, its eye moved by the jitter."""
         eye = self.base_eye + (rng.uniform(-1.0, 1.0, 3) * self.spec.jitter if self.spec.jitter else 0.0)
         self.eyes[i] = eye
         self.rots[i] = look_at(eye, self.look_at, self.up)
 
     def render(self):
-        """``(rgb, depth, segmentation)`` of every scene (arrays owned by the renderer)."""
+        """``(rgb, depth, segmentation)`` of every world (arrays owned by the renderer)."""
         t = self.task
         jaw = np.where(t.grasping[:, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
-        kernel = render_scenes if t.n > 1 and nb.get_num_threads() > 1 else render_scenes_serial
-        poses = ScenePoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(t.gripper),
+        kernel = render_worlds if t.n > 1 and nb.get_num_threads() > 1 else render_worlds_serial
+        poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(t.gripper),
                            np.ascontiguousarray(jaw), self.eyes, self.rots)
         kernel(poses, self.meshes, self.lens, Images(self.rgb, self.depth, self.segmentation[..., 0]))
         return self.rgb, self.depth, self.segmentation

@@ -1,8 +1,8 @@
-"""The retraction task on N scenes at once: gripper, grasp, observations, reward.
+"""The retraction task on N worlds at once: gripper, grasp, observations, reward.
 
-A :class:`~heml_gym.envs.scene.Scene` describes one scene family (tissue mesh, physics,
+A :class:`~heml_gym.envs.scene.Scene` describes one scene (tissue mesh, physics,
 attachment, target placement, camera, gripper start); :class:`BatchedRetraction` runs N
-independent copies of it on one :class:`heml_gym.Model` (one material per scene, drawn
+independent copies of it on one :class:`heml_gym.Model` (one material per world, drawn
 per episode) stepped by the scene's solver. The single-environment classes (N = 1) and
 the vectorised ones share this code. Units: m, s, N, Pa.
 """
@@ -126,19 +126,19 @@ def as_settings(value, cls, name: str):
 
 
 class BatchedRetraction:
-    """N independent retraction episodes on one scene family."""
+    """N independent retraction episodes on one scene."""
 
-    def __init__(self, scene: BuiltScene, n_scenes: int, settings: TaskSettings | None = None,
+    def __init__(self, scene: BuiltScene, n_worlds: int, settings: TaskSettings | None = None,
                  weights: RewardWeights | None = None):
         if not isinstance(scene, BuiltScene):
             raise TypeError(f"scene must be a BuiltScene (heml_gym.envs.scene.build_scene), got {type(scene).__name__}")
         self.scene = scene
-        self.n = int(n_scenes)
+        self.n = int(n_worlds)
         self.settings = as_settings(settings, TaskSettings, "settings")
         self.weights = as_settings(weights, RewardWeights, "weights")
         s, ph = scene, scene.physics
         E_low, E_high = ph.young_modulus
-        self.model = Model(s.mesh, ph.material_for(E_high), n_scenes=self.n, field=ph.field, density=ph.density,
+        self.model = Model(s.mesh, ph.material_for(E_high), n_worlds=self.n, field=ph.field, density=ph.density,
                            fixed=s.fixed, gravity=ph.gravity, damping=ph.damping, supports=s.supports)
         dt = self.settings.control_dt
         self.solver = make_solver(self.model, ph.integrator, scheme=ph.scheme, safety=ph.safety,
@@ -146,7 +146,7 @@ class BatchedRetraction:
                                   hessian_scale=ph.hessian_scale if ph.integrator == "quasi_newton" else 1.0)
         if ph.integrator == "explicit":
             # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
-            # scene and batch, so a scene's trajectory does not depend on its neighbours
+            # world and batch, so a world's trajectory does not depend on its neighbours
             self.substeps = self.solver.substeps(dt, self.model.critical_dt(material=ph.material_for(E_high)))
         else:
             self.substeps = max(1, math.ceil(dt / ph.max_dt - 1e-9))
@@ -194,15 +194,15 @@ class BatchedRetraction:
 
     @property
     def x(self) -> np.ndarray:
-        """Tissue vertex positions of every scene, ``(N, n, 3)`` m (the state's)."""
+        """Tissue vertex positions of every world, ``(N, n, 3)`` m (the state's)."""
         return self.state.x
 
     # ------------------------------------------------------------------ reset
-    def reset(self, scenes, seeds=None) -> None:
-        """Start new episodes in ``scenes`` (indices), reseeding them from ``seeds`` if given."""
+    def reset(self, worlds, seeds=None) -> None:
+        """Start new episodes in ``worlds`` (indices), reseeding them from ``seeds`` if given."""
         s = self.scene
         rest = s.mesh.vertices
-        for k, i in enumerate(np.atleast_1d(scenes)):
+        for k, i in enumerate(np.atleast_1d(worlds)):
             if seeds is not None and seeds[k] is not None:
                 self.rngs[i] = np.random.default_rng(seeds[k])
             rng = self.rngs[i]
@@ -225,7 +225,7 @@ class BatchedRetraction:
             self.adhered[i] = False
             if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
                 self._stick(i, rng.uniform(*s.spec.adhesion.width))
-        idx = np.atleast_1d(scenes)
+        idx = np.atleast_1d(worlds)
         self.solver.forget(idx)  # the same seed gives the same episode, whatever came before
         self.exposure[idx] = self.measure_exposure(idx)
         self.lift[idx] = self._lift(idx)
@@ -236,7 +236,7 @@ class BatchedRetraction:
 
     def set_episode(self, i: int, young_modulus: float | None = None, gripper=None,
                     adhesion_width: float | None = None) -> None:
-        """Set what :meth:`reset` drew for scene ``i``'s episode (before its first step): the
+        """Set what :meth:`reset` drew for world ``i``'s episode (before its first step): the
         tissue's ``young_modulus`` (Pa), the ``gripper``'s start (m, inside the workspace)
         and how far out the underside is stuck (``adhesion_width``, m; the scene must have
         adhesion). A replay of a recorded episode (an observation file) starts this way."""
@@ -270,7 +270,7 @@ class BatchedRetraction:
         self.max_strain[i] = self.measure_strain([i])[0]
 
     def _stick(self, i: int, width: float) -> None:
-        """Hold scene ``i``'s underside where it rests, out to ``width`` (m) from the attachment."""
+        """Hold world ``i``'s underside where it rests, out to ``width`` (m) from the attachment."""
         s = self.scene
         self.adhesion_width[i] = width
         stuck = s.adhesion_vertices[s.adhesion_distance <= width + 1e-9]
@@ -279,10 +279,10 @@ class BatchedRetraction:
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
-        """Apply ``actions`` (N, 4) in [-1, 1] to every scene; returns reward, terminated,
-        truncated and a dict of per-scene arrays (the info).
+        """Apply ``actions`` (N, 4) in [-1, 1] to every world; returns reward, terminated,
+        truncated and a dict of per-world arrays (the info).
 
-        Scenes outside the ``active`` mask (default: all) are not simulated (their results
+        Worlds outside the ``active`` mask (default: all) are not simulated (their results
         are meaningless; the vector env resets them right after)."""
         st, w = self.settings, self.weights
         a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
@@ -327,10 +327,10 @@ class BatchedRetraction:
         # measurements
         held_reaction = np.where(self.held[:, :, None], stats.reaction, 0.0).sum(axis=1)
         self.grasp_force = np.where(failed[:, None], 0.0, -held_reaction)  # force the tissue pulls the gripper with
-        all_scenes = np.arange(self.n)
-        self.exposure = self.measure_exposure(all_scenes)
-        self.lift = self._lift(all_scenes)
-        self.max_strain = self.measure_strain(all_scenes)
+        all_worlds = np.arange(self.n)
+        self.exposure = self.measure_exposure(all_worlds)
+        self.lift = self._lift(all_worlds)
+        self.max_strain = self.measure_strain(all_worlds)
         # reward terms
         terms = {
             "reward_exposure": w.exposure * (self.exposure - prev_exposure),
@@ -347,7 +347,7 @@ class BatchedRetraction:
         success = meets & (self.held_steps > self.steps_to_hold)
         terms["reward_hold"] = np.where(meets & ~success, w.hold * st.control_dt, 0.0)
         terms["reward_success"] = np.where(success, w.success, 0.0)
-        # a failed scene earns nothing: every term is zeroed, so they still add up
+        # a failed world earns nothing: every term is zeroed, so they still add up
         if failed.any():
             terms = {k: np.where(failed, 0.0, v) for k, v in terms.items()}
         reward = sum(terms.values())
@@ -375,38 +375,38 @@ class BatchedRetraction:
             "newton_iterations": stats.newton_iterations.copy(),
             "substep_refinement": stats.refinement.copy(),
             "solver_fallback": stats.fallback.copy(),
-            **self._episode_info(all_scenes),
+            **self._episode_info(all_worlds),
         }
         return reward, terminated, truncated, info
 
-    def _episode_info(self, scenes) -> dict:
+    def _episode_info(self, worlds) -> dict:
         """What ``info`` says of the episode itself (drawn at its reset): the tissue's
         ``young_modulus`` (Pa) and, with adhesion, its ``adhesion_width`` (m)."""
-        info = {"young_modulus": self.young_modulus[scenes].copy()}
+        info = {"young_modulus": self.young_modulus[worlds].copy()}
         if self.scene.adhesion_vertices is not None:
-            info["adhesion_width"] = self.adhesion_width[scenes].copy()
+            info["adhesion_width"] = self.adhesion_width[worlds].copy()
         return info
 
-    def start_info(self, scenes) -> dict:
-        """The ``info`` of ``scenes`` (indices) at the start of their episodes (after
+    def start_info(self, worlds) -> dict:
+        """The ``info`` of ``worlds`` (indices) at the start of their episodes (after
         :meth:`reset`), with the keys and dtypes of :meth:`step`'s: every reward term 0,
         nothing held, succeeded, torn or failed, the solver's counters at rest, and the
         episode's measurements and draws. Single envs return it at reset, vector envs
-        for the scenes they start afresh."""
-        scenes = np.atleast_1d(np.asarray(scenes, dtype=np.int64))
-        k = len(scenes)
+        for the worlds they start afresh."""
+        worlds = np.atleast_1d(np.asarray(worlds, dtype=np.int64))
+        k = len(worlds)
         zero, no = np.zeros(k), np.zeros(k, dtype=bool)
         return {**{f"reward_{term.name}": zero.copy() for term in fields(RewardWeights)},
-                "exposure": self.exposure[scenes].copy(), "lift": self.lift[scenes].copy(),
-                "max_strain": self.max_strain[scenes].copy(), "grasp_force": zero.copy(),
+                "exposure": self.exposure[worlds].copy(), "lift": self.lift[worlds].copy(),
+                "max_strain": self.max_strain[worlds].copy(), "grasp_force": zero.copy(),
                 "cost": zero.copy(), "damage": zero.copy(),
-                "grasping": self.grasping[scenes].copy(), "is_success": no.copy(), "hold_time": zero.copy(),
+                "grasping": self.grasping[worlds].copy(), "is_success": no.copy(), "hold_time": zero.copy(),
                 "tissue_torn": no.copy(), "simulation_diverged": no.copy(), "solver_converged": ~no,
                 "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),
-                "solver_fallback": no.copy(), **self._episode_info(scenes)}
+                "solver_fallback": no.copy(), **self._episode_info(worlds)}
 
     def _jaw_vertices(self, i: int) -> np.ndarray:
-        """The tissue vertices that closing the gripper of scene ``i`` holds (maybe none)."""
+        """The tissue vertices that closing the gripper of world ``i`` holds (maybe none)."""
         picked = self._reached_vertices(i)
         return picked[~self.adhered[i, picked]]
 
@@ -430,20 +430,20 @@ class BatchedRetraction:
         return self._graspable[held & (d <= st.grasp_reach)]
 
     # ----------------------------------------------------------- measurements
-    def measure_exposure(self, scenes) -> np.ndarray:
+    def measure_exposure(self, worlds) -> np.ndarray:
         """Fraction of the camera-facing target surface samples the tissue does not hide, in
-        each of ``scenes`` (indices), from the current state (the observation's exposure)."""
-        scenes = np.atleast_1d(scenes)
+        each of ``worlds`` (indices), from the current state (the observation's exposure)."""
+        worlds = np.atleast_1d(worlds)
         r = self.scene.target_radius
-        points = self.target[scenes, None, :] + r * self._sphere[None, :, :]
+        points = self.target[worlds, None, :] + r * self._sphere[None, :, :]
         x = self.state.x
         # only samples facing the camera count; the rest are hidden by the target itself
-        if len(scenes) == 1:  # no thread launch for one scene
-            return np.array([visible_fraction(points[0], self.scene.camera, x[scenes[0]],
+        if len(worlds) == 1:  # no thread launch for one world
+            return np.array([visible_fraction(points[0], self.scene.camera, x[worlds[0]],
                                               self.scene.surface_faces,
-                                              sphere_center=self.target[scenes[0]], sphere_radius=r)])
-        return visible_fraction_batch(points, self.scene.camera, x[scenes], self.scene.surface_faces,
-                                      sphere_center=self.target[scenes], sphere_radius=r)
+                                              sphere_center=self.target[worlds[0]], sphere_radius=r)])
+        return visible_fraction_batch(points, self.scene.camera, x[worlds], self.scene.surface_faces,
+                                      sphere_center=self.target[worlds], sphere_radius=r)
 
     def _fold_angles(self, x_edge: np.ndarray) -> np.ndarray:
         """Angle (rad) of each edge vertex about the hinge, 0 along the free direction,
@@ -455,22 +455,22 @@ class BatchedRetraction:
         angle = np.arctan2(dz, dx)
         return np.where(angle <= -np.pi / 2, angle + 2 * np.pi, angle)
 
-    def _lift(self, scenes) -> np.ndarray:
+    def _lift(self, worlds) -> np.ndarray:
         """Lift progress in [0, 1]: mean over the edge vertices of their fold angle from
         rest divided by the scene's ``fold_angle``, each clipped to [0, 1]."""
-        x_edge = self.state.x[np.atleast_1d(scenes)[:, None], self._edge]  # (no copy of the whole state first)
+        x_edge = self.state.x[np.atleast_1d(worlds)[:, None], self._edge]  # (no copy of the whole state first)
         progress = (self._fold_angles(x_edge) - self._rest_angle) / self.scene.fold_angle
         return finite(np.clip(progress, 0.0, 1.0), nan=0.0).mean(axis=1)
 
-    def measure_strain(self, scenes) -> np.ndarray:
-        """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per scene."""
-        scenes = np.atleast_1d(scenes)
-        x = self.state.x if np.array_equal(scenes, np.arange(self.n)) else self.state.x[scenes]
+    def measure_strain(self, worlds) -> np.ndarray:
+        """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per world."""
+        worlds = np.atleast_1d(worlds)
+        x = self.state.x if np.array_equal(worlds, np.arange(self.n)) else self.state.x[worlds]
         return finite(self.gauges.max_strain(x), nan=STRAIN_BOUND)
 
     # ------------------------------------------------------------ observation
     def state_observation(self) -> np.ndarray:
-        """The state vector of every scene, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
+        """The state vector of every world, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
         tracked = self.state.x[:, self.scene.tracked].reshape(self.n, -1)
         obs = np.concatenate([self.gripper, self.grasping[:, None].astype(np.float64), self.grasp_force,
                               self.target, tracked, self.max_strain[:, None], self.exposure[:, None]], axis=1)

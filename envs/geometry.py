@@ -169,7 +169,7 @@ def _cell(value, lo, h, g):
 
 @nb.njit(cache=True)
 def _visible_counts_kernel(points, eye, x, faces, eps, center, use_sphere, method):
-    """(visible samples, samples counted) for one scene; see :func:`visible_counts`.
+    """(visible samples, samples counted) for one world; see :func:`visible_counts`.
 
     Returns (-1, -1) when ``faces`` holds an index outside ``[0, len(x))``.
     """
@@ -402,7 +402,7 @@ def _visible_counts_kernel(points, eye, x, faces, eps, center, use_sphere, metho
 
 @nb.njit(cache=True, parallel=True)
 def _visible_fraction_batch_kernel(points, eye, x, faces, eps, centers, use_sphere, method, out):
-    """``out[s]`` = exposure of scene ``s``; scenes are independent (``prange``)."""
+    """``out[s]`` = exposure of world ``s``; worlds are independent (``prange``)."""
     for s in nb.prange(points.shape[0]):
         vis, cnt = _visible_counts_kernel(points[s], eye, x[s], faces, eps, centers[s],
                                           use_sphere, method)
@@ -426,23 +426,23 @@ def _as_faces(faces):
     return faces
 
 
-def _sphere_args(eye, sphere_center, sphere_radius, n_scenes=None):
+def _sphere_args(eye, sphere_center, sphere_radius, n_worlds=None):
     if sphere_center is None:
         if sphere_radius is not None:
             raise ValueError("sphere_radius needs sphere_center")
-        shape = (3,) if n_scenes is None else (n_scenes, 3)
+        shape = (3,) if n_worlds is None else (n_worlds, 3)
         return np.zeros(shape), False
     c = np.ascontiguousarray(sphere_center, dtype=np.float64)
-    if n_scenes is None:
+    if n_worlds is None:
         if c.shape != (3,):
             raise ValueError(f"sphere_center must have shape (3,), got {c.shape}")
     else:
         if c.shape == (3,):
-            c = np.ascontiguousarray(np.broadcast_to(c, (n_scenes, 3)))
-        elif c.shape != (n_scenes, 3):
-            raise ValueError(f"sphere_center must have shape (3,) or ({n_scenes}, 3), got {c.shape}")
+            c = np.ascontiguousarray(np.broadcast_to(c, (n_worlds, 3)))
+        elif c.shape != (n_worlds, 3):
+            raise ValueError(f"sphere_center must have shape (3,) or ({n_worlds}, 3), got {c.shape}")
     if sphere_radius is not None:
-        if n_scenes is None:  # plain floats: numpy reductions cost microseconds per call
+        if n_worlds is None:  # plain floats: numpy reductions cost microseconds per call
             r = float(sphere_radius)
             ok = r > 0.0 and math.dist(eye.tolist(), c.tolist()) > r
         else:
@@ -456,7 +456,7 @@ def _sphere_args(eye, sphere_center, sphere_radius, n_scenes=None):
 
 def visible_counts(points, eye, x, faces, eps: float = 1e-9, sphere_center=None,
                    sphere_radius=None, method: str = "auto") -> tuple[int, int]:
-    """``(visible, counted)`` samples of one scene: the numerator and denominator of the exposure.
+    """``(visible, counted)`` samples of one world: the numerator and denominator of the exposure.
 
     Arguments as :func:`visible_fraction`; ``method`` is ``"auto"`` (the grid, falling
     back to brute force when a sample is not in front of the eye), ``"grid"`` (same) or
@@ -501,17 +501,17 @@ def visible_fraction(points, eye, x, faces, eps: float = 1e-9, sphere_center=Non
 
 def visible_fraction_batch(points, eye, x, faces, eps: float = 1e-9, sphere_center=None,
                            sphere_radius=None) -> np.ndarray:
-    """:func:`visible_fraction` of ``N`` scenes sharing ``eye`` (3,) and ``faces`` (f, 3), ``(N,)``.
+    """:func:`visible_fraction` of ``N`` worlds sharing ``eye`` (3,) and ``faces`` (f, 3), ``(N,)``.
 
     ``points`` is (N, k, 3) and ``x`` (N, n, 3) (m); ``sphere_center`` is (3,) or (N, 3).
-    Scenes run in parallel (``prange`` over scenes, Numba's threading layer); each
-    result equals the single-scene call.
+    Worlds run in parallel (``prange`` over worlds, Numba's threading layer); each
+    result equals the single-world call.
     """
     points = _as_points(points, "points", 3)
     eye = np.ascontiguousarray(eye, dtype=np.float64).reshape(3)
     x = _as_points(x, "x", 3)
     if x.shape[0] != points.shape[0]:
-        raise ValueError(f"points and x must hold the same number of scenes, got "
+        raise ValueError(f"points and x must hold the same number of worlds, got "
                          f"{points.shape[0]} and {x.shape[0]}")
     faces = _as_faces(faces)
     centers, use_sphere = _sphere_args(eye, sphere_center, sphere_radius, points.shape[0])

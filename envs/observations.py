@@ -301,7 +301,7 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         values = dict(defaults, **dict(zip(fit, theta)))
         return dataclasses.replace(ph, poisson=values["poisson_ratio"]).material_for(values["young_modulus"])
 
-    # the replay's own one-scene model: the env's, whose scene 0 it re-materialises
+    # the replay's own one-world model: the env's, whose world 0 it re-materialises
     replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0))
     observed = Observed(points=obs.points, rest_points=obs.rest_points, force=obs.force,
                         point_scale=point_scale, force_scale=force_scale)

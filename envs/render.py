@@ -24,7 +24,7 @@ Numba kernel that also projects and shades), and a z-buffer in
 ``1/z_cam`` (interpolated linearly in screen space, which is exact under perspective)
 keeps the nearest surface; on equal depth the triangle drawn first stays. Near-plane
 handling is by discarding: a triangle with any vertex at ``z_cam <= near`` (behind the
-camera or closer than ``near`` metres) is not drawn at all, rather than clipped. Scenes
+camera or closer than ``near`` metres) is not drawn at all, rather than clipped. Worlds
 here keep the camera well away from the tissue, so nothing visible is lost.
 """
 

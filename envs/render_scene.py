@@ -18,7 +18,7 @@ _COUNTER = itertools.count()
 
 
 class SceneRenderer:
-    """Renders scene ``i`` of a :class:`~heml_gym.envs.core.BatchedRetraction`.
+    """Renders world ``i`` of a :class:`~heml_gym.envs.core.BatchedRetraction`.
 
     ``rgb_array``: a 160 x 120 uint8 image from the task camera, tissue coloured by the
     strain of its surface triangles (pink to red at the damage threshold), the tumour

@@ -8,8 +8,8 @@ its stiffness range, the force field, the integrator and its step settings), so 
 gives a scene the model it needs.
 
 What training and recording use is public: :meth:`RetractionEnv.observe` /
-:meth:`RetractionVectorEnv.observations`, :meth:`~RetractionVectorEnv.reset_scenes` and
-:meth:`~RetractionVectorEnv.step_scenes` (the batch without autoreset, for other RL
+:meth:`RetractionVectorEnv.observations`, :meth:`~RetractionVectorEnv.reset_envs` and
+:meth:`~RetractionVectorEnv.step_envs` (the batch without autoreset, for other RL
 libraries' adapters), :attr:`geometry` (what does not change: rest mesh, surface,
 attachment, camera, thresholds) and :meth:`snapshot` (what a frame shows).
 """
@@ -109,7 +109,7 @@ class SceneGeometry:
 
 @dataclass(frozen=True)
 class SceneSnapshot:
-    """One scene now: ``positions (n, 3)`` m, ``gripper (3,)`` m, ``grasping``, ``held``
+    """One env now: ``positions (n, 3)`` m, ``gripper (3,)`` m, ``grasping``, ``held``
     (held vertex indices), ``grasp_force (3,)`` N (of the tissue on the gripper),
     ``target (3,)`` m, ``young_modulus`` Pa, ``step``."""
 
@@ -160,14 +160,14 @@ class _SceneAccess:
         cloud_space = spaces.Box(-POINT_BOUND, POINT_BOUND, (POINTCLOUD_SIZE, 3), dtype=np.float32)
         return spaces.Dict({"state": state_space, "points": cloud_space})
 
-    def _new_camera_poses(self, scenes) -> None:
-        """Scenes starting an episode draw their camera jitter (from their own generator)."""
+    def _new_camera_poses(self, envs) -> None:
+        """Envs starting an episode draw their camera jitter (from their own generator)."""
         if self.camera_renderer is not None:
-            for i in np.atleast_1d(scenes):
+            for i in np.atleast_1d(envs):
                 self.camera_renderer.new_pose(int(i), self.task.rngs[int(i)])
 
     def observations(self):
-        """The observation of every scene of the batch (leading axis N)."""
+        """The observation of every env of the batch (leading axis N)."""
         if self.camera_renderer is not None:
             rgb, depth, seg = self.camera_renderer.render()
             parts = {}
@@ -291,8 +291,8 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        # a given seed seeds the scene directly (as scene i of a vector env reset with
-        # seed - i); without one, the scene continues from the env's generator
+        # a given seed seeds the episode directly (as env i of a vector env reset with
+        # seed - i); without one, the episode continues from the env's generator
         scene_seed = seed if seed is not None else int(self.np_random.integers(2**63 - 1))
         self.task.reset([0], seeds=[scene_seed])
         if options:
@@ -333,7 +333,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
 
 
 class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
-    """N retraction scenes advanced by one batched Numba call (next-step autoreset).
+    """N retraction envs advanced by one batched Numba call (next-step autoreset).
 
     Arguments as the single env's, plus ``num_envs`` and ``max_episode_steps`` (the
     episode length, ``settings.max_steps``; ``gym.make_vec`` passes the registered 100
@@ -380,19 +380,19 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         self._np_random = None
 
     # ------------------------------------------------ the batch without autoreset
-    def reset_scenes(self, scenes, seeds=None) -> None:
-        """Start new episodes in ``scenes`` (indices), seeded by ``seeds`` (one each, or None)."""
-        idx = np.atleast_1d(np.asarray(scenes, dtype=np.int64))
+    def reset_envs(self, envs, seeds=None) -> None:
+        """Start new episodes in ``envs`` (indices), seeded by ``seeds`` (one each, or None)."""
+        idx = np.atleast_1d(np.asarray(envs, dtype=np.int64))
         if idx.size and (idx.min() < 0 or idx.max() >= self.num_envs):
-            raise ValueError(f"scenes must lie in [0, {self.num_envs}), got {idx.tolist()}")
+            raise ValueError(f"envs must lie in [0, {self.num_envs}), got {idx.tolist()}")
         if seeds is not None and len(seeds) != len(idx):
-            raise ValueError(f"give one seed per scene ({len(idx)}), got {len(seeds)}")
+            raise ValueError(f"give one seed per env ({len(idx)}), got {len(seeds)}")
         self.task.reset(idx, seeds)
         self._new_camera_poses(idx)
 
-    def step_scenes(self, actions, active=None):
-        """Step every scene with ``actions (N, 4)`` (checked: shape and finite values), no
-        autoreset: ``(reward, terminated, truncated, info)`` as per-scene arrays."""
+    def step_envs(self, actions, active=None):
+        """Step every env with ``actions (N, 4)`` (checked: shape and finite values), no
+        autoreset: ``(reward, terminated, truncated, info)`` as per-env arrays."""
         a = check_actions(actions, (self.num_envs, 4))
         return self.task.step(a, active=active)
 
@@ -405,14 +405,14 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         else:
             seeds = list(seed)
         self._np_random = np.random.default_rng(seed if isinstance(seed, (int, np.integer)) else None)
-        self.reset_scenes(np.arange(self.num_envs), seeds)
+        self.reset_envs(np.arange(self.num_envs), seeds)
         self._needs_reset[:] = False
         return self.observations(), {}
 
     def step(self, actions):
         finished = self._needs_reset.copy()
-        reward, terminated, truncated, info = self.step_scenes(actions, active=~finished)
-        if finished.any():  # next-step autoreset: these scenes start a new episode now
+        reward, terminated, truncated, info = self.step_envs(actions, active=~finished)
+        if finished.any():  # next-step autoreset: these envs start a new episode now
             idx = np.flatnonzero(finished)
             self.task.reset(idx)
             self._new_camera_poses(idx)

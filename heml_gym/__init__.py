@@ -4,15 +4,19 @@ The physics backend depends only on numpy, numba, scipy and meshio (gmsh for the
 procedural organs). Units are SI throughout: metres, seconds, pascals, kilograms.
 
 The pieces, after NVIDIA Newton's split: a :class:`Model` (mesh, rest data, masses,
-fixed vertices, per-scene materials, supports; built once for N scenes), a
+fixed vertices, per-world materials, supports; built once for N worlds), a
 :class:`State` (positions and velocities), a :class:`Control` (held vertices, their
 targets, external forces) and a solver (:class:`ExplicitSolver`,
-:class:`ImplicitSolver`, :class:`StaticSolver`) that steps every scene:
+:class:`ImplicitSolver`, :class:`StaticSolver`) that steps every world:
 ``solver.step(state_in, state_out, control, dt)``. :class:`Simulation` is the
-single-scene facade over them.
+single-world facade over them.
 """
 
-from . import kinematics, materials, organs
+from .numba_cache import tolerate_stale_indexes
+
+tolerate_stale_indexes()  # before any kernel is compiled or loaded (see heml_gym.numba_cache)
+
+from . import kinematics, materials, organs  # noqa: E402
 from .contact import MeshSupport, PlaneSupport
 from .control import Control
 from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce

@@ -1,4 +1,4 @@
-"""The control: what the user drives each step, for N scenes at once."""
+"""The control: what the user drives each step, for N worlds at once."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ __all__ = ["Control"]
 
 
 class Control:
-    """Held (kinematic) vertices, where they go, and external forces, per scene.
+    """Held (kinematic) vertices, where they go, and external forces, per world.
 
     Attributes
     ----------
@@ -21,13 +21,13 @@ class Control:
         Applied to every vertex every step (a tip load, a probe).
     """
 
-    def __init__(self, n_scenes: int, n_vertices: int):
-        self.kinematic = np.zeros((n_scenes, n_vertices), dtype=bool)
-        self.targets = np.zeros((n_scenes, n_vertices, 3))
-        self.external_forces = np.zeros((n_scenes, n_vertices, 3))
+    def __init__(self, n_worlds: int, n_vertices: int):
+        self.kinematic = np.zeros((n_worlds, n_vertices), dtype=bool)
+        self.targets = np.zeros((n_worlds, n_vertices, 3))
+        self.external_forces = np.zeros((n_worlds, n_vertices, 3))
 
     @property
-    def n_scenes(self) -> int:
+    def n_worlds(self) -> int:
         return self.kinematic.shape[0]
 
     def indices(self, vertices) -> np.ndarray:
@@ -45,38 +45,38 @@ class Control:
             raise ValueError(f"vertex indices must lie in [0, {n})")
         return idx
 
-    def attach(self, scene: int, vertices, positions) -> None:
-        """Hold ``vertices`` of ``scene`` where they are (``positions``: their current
-        positions, m, ``(k, 3)`` or the scene's whole ``(n, 3)`` array)."""
+    def attach(self, world: int, vertices, positions) -> None:
+        """Hold ``vertices`` of ``world`` where they are (``positions``: their current
+        positions, m, ``(k, 3)`` or the world's whole ``(n, 3)`` array)."""
         idx = self.indices(vertices)
         positions = np.asarray(positions, dtype=np.float64)
         here = positions[idx] if positions.shape == (self.kinematic.shape[1], 3) else positions.reshape(len(idx), 3)
-        self.kinematic[scene, idx] = True
-        self.targets[scene, idx] = here
+        self.kinematic[world, idx] = True
+        self.targets[world, idx] = here
 
-    def drive(self, scene: int, vertices, targets) -> None:
-        """Kinematic ``vertices`` of ``scene`` reach ``targets`` (m, ``(k, 3)``) at the end of
+    def drive(self, world: int, vertices, targets) -> None:
+        """Kinematic ``vertices`` of ``world`` reach ``targets`` (m, ``(k, 3)``) at the end of
         the next step."""
         idx = self.indices(vertices)
         targets = np.asarray(targets, dtype=np.float64).reshape(len(idx), 3)
-        if not np.all(self.kinematic[scene, idx]):
+        if not np.all(self.kinematic[world, idx]):
             raise ValueError("drive() needs attached (kinematic) vertices: attach them first")
         if not np.all(np.isfinite(targets)):
             raise ValueError("kinematic targets must be finite")
-        self.targets[scene, idx] = targets
+        self.targets[world, idx] = targets
 
-    def detach(self, scene: int, vertices=None) -> None:
-        """Release the kinematic vertices of ``scene`` (all, or ``vertices``); they keep
+    def detach(self, world: int, vertices=None) -> None:
+        """Release the kinematic vertices of ``world`` (all, or ``vertices``); they keep
         their velocity."""
         if vertices is None:
-            self.kinematic[scene] = False
+            self.kinematic[world] = False
         else:
-            self.kinematic[scene, self.indices(vertices)] = False
+            self.kinematic[world, self.indices(vertices)] = False
 
-    def clear(self, scene: int) -> None:
-        """Nothing held and no external force in ``scene``."""
-        self.kinematic[scene] = False
-        self.external_forces[scene] = 0.0
+    def clear(self, world: int) -> None:
+        """Nothing held and no external force in ``world``."""
+        self.kinematic[world] = False
+        self.external_forces[world] = 0.0
 
     def __repr__(self) -> str:
-        return f"Control({self.n_scenes} scenes, {int(self.kinematic.sum())} held vertices)"
+        return f"Control({self.n_worlds} worlds, {int(self.kinematic.sum())} held vertices)"

@@ -1,7 +1,7 @@
 """The typed bundles of arrays that the solvers' Numba kernels take.
 
 A kernel reads a few named bundles instead of dozens of positional arrays: what the
-model owns (:class:`HemlBody`, shared by every scene; :class:`HemlLaws`, every scene's
+model owns (:class:`HemlBody`, shared by every world; :class:`HemlLaws`, every world's
 law, kept current by :meth:`heml_gym.Model.set_material`), the supports
 (:class:`SupportArrays`), and what a solver owns (its initial Hessians, L-BFGS memory,
 BDF2 history: see :mod:`heml_gym.solvers.kernels_quasi_newton`). Each bundle is a
@@ -21,7 +21,7 @@ import numpy as np
 
 
 class HemlBody(NamedTuple):
-    """A HEML model's arrays that every scene shares (read only by the kernels)."""
+    """A HEML model's arrays that every world shares (read only by the kernels)."""
 
     tets: np.ndarray  #: (m, 4) int64 vertex indices of each tet
     coef_t: np.ndarray  #: HEML's rest coefficients, constant-major (see :class:`~heml_gym.forces.HemlRestData`)
@@ -36,19 +36,19 @@ class HemlBody(NamedTuple):
 
 
 class HemlLaws(NamedTuple):
-    """Every scene's law, stacked over the N scenes (leading axis), with the batch's flags."""
+    """Every world's law, stacked over the N worlds (leading axis), with the batch's flags."""
 
     law: np.ndarray  #: (N,) int64 law ids (:mod:`heml_gym.laws`)
     params: np.ndarray  #: (N, k) float64 law constants, zero-padded
     weights: np.ndarray  #: (N, 6, m) spring weights (N/m) when ``split``, else (N, 6, 1) zeros
     psi1: np.ndarray  #: (N,) the constant dPsi/dI1 (Pa) when ``split``, else 0
-    split: bool  #: every scene's law has a constant dPsi/dI1 (Neo-Hookean): the fused kernels
-    use_q: bool  #: some scene's law reads I2: the kernels read ``q_t``
+    split: bool  #: every world's law has a constant dPsi/dI1 (Neo-Hookean): the fused kernels
+    use_q: bool  #: some world's law reads I2: the kernels read ``q_t``
     q_t: np.ndarray  #: HEML's I2 coefficients (``use_q``), else a placeholder
 
 
-class SceneLaw(NamedTuple):
-    """One scene's row of :class:`HemlLaws` (see :func:`scene_law`)."""
+class WorldLaw(NamedTuple):
+    """One world's row of :class:`HemlLaws` (see :func:`world_law`)."""
 
     law: np.int64
     params: np.ndarray
@@ -68,7 +68,7 @@ class SupportArrays(NamedTuple):
 
 
 @nb.njit(cache=True, inline="always")
-def scene_law(laws, s):
-    """Scene ``s``'s :class:`SceneLaw` of ``laws`` (:class:`HemlLaws`), in a kernel or from
+def world_law(laws, s):
+    """World ``s``'s :class:`WorldLaw` of ``laws`` (:class:`HemlLaws`), in a kernel or from
     Python."""
-    return SceneLaw(laws.law[s], laws.params[s], laws.weights[s], laws.psi1[s], laws.split, laws.use_q, laws.q_t)
+    return WorldLaw(laws.law[s], laws.params[s], laws.weights[s], laws.psi1[s], laws.split, laws.use_q, laws.q_t)

@@ -78,7 +78,7 @@ def grid_signed_distance(grids, grid_values, g, px, py, pz):
 def plane_contact(nx, ny, nz, c, px, py, pz, vx, vy, vz):
     """Position and velocity of a free vertex after its contact with the plane
     ``n . x >= c``: moved back onto it along ``n``, the velocity into it removed.
-    Branch-free (selects), so that a loop over scenes around it vectorises."""
+    Branch-free (selects), so that a loop over worlds around it vectorises."""
     d = min(nx * px + ny * py + nz * pz - c, 0.0)
     vn = min(nx * vx + ny * vy + nz * vz, 0.0) if d < 0.0 else 0.0
     return px - d * nx, py - d * ny, pz - d * nz, vx - vn * nx, vy - vn * ny, vz - vn * nz

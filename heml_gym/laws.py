@@ -58,8 +58,8 @@ def law_energy(law, p, I1, I2, J):
 @nb.njit(cache=True, inline="always")
 def volumetric_gradient_fast(law, p0, p1, J):
     """``dPsi/dJ`` for the laws with constant ``Psi_1`` and no ``I2`` (Neo-Hookean), inline;
-    ``p0, p1`` are the law's first two parameters (scalars, so that a loop over scenes
-    with per-scene parameters vectorises too).
+    ``p0, p1`` are the law's first two parameters (scalars, so that a loop over worlds
+    with per-world parameters vectorises too).
 
     Only for normal, positive, finite ``J`` (the caller checks): it uses the inlinable
     logarithm so that a loop around it can vectorise.

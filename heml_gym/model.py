@@ -1,15 +1,20 @@
-"""The model: what does not change while N scenes are simulated.
+"""The model: what does not change while N worlds are simulated.
 
-A :class:`Model` holds one tet mesh and, for each of its ``N`` scenes, a material (so
-E, nu and even the law can differ per scene), plus what all scenes share: the force
+A :class:`Model` holds one tet mesh and, for each of its ``N`` worlds, a material (so
+E, nu and even the law can differ per world), plus what all worlds share: the force
 field's rest-shape precomputation (HEML coefficients, ``Dm^-1``, the Hessian pattern:
 computed once, whatever N), lumped masses, fixed vertices, gravity, damping and rigid
 supports. It is built once; a :class:`~heml_gym.state.State` holds what a step changes
 and a :class:`~heml_gym.control.Control` what the user drives; the solvers of
-:mod:`heml_gym.solvers` step all N scenes. N = 1 is the single case, not a separate
+:mod:`heml_gym.solvers` step all N worlds. N = 1 is the single case, not a separate
 path. Units: m, s, kg, Pa, N.
 
-    model = Model(mesh, NeoHookean(E=5e3, nu=0.45), n_scenes=4, fixed=clamped)
+A *world* is one independent copy in this batch (index ``0 .. N-1``: arrays of
+:class:`State` and :class:`Control` lead with it); a *scene* (:mod:`heml_gym.envs`) is
+what is simulated: the tissue, its supports and the task. An env with 16 copies of a
+scene steps one model of 16 worlds.
+
+    model = Model(mesh, NeoHookean(E=5e3, nu=0.45), n_worlds=4, fixed=clamped)
     model.set_material(2, StVenantKirchhoff(E=8e3, nu=0.45))
     state, control = model.state(), model.control()
     solver = ImplicitSolver(model)
@@ -59,24 +64,24 @@ class Damping:
 
 
 class Model:
-    """N scenes of one tet mesh: per-scene materials, shared mesh, masses and constraints.
+    """N worlds of one tet mesh: per-world materials, shared mesh, masses and constraints.
 
     Parameters
     ----------
     mesh : TetMesh
         The body at rest (m). Optional when ``field`` is a force field instance.
     material : Material or sequence of N Materials
-        The law and constants of every scene (one material for all, or one each).
-    n_scenes : int
+        The law and constants of every world (one material for all, or one each).
+    n_worlds : int
         N (default: the number of materials given, else 1).
     field : str, ForceField class or ForceField instance
         ``"heml"`` (default), ``"fem"``, ``"mass_tensor"``, ``"mass_spring"`` (see
         :data:`FORCE_FIELDS`), a class, or a ready field (whose mesh and material are then
-        used; its precomputation is shared with the other scenes).
+        used; its precomputation is shared with the other worlds).
     density : float
         kg/m^3; lumped mass ``rho V / 4`` per vertex per incident tet.
     fixed : vertex indices or (n,) bool mask
-        Vertices that never move (every scene).
+        Vertices that never move (every world).
     gravity : (3,) float, m/s^2
     damping : Damping, float (``alpha``) or None
     supports : sequence of :class:`~heml_gym.contact.PlaneSupport` /
@@ -85,7 +90,7 @@ class Model:
     """
 
     def __init__(self, mesh: TetMesh | None = None, material: Material | Sequence[Material] | None = None,
-                 n_scenes: int | None = None, field="heml", density: float = 1000.0, fixed=None,
+                 n_worlds: int | None = None, field="heml", density: float = 1000.0, fixed=None,
                  gravity=(0.0, 0.0, -9.81), damping: Damping | float | None = None, supports=()):
         if isinstance(field, ForceField):
             if mesh is not None and mesh is not field.mesh:
@@ -108,16 +113,16 @@ class Model:
             base = None
         materials = [material] if isinstance(material, Material) else list(material or [])
         if not materials:
-            raise ValueError("material is required: a heml_gym.materials.Material (or one per scene)")
-        if n_scenes is None:
-            n_scenes = len(materials)
-        if not isinstance(n_scenes, (int, np.integer)) or isinstance(n_scenes, bool) or n_scenes < 1:
-            raise ValueError(f"n_scenes must be an integer >= 1, got {n_scenes!r}")
-        n_scenes = int(n_scenes)
+            raise ValueError("material is required: a heml_gym.materials.Material (or one per world)")
+        if n_worlds is None:
+            n_worlds = len(materials)
+        if not isinstance(n_worlds, (int, np.integer)) or isinstance(n_worlds, bool) or n_worlds < 1:
+            raise ValueError(f"n_worlds must be an integer >= 1, got {n_worlds!r}")
+        n_worlds = int(n_worlds)
         if len(materials) == 1:
-            materials = materials * n_scenes
-        if len(materials) != n_scenes:
-            raise ValueError(f"give one material or n_scenes = {n_scenes} of them, got {len(materials)}")
+            materials = materials * n_worlds
+        if len(materials) != n_worlds:
+            raise ValueError(f"give one material or n_worlds = {n_worlds} of them, got {len(materials)}")
         density = float(density)
         if not math.isfinite(density) or density <= 0:
             raise ValueError(f"density must be a positive number of kg/m^3, got {density}")
@@ -130,7 +135,7 @@ class Model:
             damping = Damping(alpha=float(damping))
 
         self.mesh = mesh
-        self.n_scenes = n_scenes
+        self.n_worlds = n_worlds
         self.n_vertices = mesh.n_vertices
         self.density = density
         self.gravity = gravity
@@ -148,8 +153,8 @@ class Model:
         self._body: HemlBody | None = None  # see heml_body / heml_laws
         self._laws: HemlLaws | None = None
         self.material_revision = 0  # counts set_material calls (for what a solver derives from materials)
-        self.fields: list[ForceField] = [None] * n_scenes
-        self.materials: list[Material] = [None] * n_scenes
+        self.fields: list[ForceField] = [None] * n_worlds
+        self.materials: list[Material] = [None] * n_worlds
         for s, mat in enumerate(materials):
             self.set_material(s, mat)
         self._critical = {}  # (field class, moduli ratios) -> (E, rest critical step)
@@ -157,27 +162,27 @@ class Model:
     # ---------------------------------------------------------------- materials
     @property
     def field(self) -> ForceField:
-        """The force field of scene 0 (every scene's has the same kind and mesh)."""
+        """The force field of world 0 (every world's has the same kind and mesh)."""
         return self.fields[0]
 
-    def set_material(self, scenes, material: Material) -> None:
-        """Give ``scenes`` (an index or indices) the ``material``: a new force field that
+    def set_material(self, worlds, material: Material) -> None:
+        """Give ``worlds`` (an index or indices) the ``material``: a new force field that
         shares every material-independent precomputation with the others."""
         if not isinstance(material, Material):
             raise TypeError(f"material must be a heml_gym.materials.Material, got {type(material).__name__}")
         field = self._base if material is self._base.material else self._base.with_material(material)
-        for s in np.atleast_1d(scenes):
+        for s in np.atleast_1d(worlds):
             s = int(s)
-            if not 0 <= s < self.n_scenes:
-                raise IndexError(f"scene {s} outside [0, {self.n_scenes})")
+            if not 0 <= s < self.n_worlds:
+                raise IndexError(f"world {s} outside [0, {self.n_worlds})")
             self.fields[s] = field
             self.materials[s] = material
         self.material_revision += 1
-        self._update_laws(np.atleast_1d(scenes))
+        self._update_laws(np.atleast_1d(worlds))
 
     # -------------------------------------------------------------- kernel arrays
     def heml_body(self) -> HemlBody:
-        """The arrays of a HEML model that the solver kernels read and every scene shares
+        """The arrays of a HEML model that the solver kernels read and every world shares
         (:class:`~heml_gym.kernel_data.HemlBody`: rest data, masses, fixed set, gravity,
         damping, the tets around each vertex). Only for HEML force fields."""
         if self._body is None:
@@ -193,14 +198,14 @@ class Model:
         return self._body
 
     def heml_laws(self) -> HemlLaws:
-        """Every scene's law as the solver kernels read it
+        """Every world's law as the solver kernels read it
         (:class:`~heml_gym.kernel_data.HemlLaws`), kept current by :meth:`set_material`.
         Only for HEML force fields."""
         if self._laws is None:
             fields = self._heml_fields()
             split = all(f.split for f in fields)
             use_q = any(f.use_q for f in fields)
-            N = self.n_scenes
+            N = self.n_worlds
             self._laws = HemlLaws(
                 law=np.zeros(N, dtype=np.int64), params=np.zeros((N, max(len(f.params) for f in fields))),
                 weights=np.zeros((N,) + (fields[0].spring_weights.shape if split else (6, 1))), psi1=np.zeros(N),
@@ -214,8 +219,8 @@ class Model:
             raise TypeError(f"these kernels need HEML force fields, the model has {', '.join(kinds)}")
         return self.fields
 
-    def _update_laws(self, scenes: np.ndarray) -> None:
-        """Keep :meth:`heml_laws` current after ``scenes`` changed material: their rows in
+    def _update_laws(self, worlds: np.ndarray) -> None:
+        """Keep :meth:`heml_laws` current after ``worlds`` changed material: their rows in
         place, or a rebuild (on the next call) when the batch's flags or widths change."""
         laws = self._laws
         if laws is None:
@@ -225,13 +230,13 @@ class Model:
                 or max(len(f.params) for f in fields) != laws.params.shape[1]):
             self._laws = None
             return
-        self._set_law_rows(scenes)
+        self._set_law_rows(worlds)
 
-    def _set_law_rows(self, scenes) -> None:
-        """Write ``scenes``' rows of :meth:`heml_laws` from their fields (law id, zero-padded
+    def _set_law_rows(self, worlds) -> None:
+        """Write ``worlds``' rows of :meth:`heml_laws` from their fields (law id, zero-padded
         constants, ``psi1`` and spring weights when the batch is split)."""
         laws = self._laws
-        for s in scenes:
+        for s in worlds:
             f = self.fields[int(s)]
             laws.law[s] = f.law_id
             laws.params[s] = 0.0
@@ -242,24 +247,24 @@ class Model:
 
     @property
     def young_modulus(self) -> np.ndarray:
-        """Small-strain Young's modulus of each scene (Pa), ``(N,)``."""
+        """Small-strain Young's modulus of each world (Pa), ``(N,)``."""
         return np.array([m.young_modulus for m in self.materials])
 
     # ------------------------------------------------------------------- states
     def state(self) -> State:
-        """A state of all scenes at rest (positions the mesh's, velocities zero)."""
-        x = np.repeat(self.mesh.vertices[None], self.n_scenes, axis=0)
+        """A state of all worlds at rest (positions the mesh's, velocities zero)."""
+        x = np.repeat(self.mesh.vertices[None], self.n_worlds, axis=0)
         return State(x, np.zeros_like(x))
 
     def control(self) -> Control:
         """A control with nothing held and no external force."""
-        return Control(self.n_scenes, self.n_vertices)
+        return Control(self.n_worlds, self.n_vertices)
 
     # --------------------------------------------------------------- stability
-    def critical_dt(self, scene: int | None = None, material: Material | None = None) -> float:
+    def critical_dt(self, world: int | None = None, material: Material | None = None) -> float:
         """Explicit stability limit (s) at rest: ``2 / omega_max``, with ``omega_max^2`` the
-        largest eigenvalue of ``M^-1 K`` (undamped, lumped mass), of scene ``scene``, of
-        ``material`` on this mesh, or (default) the smallest over all scenes.
+        largest eigenvalue of ``M^-1 K`` (undamped, lumped mass), of world ``world``, of
+        ``material`` on this mesh, or (default) the smallest over all worlds.
 
         The rest stiffness is that of linear elasticity with the law's small-strain moduli,
         so at a given Poisson ratio the limit scales as ``1 / sqrt(E)``: one Lanczos run
@@ -269,8 +274,8 @@ class Model:
         """
         if material is not None:
             return self._critical_dt_of(material)
-        if scene is not None:
-            return self._critical_dt_of(self.materials[int(scene)])
+        if world is not None:
+            return self._critical_dt_of(self.materials[int(world)])
         return min(self._critical_dt_of(m) for m in set(self.materials))
 
     def _critical_dt_of(self, material: Material) -> float:
@@ -283,14 +288,14 @@ class Model:
         E_ref, dt_ref = self._critical[key]
         return dt_ref * math.sqrt(E_ref / E)
 
-    def estimated_critical_dt(self, scene: int = 0) -> float:
+    def estimated_critical_dt(self, world: int = 0) -> float:
         """``h_min / c`` (s): the smallest tet altitude over the small-strain P-wave speed.
         Quick, but off by a mesh-dependent factor (measured 0.88 to 1.75 on our meshes)."""
-        return self.mesh.min_height / self.materials[scene].wave_speed(self.density)
+        return self.mesh.min_height / self.materials[world].wave_speed(self.density)
 
     def __repr__(self) -> str:
         laws = sorted({type(m).__name__ for m in self.materials})
-        return (f"Model({self.mesh!r}, {self.n_scenes} scenes, {type(self._base).__name__}, "
+        return (f"Model({self.mesh!r}, {self.n_worlds} worlds, {type(self._base).__name__}, "
                 f"{'/'.join(laws)}, {int(self.fixed.sum())} fixed, {len(self.supports)} supports)")
 
 

@@ -1,4 +1,4 @@
-"""Simulation: the friendly single-scene facade over model, state, control and solvers.
+"""Simulation: the friendly single-world facade over model, state, control and solvers.
 
 Equation of motion (SI units: m, s, kg, N)::
 
@@ -8,7 +8,7 @@ with the lumped mass ``M = rho V / 4`` per vertex per incident tet, Rayleigh dam
 ``alpha`` (1/s, mass-proportional) and ``beta`` (s, stiffness-proportional), fixed
 (Dirichlet) vertices that never move, kinematic vertices whose positions are driven
 (that is how a gripper holds tissue) and rigid supports. A :class:`Simulation` is one
-scene of a :class:`~heml_gym.model.Model` (N = 1) stepped by one of the solvers of
+world of a :class:`~heml_gym.model.Model` (N = 1) stepped by one of the solvers of
 :mod:`heml_gym.solvers`:
 
 * ``"explicit"``: symplectic Euler, sub-stepped automatically below ``safety *
@@ -32,9 +32,9 @@ import numpy as np
 from .contact import Support
 from .forces.base import ForceField
 from .model import Damping, Model
-from .solvers import INTEGRATORS, SceneStepStats, SimulationDiverged, StaticSolver, make_solver
+from .solvers import INTEGRATORS, WorldStepStats, SimulationDiverged, StaticSolver, make_solver
 
-__all__ = ["Simulation", "SimulationDiverged", "Damping", "SceneStepStats", "NotConverged", "NotConvergedWarning"]
+__all__ = ["Simulation", "SimulationDiverged", "Damping", "WorldStepStats", "NotConverged", "NotConvergedWarning"]
 
 
 
@@ -81,7 +81,7 @@ class Simulation:
         Raise :class:`NotConverged` (state kept) instead of warning when an implicit
         step does not converge.
 
-    The pieces are public: ``model`` (:class:`~heml_gym.model.Model`, one scene),
+    The pieces are public: ``model`` (:class:`~heml_gym.model.Model`, one world),
     ``state`` (:class:`~heml_gym.state.State`), ``control``
     (:class:`~heml_gym.control.Control`) and ``solver``.
     """
@@ -110,7 +110,7 @@ class Simulation:
         self.control = self.model.control()
         self.time = 0.0
         self.step_count = 0
-        self.last = SceneStepStats()
+        self.last = WorldStepStats()
         self._reaction = np.zeros((self.model.n_vertices, 3))
 
     # --------------------------------------------------------------- the pieces
@@ -219,7 +219,7 @@ class Simulation:
             raise ValueError(f"method must be 'eigen' or 'estimate', got {method!r}")
         return self.model.critical_dt(0)
 
-    def step(self, dt: float, substeps: int | None = None) -> SceneStepStats:
+    def step(self, dt: float, substeps: int | None = None) -> WorldStepStats:
         """Advance by ``dt`` seconds (in ``substeps`` equal sub-steps; explicit picks enough).
 
         Raises :class:`SimulationDiverged` (state unchanged) if the result is non-finite
@@ -237,7 +237,7 @@ class Simulation:
             if self.strict:
                 before = self.state.copy()
             stats = self.solver.step(self.state, self.state, self.control, dt, substeps=substeps or 1)
-        report = stats.scene(0)
+        report = stats.world(0)
         self.last = report
         if report.diverged:
             raise SimulationDiverged(self.step_count, report.message, stats.elements[0])
@@ -251,7 +251,7 @@ class Simulation:
         self.step_count += 1
         return report
 
-    def solve_static(self, load_steps: int = 1, tol: float = 1e-8, max_iter: int = 100) -> SceneStepStats:
+    def solve_static(self, load_steps: int = 1, tol: float = 1e-8, max_iter: int = 100) -> WorldStepStats:
         """Static equilibrium under gravity and external forces, by Newton with load stepping
         (:class:`~heml_gym.solvers.StaticSolver`). Velocities are zeroed.
 
@@ -259,7 +259,7 @@ class Simulation:
         """
         stats = StaticSolver(self.model, load_steps=load_steps, tol=tol, max_iter=max_iter).solve(
             self.state, self.control)
-        report = stats.scene(0)
+        report = stats.world(0)
         self.last = report
         if report.diverged:
             raise SimulationDiverged(self.step_count, report.message)

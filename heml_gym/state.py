@@ -1,4 +1,4 @@
-"""The state: what a step changes, for N scenes at once."""
+"""The state: what a step changes, for N worlds at once."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ __all__ = ["State"]
 
 
 class State:
-    """Positions ``x`` (m) and velocities ``v`` (m/s) of N scenes, ``(N, n, 3)`` float64 each.
+    """Positions ``x`` (m) and velocities ``v`` (m/s) of N worlds, ``(N, n, 3)`` float64 each.
 
-    ``state.x[s]`` is scene ``s``. A solver reads one state and writes another (they may
+    ``state.x[s]`` is world ``s``. A solver reads one state and writes another (they may
     be the same object): ``solver.step(state_in, state_out, control, dt)``.
     """
 
@@ -25,7 +25,7 @@ class State:
         self.v = v
 
     @property
-    def n_scenes(self) -> int:
+    def n_worlds(self) -> int:
         return self.x.shape[0]
 
     @property
@@ -35,14 +35,14 @@ class State:
     def copy(self) -> "State":
         return State(self.x.copy(), self.v.copy())
 
-    def assign(self, other: "State", scenes=None) -> None:
-        """Copy ``other``'s positions and velocities into this state (all scenes, or ``scenes``)."""
-        if scenes is None:
+    def assign(self, other: "State", worlds=None) -> None:
+        """Copy ``other``'s positions and velocities into this state (all worlds, or ``worlds``)."""
+        if worlds is None:
             self.x[...] = other.x
             self.v[...] = other.v
         else:
-            self.x[scenes] = other.x[scenes]
-            self.v[scenes] = other.v[scenes]
+            self.x[worlds] = other.x[worlds]
+            self.v[worlds] = other.v[worlds]
 
     def __repr__(self) -> str:
-        return f"State({self.n_scenes} scenes, {self.n_vertices} vertices)"
+        return f"State({self.n_worlds} worlds, {self.n_vertices} vertices)"

@@ -55,7 +55,7 @@ def test_adjoint_gradients_equal_central_differences_on_a_slab():
     def material_of(theta):
         return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
 
-    model = hg.Model(mesh, material_of((5e3, 0.45)), n_scenes=1, density=950.0, fixed=X[:, 0] < 1e-9,
+    model = hg.Model(mesh, material_of((5e3, 0.45)), n_worlds=1, density=950.0, fixed=X[:, 0] < 1e-9,
                      damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)])
     T = 6
     grip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)

@@ -154,7 +154,7 @@ def test_camera_jitter_moves_the_view_per_episode_and_seeds_fix_it():
         gym.make(TISSUE, obs_mode="state", camera={"size": 64})
 
 
-def test_a_vector_env_renders_every_scene_as_single_envs_do():
+def test_a_vector_env_renders_every_env_as_single_envs_do():
     vec = gym.make_vec(TISSUE, num_envs=3, vectorization_mode="vector_entry_point", obs_mode="rgbd")
     obs, _ = vec.reset(seed=30)
     for i in range(3):

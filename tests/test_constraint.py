@@ -31,7 +31,7 @@ def test_the_learner_sees_the_reward_minus_the_multiplier_times_the_cost():
             assert info["cost"] > 0.0  # (safe strain 0: the sagging tissue costs)
             assert reward[i] == pytest.approx(raw - 2.5 * info["cost"], abs=1e-5)
         ended += int(done.sum())
-    assert len(env.ended_costs) == ended == 3  # each scene's 6-step episode ended once
+    assert len(env.ended_costs) == ended == 3  # each env's 6-step episode ended once
     assert all(c > 0 for c in env.ended_costs)
 
 

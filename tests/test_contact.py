@@ -81,9 +81,9 @@ def test_mesh_support_rejects_an_open_surface():
         hg.MeshSupport(v, f[:-1])
 
 
-def drop(support, integrator, n_scenes=1, steps=12, dt=1 / 30, newton_tol=1e-3):
+def drop(support, integrator, n_worlds=1, steps=12, dt=1 / 30, newton_tol=1e-3):
     """Slabs of different E dropped onto ``support``; their positions per step."""
-    materials = [M.NeoHookean(E=E, nu=0.45) for E in (3e3, 5e3, 4e3, 6e3)[:n_scenes]]
+    materials = [M.NeoHookean(E=E, nu=0.45) for E in (3e3, 5e3, 4e3, 6e3)[:n_worlds]]
     model = hg.Model(SLAB, materials, density=DENSITY, gravity=GRAVITY, damping=DAMPING, supports=[support])
     solver = hg.ExplicitSolver(model) if integrator == "explicit" else hg.ImplicitSolver(model, newton_tol=newton_tol)
     state, control = model.state(), model.control()
@@ -112,27 +112,27 @@ def test_a_closed_mesh_support_acts_like_its_flat_top(integrator):
     """On a box's flat top the sampled distance is exact (linear), so a slab dropped on
     the box behaves as on the plane z = 0: to rounding."""
     block = hg.MeshSupport(BLOCK.vertices, BLOCK.boundary_faces)
-    n = 4 if integrator == "explicit" else 1  # 4: the kernel vectorised across scenes
+    n = 4 if integrator == "explicit" else 1  # 4: the kernel vectorised across worlds
     # Newton solved tightly, so that the two runs' rounding differences stay small
-    on_mesh, _ = drop(block, integrator, n_scenes=n, newton_tol=1e-11)
-    on_plane, _ = drop(hg.PlaneSupport(height=0.0), integrator, n_scenes=n, newton_tol=1e-11)
+    on_mesh, _ = drop(block, integrator, n_worlds=n, newton_tol=1e-11)
+    on_plane, _ = drop(hg.PlaneSupport(height=0.0), integrator, n_worlds=n, newton_tol=1e-11)
     assert np.abs(on_mesh - on_plane).max() < 1e-9
     assert np.abs(on_mesh[-1] - SLAB.vertices).max() > 2e-3  # it really fell onto it
 
 
 @pytest.mark.parametrize("integrator", ["explicit", "implicit"])
-def test_a_batch_on_a_mesh_support_equals_single_scenes(integrator):
+def test_a_batch_on_a_mesh_support_equals_single_worlds(integrator):
     """Four slabs of different E on a sphere (curved contact), in one batch, against
     each simulated alone."""
     v, f = icosphere(0.08, 3)
     sphere = hg.MeshSupport(v + [0.03, 0.015, -0.08], f, spacing=0.003)
-    batch, _ = drop(sphere, integrator, n_scenes=4, steps=8)
+    batch, _ = drop(sphere, integrator, n_worlds=4, steps=8)
     for s, E in enumerate((3e3, 5e3, 4e3, 6e3)):
         model = hg.Model(SLAB, M.NeoHookean(E=E, nu=0.45), density=DENSITY, gravity=GRAVITY, damping=DAMPING,
                          supports=[sphere])
         sim = hg.Simulation(hg.HemlForce(SLAB, M.NeoHookean(E=E, nu=0.45)), DENSITY, gravity=GRAVITY,
                             damping=DAMPING, integrator=integrator, supports=[sphere])
-        assert model.n_scenes == 1
+        assert model.n_worlds == 1
         for k in range(8):
             sim.step(1 / 30, substeps=200 if integrator == "explicit" else None)
             assert np.abs(batch[k, s] - sim.x).max() < 1e-10

@@ -105,7 +105,7 @@ def test_an_unconverged_step_ends_the_episode_unpaid_and_the_vector_env_starts_i
     solver held to one iteration below an unreachable tolerance, without re-takes, cannot
     converge the first step. The step reports it (``solver_converged`` False, not
     diverged), ends the episode, pays nothing, and the observation stays finite and in
-    space; the vector env's next step starts that scene afresh (a fresh episode's info)."""
+    space; the vector env's next step starts that env afresh (a fresh episode's info)."""
     vec = TissueRetractionVectorEnv(num_envs=2, physics={"integrator": integrator})
     solver = vec.task.solver
     solver.newton_tol = 1e-16
@@ -297,18 +297,18 @@ def test_pushing_the_held_lobe_into_itself_refines_instead_of_diverging():
     np.testing.assert_allclose(task.state.x[0, held] - start, np.tile(moved, (len(held), 1)), atol=1e-9)
 
 
-def _push_and_release(k, scenes, rng, towards_attachment):
+def _push_and_release(k, n_envs, rng, towards_attachment):
     """Close the jaws, push the held edge towards the attachment for 7 steps, release for 2."""
     phase = k % 10
     action = [towards_attachment if 0 < phase < 8 else 0.0, 0.0, 0.0, 1.0 if phase < 8 else -1.0]
-    return np.tile(np.array(action), (scenes, 1))
+    return np.tile(np.array(action), (n_envs, 1))
 
 
-def _random_and_extreme(k, scenes, rng, towards_attachment):
+def _random_and_extreme(k, n_envs, rng, towards_attachment):
     """Uniform in [-1, 1]^4, every third step bang-bang times up to 50 (clipped by the env)."""
     if k % 3 == 0:
-        return rng.choice([-1.0, 1.0], size=(scenes, 4)) * rng.uniform(1, 50, (scenes, 1))
-    return rng.uniform(-1, 1, (scenes, 4))
+        return rng.choice([-1.0, 1.0], size=(n_envs, 4)) * rng.uniform(1, 50, (n_envs, 1))
+    return rng.uniform(-1, 1, (n_envs, 4))
 
 
 @pytest.mark.parametrize("vector_class, pattern, steps", [
@@ -316,7 +316,7 @@ def _random_and_extreme(k, scenes, rng, towards_attachment):
     (OrganRetractionVectorEnv, _random_and_extreme, 60), (TissueRetractionVectorEnv, _random_and_extreme, 250),
 ], ids=["organ-push_release", "tissue-push_release", "organ-random_extreme", "tissue-random_extreme"])
 def test_every_step_of_twenty_seeded_streams_converges_and_stays_in_space(vector_class, pattern, steps):
-    """20 scenes drawn from 20 seeds, each its own action stream, episodes reset as they
+    """20 envs drawn from 20 seeds, each its own action stream, episodes reset as they
     end. Push-and-release is the reliability soak's hardest pattern: with the underside
     stuck, the pushes drive the tissue between the jaws and the stuck region together
     faster than it gives way (the tissue buckles), and L-BFGS leaves some of these steps

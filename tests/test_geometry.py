@@ -226,19 +226,19 @@ def test_sphere_back_faces_excluded():
 def test_batch_equals_single_calls():
     rng = np.random.default_rng(7)
     points0, x0, faces = random_scene(rng)
-    n_scenes = 5
-    points = points0 + rng.normal(0, 0.004, size=(n_scenes, 1, 3))
-    x = x0 + rng.normal(0, 0.003, size=(n_scenes,) + x0.shape)
+    n_worlds = 5
+    points = points0 + rng.normal(0, 0.004, size=(n_worlds, 1, 3))
+    x = x0 + rng.normal(0, 0.003, size=(n_worlds,) + x0.shape)
     eye = np.array([0.02, 0.0, 0.25])
     out = visible_fraction_batch(points, eye, x, faces)
-    assert out.shape == (n_scenes,)
-    ref = [visible_fraction(points[s], eye, x[s], faces) for s in range(n_scenes)]
+    assert out.shape == (n_worlds,)
+    ref = [visible_fraction(points[s], eye, x[s], faces) for s in range(n_worlds)]
     np.testing.assert_array_equal(out, ref)
     assert len(set(ref)) > 1  # the scenes do differ
     centers = points.mean(axis=1)
     out = visible_fraction_batch(points, eye, x, faces, sphere_center=centers, sphere_radius=0.01)
     ref = [visible_fraction(points[s], eye, x[s], faces, sphere_center=centers[s])
-           for s in range(n_scenes)]
+           for s in range(n_worlds)]
     np.testing.assert_array_equal(out, ref)
 
 

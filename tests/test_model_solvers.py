@@ -1,4 +1,4 @@
-"""Model / State / Control / solvers: N scenes in one step behave like N independent Simulations."""
+"""Model / State / Control / solvers: N worlds in one step behave like N independent Simulations."""
 
 from __future__ import annotations
 
@@ -12,17 +12,17 @@ from heml_gym.mesh import signed_volumes
 MESH = hg.box_mesh((0.06, 0.03, 0.008), (4, 2, 1))
 FIXED = np.flatnonzero(np.isclose(MESH.vertices[:, 0], 0.0))
 HELD = np.flatnonzero(np.isclose(MESH.vertices[:, 0], 0.06))
-STIFFNESS = [2e3, 3.5e3, 5e3, 2.7e3]  # Pa, one per scene
+STIFFNESS = [2e3, 3.5e3, 5e3, 2.7e3]  # Pa, one per world
 DAMPING, DENSITY, GRAVITY = 5.0, 950.0, (0.0, 0.0, -9.81)
 
 
-def paths(n_scenes, steps, seed=0, scale=0.002):
+def paths(n_worlds, steps, seed=0, scale=0.002):
     rng = np.random.default_rng(seed)
-    return np.cumsum(rng.uniform(-1, 1, (n_scenes, steps, 3)) * scale, axis=1)  # m, per step
+    return np.cumsum(rng.uniform(-1, 1, (n_worlds, steps, 3)) * scale, axis=1)  # m, per step
 
 
 def single_run(material, path, dt, integrator, substeps=None, supports=(), mesh=MESH):
-    """One scene stepped by Simulation, its held vertices driven along ``path``."""
+    """One world stepped by Simulation, its held vertices driven along ``path``."""
     sim = hg.Simulation(hg.HemlForce(mesh, material), DENSITY, gravity=GRAVITY, fixed=FIXED, damping=DAMPING,
                         integrator=integrator, supports=supports)
     sim.attach(HELD)
@@ -41,11 +41,11 @@ def batch_run(materials, scene_paths, dt, integrator, substeps=None, supports=()
     solver = {"explicit": hg.ExplicitSolver, "implicit": hg.ImplicitSolver,
               "quasi_newton": hg.QuasiNewtonSolver}[integrator](model)
     state, control = model.state(), model.control()
-    for s in range(model.n_scenes):
+    for s in range(model.n_worlds):
         control.attach(s, HELD, state.x[s])
     xs, forces = [], []
     for k in range(scene_paths.shape[1]):
-        for s in range(model.n_scenes):
+        for s in range(model.n_worlds):
             control.drive(s, HELD, MESH.vertices[HELD] + scene_paths[s, k])
         kw = {"substeps": substeps} if substeps is not None else {}
         stats = solver.step(state, state, control, dt, **kw)
@@ -57,8 +57,8 @@ def batch_run(materials, scene_paths, dt, integrator, substeps=None, supports=()
 
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
 def test_four_stiffnesses_in_one_batch_equal_four_simulations(integrator):
-    """N = 4 scenes with four E (the explicit path vectorised across scenes, the implicit
-    ones scene by scene, each with its own factorisations) against four single
+    """N = 4 worlds with four E (the explicit path vectorised across worlds, the implicit
+    ones world by world, each with its own factorisations) against four single
     Simulations, to 1e-10 m over 20 steps."""
     dt = 0.05 if integrator == "explicit" else 1 / 30
     substeps = 40 if integrator == "explicit" else 1
@@ -69,14 +69,14 @@ def test_four_stiffnesses_in_one_batch_equal_four_simulations(integrator):
         x_ref, f_ref = single_run(mat, p[s], dt, integrator, substeps)
         assert np.abs(xs[:, s] - x_ref).max() < 1e-10  # m
         np.testing.assert_allclose(forces[:, s], f_ref, rtol=1e-6, atol=1e-9)
-        assert np.abs(x_ref[-1] - MESH.vertices).max() > 1e-3  # the scenes really moved
+        assert np.abs(x_ref[-1] - MESH.vertices).max() > 1e-3  # the worlds really moved
     assert np.abs(xs[-1, 0] - xs[-1, 2]).max() > 1e-4  # and differently
 
 
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
 def test_mixed_laws_in_one_batch_equal_single_simulations(integrator):
     """Every law of ALL_MATERIALS in one batch (the explicit path is then the general
-    HEML kernel, scenes over threads) equals each law simulated alone."""
+    HEML kernel, worlds over threads) equals each law simulated alone."""
     materials = [law(E=E, nu=0.4) for law, E in zip(M.ALL_MATERIALS, [3e3, 4e3, 5e3, 3.5e3, 4.5e3])]
     dt, substeps = (0.05, 60) if integrator == "explicit" else (1 / 30, 1)
     p = paths(len(materials), 8, seed=2, scale=0.0015)
@@ -86,13 +86,13 @@ def test_mixed_laws_in_one_batch_equal_single_simulations(integrator):
         assert np.abs(xs[:, s] - x_ref).max() < 1e-10
 
 
-def test_inactive_and_diverged_scenes_keep_their_state():
+def test_inactive_and_diverged_worlds_keep_their_state():
     model = hg.Model(MESH, [M.NeoHookean(E=E, nu=0.45) for E in (2e3, 3e3, 4e3)], density=DENSITY,
                      gravity=GRAVITY, fixed=FIXED, damping=DAMPING)
     solver = hg.ExplicitSolver(model)
     state, control = model.state(), model.control()
-    state.x[1] *= 1.02  # scene 1 starts stretched: it moves
-    state.x[2, 5] = np.nan  # scene 2 is broken
+    state.x[1] *= 1.02  # world 1 starts stretched: it moves
+    state.x[2, 5] = np.nan  # world 2 is broken
     before = state.copy()
     stats = solver.step(state, state, control, 0.01, active=[False, True, True])
     assert stats.diverged.tolist() == [False, False, True]
@@ -105,7 +105,7 @@ def test_inactive_and_diverged_scenes_keep_their_state():
 def test_a_newton_step_from_an_inverted_state_is_flagged_diverged_not_raised():
     """From a state with an inverted element (its ln J law has no energy there, and its
     step matrix is non-finite), driving the held vertices has no feasible Newton start:
-    the scene is flagged diverged, says why, and keeps its state. (On the 8 mm / 2.5 mm
+    the world is flagged diverged, says why, and keeps its state. (On the 8 mm / 2.5 mm
     lobe at 0.1 s steps such a matrix made SuperLU raise 'failed to factorize matrix'
     out of the step; it is no longer factorised.)"""
     model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), density=DENSITY, fixed=FIXED)
@@ -125,7 +125,7 @@ def test_a_newton_step_from_an_inverted_state_is_flagged_diverged_not_raised():
 
 
 def test_state_out_may_differ_from_state_in():
-    model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_scenes=2, density=DENSITY, fixed=FIXED)
+    model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_worlds=2, density=DENSITY, fixed=FIXED)
     solver = hg.ImplicitSolver(model)
     a, control = model.state(), model.control()
     b = model.state()
@@ -135,10 +135,10 @@ def test_state_out_may_differ_from_state_in():
     assert b.x[:, :, 2].min() < -1e-3 and np.abs(b.x - a.x).max() < 0.05  # sagged from rest
 
 
-def test_per_scene_fields_share_the_rest_data():
+def test_per_world_fields_share_the_rest_data():
     model = hg.Model(MESH, [M.NeoHookean(E=2e3, nu=0.45), M.StVenantKirchhoff(E=3e3, nu=0.45)])
     f0, f1 = model.fields
-    assert f0.rest is f1.rest  # one precomputation for every scene
+    assert f0.rest is f1.rest  # one precomputation for every world
     assert f1.use_q and not f0.use_q
     # and each field is the law's own: equal to a field built from scratch
     x = MESH.vertices * [1.1, 0.95, 1.0]
@@ -158,8 +158,8 @@ def test_critical_step_scales_with_stiffness_without_a_new_eigensolve():
 
 @pytest.mark.parametrize("bad, match", [
     (dict(material=None), "material is required"),
-    (dict(n_scenes=0), "n_scenes"),
-    (dict(n_scenes=2.5), "n_scenes"),
+    (dict(n_worlds=0), "n_worlds"),
+    (dict(n_worlds=2.5), "n_worlds"),
     (dict(density=-1.0), "density"),
     (dict(field="springs"), "field must be one of"),
     (dict(fixed=[0, 10_000]), "fixed vertex indices"),
@@ -173,8 +173,8 @@ def test_model_rejects_bad_input_naming_it(bad, match):
 
 
 def test_solvers_reject_a_state_of_the_wrong_size():
-    model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_scenes=2)
-    other = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_scenes=3)
+    model = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_worlds=2)
+    other = hg.Model(MESH, M.NeoHookean(E=3e3, nu=0.45), n_worlds=3)
     with pytest.raises(ValueError, match="state_in"):
         hg.ExplicitSolver(model).step(other.state(), other.state(), model.control(), 0.01)
     with pytest.raises(ValueError, match="dt"):
@@ -203,7 +203,7 @@ def test_static_solver_batch_equals_single_static_solves():
 @pytest.mark.parametrize("supports", [(), (hg.PlaneSupport(height=-0.004),)])
 def test_quasi_newton_reaches_the_newton_solution(supports):
     """L-BFGS and Newton minimise the same incremental potential: solved tightly, their
-    steps agree, for four scenes of different stiffness with held vertices driven."""
+    steps agree, for four worlds of different stiffness with held vertices driven."""
     materials = [M.NeoHookean(E=E, nu=0.45) for E in STIFFNESS]
     p = paths(4, 5, seed=4, scale=0.001)
     results = []
@@ -269,10 +269,10 @@ def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
 
 
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "quasi_newton"])
-def test_one_broken_scene_in_a_batch_leaves_the_others_as_single_runs(integrator):
-    """Three scenes in one batch, the middle one broken (a NaN position): it is flagged
+def test_one_broken_world_in_a_batch_leaves_the_others_as_single_runs(integrator):
+    """Three worlds in one batch, the middle one broken (a NaN position): it is flagged
     diverged, says why and keeps its state; the other two step exactly as they do in the
-    same batch with the middle scene healthy (and, but for the explicit solver, whose
+    same batch with the middle world healthy (and, but for the explicit solver, whose
     sub-steps follow the batch's stiffest material, as each does alone)."""
     from heml_gym.solvers import make_solver
 
@@ -308,12 +308,12 @@ def test_the_kernel_arrays_follow_every_material_change():
     mesh = hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1))
     soft, stiff = M.NeoHookean(E=3e3, nu=0.45), M.NeoHookean(E=9e3, nu=0.4)
     demiray = M.Demiray(E=5e3, nu=0.45, b=2.0)
-    model = hg.Model(mesh, soft, n_scenes=3)
+    model = hg.Model(mesh, soft, n_worlds=3)
     first = model.heml_laws()
-    for scenes, material, final in ((1, stiff, [soft, stiff, soft]), ([0, 2], stiff, [stiff, stiff, stiff]),
+    for worlds, material, final in ((1, stiff, [soft, stiff, soft]), ([0, 2], stiff, [stiff, stiff, stiff]),
                                     (2, demiray, [stiff, stiff, demiray]), (2, soft, [stiff, stiff, soft])):
         revision = model.material_revision
-        model.set_material(scenes, material)
+        model.set_material(worlds, material)
         assert model.material_revision > revision
         fresh = hg.Model(mesh, final).heml_laws()
         laws = model.heml_laws()

@@ -218,11 +218,11 @@ def test_an_implicit_step_that_does_not_converge_says_so():
     assert stats.converged and stats.residual <= stats.tolerance
 
 
-def test_the_solver_reports_convergence_per_scene():
+def test_the_solver_reports_convergence_per_world():
     mesh = hg.box_mesh((0.1, 0.02, 0.02), (10, 2, 2))
     fixed = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.0))
     tip = np.flatnonzero(np.isclose(mesh.vertices[:, 0], 0.1))
-    model = hg.Model(mesh, M.NeoHookean(E=50e3, nu=0.45), n_scenes=2, gravity=(0, 0, 0), fixed=fixed)
+    model = hg.Model(mesh, M.NeoHookean(E=50e3, nu=0.45), n_worlds=2, gravity=(0, 0, 0), fixed=fixed)
     state, control = model.state(), model.control()
     control.external_forces[1, tip, 2] = 50.0 / len(tip)
     control.external_forces[0, tip, 2] = 0.05 / len(tip)
@@ -259,9 +259,9 @@ def test_the_critical_step_bound_is_safe_when_lanczos_is_not_used():
 
 
 # ----------------------------------------------------------------- the envs
-def test_a_diverging_scene_in_a_vector_env_reports_no_nan():
+def test_a_diverging_env_in_a_vector_env_reports_no_nan():
     vec = TissueRetractionVectorEnv(num_envs=2, physics={"integrator": "explicit"})
-    vec.task.substeps = 1  # a 0.1 s explicit step: far past the critical step, in every scene
+    vec.task.substeps = 1  # a 0.1 s explicit step: far past the critical step, in every env
     vec.reset(seed=0)
     seen = np.zeros(2, dtype=bool)
     for _ in range(5):
@@ -271,7 +271,7 @@ def test_a_diverging_scene_in_a_vector_env_reports_no_nan():
         diverged = info["simulation_diverged"]
         assert np.all(terminated[diverged]) and np.all(reward[diverged] == 0.0)  # its episode ends, unpaid
         seen |= diverged
-    assert seen.all()  # each scene diverged (and was reported) at some step
+    assert seen.all()  # each env diverged (and was reported) at some step
 
 
 def test_human_render_without_a_display_returns_quickly_with_advice(monkeypatch):
@@ -288,7 +288,7 @@ def test_human_render_without_a_display_returns_quickly_with_advice(monkeypatch)
 @pytest.mark.parametrize("integrator", ["explicit", "quasi_newton"])
 def test_pushing_the_grasped_edge_to_the_hinge_and_releasing_does_not_diverge(integrator):
     """The pattern that diverged in 28 of 60 episodes before the explicit solver re-stepped
-    bad scenes finer, and left L-BFGS unconverged before it did too (the flap buckles):
+    bad worlds finer, and left L-BFGS unconverged before it did too (the flap buckles):
     grasp, push towards the attachment 7 steps, release. On the one-layer flap with its
     underside free (the default before 2026-11-25): the two-layer default is stiffer in
     bending and does not buckle far enough for the explicit solver to need finer steps."""

@@ -15,7 +15,7 @@ from heml_gym import materials as M
 from heml_gym.forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
                                           heml_energy_chunk)
 from heml_gym.kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
-from heml_gym.kernel_data import scene_law
+from heml_gym.kernel_data import world_law
 from heml_gym.linear_solvers import EnvelopeLayout
 
 MESH = hg.box_mesh((0.06, 0.03, 0.008), (4, 2, 1))
@@ -301,27 +301,27 @@ def test_factors_are_refreshed_only_when_their_content_changes():
     state, control = m.state(), m.control()
     solver.step(state, state, control, 0.05)
     first = solver.factorizations
-    assert first == 2  # one factor per scene: no contact, the three axes share it
+    assert first == 2  # one factor per world: no contact, the three axes share it
     solver.step(state, state, control, 0.05)
     assert solver.factorizations == first  # nothing changed
     control.attach(1, HELD, state.x[1])
     solver.step(state, state, control, 0.05)
-    assert solver.factorizations == first + 1  # scene 1's held set changed
+    assert solver.factorizations == first + 1  # world 1's held set changed
     m.set_material(0, M.NeoHookean(E=6e3, nu=0.45))
     solver.step(state, state, control, 0.05)
-    assert solver.factorizations == first + 2  # scene 0's material changed
+    assert solver.factorizations == first + 2  # world 0's material changed
     control.detach(1)
     solver.step(state, state, control, 0.05)
-    assert solver.factorizations == first + 2  # released: scene 1's previous initial Hessian is kept
+    assert solver.factorizations == first + 2  # released: world 1's previous initial Hessian is kept
     control.attach(1, HELD, state.x[1])
     solver.step(state, state, control, 0.05)
     assert solver.factorizations == first + 2  # grasped again: so is the one with HELD held
 
 
-def test_scenes_stepped_over_threads_equal_scenes_stepped_one_after_another():
-    """Five scenes (different stiffness; two grasped and lifted, all sagging onto a
-    support) stepped by the parallel kernel, scenes over two threads, are bit for bit
-    those of one thread stepping them in turn (the serial kernel): a scene's solve uses
+def test_worlds_stepped_over_threads_equal_worlds_stepped_one_after_another():
+    """Five worlds (different stiffness; two grasped and lifted, all sagging onto a
+    support) stepped by the parallel kernel, worlds over two threads, are bit for bit
+    those of one thread stepping them in turn (the serial kernel): a world's solve uses
     no state of another and no scratch shared between threads."""
     import numba
 
@@ -348,7 +348,7 @@ def test_scenes_stepped_over_threads_equal_scenes_stepped_one_after_another():
             runs.append(steps)
     finally:
         numba.set_num_threads(old)
-    assert any(np.any(x[:, :, 2] < -0.0039) for x, *_ in runs[0])  # the sagging scenes reach the support
+    assert any(np.any(x[:, :, 2] < -0.0039) for x, *_ in runs[0])  # the sagging worlds reach the support
     for one, two in zip(*runs):
         for a, b in zip(one, two):
             np.testing.assert_array_equal(a, b)
@@ -395,7 +395,7 @@ def test_reaction_from_the_held_vertices_tets_equals_the_full_force_evaluation()
         m = hg.Model(mesh, material)
         full = m.fields[0].forces(x)  # the field's own evaluation, every tet
         part = np.zeros_like(x)
-        kq.held_forces(x, part, held, m.heml_body(), scene_law(m.heml_laws(), 0))
+        kq.held_forces(x, part, held, m.heml_body(), world_law(m.heml_laws(), 0))
         scale = np.abs(full).max()
         np.testing.assert_allclose(part[held], full[held], rtol=1e-12, atol=1e-12 * scale)
 
@@ -443,8 +443,8 @@ def test_step_mean_reaction_matches_the_explicit_solvers():
 
 def test_count_report_adds_a_calls_report_as_the_numpy_expressions_do():
     """The compiled bookkeeping of one L-BFGS call equals the NumPy it replaced: iterations
-    added for the scenes run only, the largest residual (NaN kept), converged and feasible
-    cleared by a scene run that did not converge / had no feasible start (NaN flags too)."""
+    added for the worlds run only, the largest residual (NaN kept), converged and feasible
+    cleared by a world run that did not converge / had no feasible start (NaN flags too)."""
     rng = np.random.default_rng(3)
     for trial in range(50):
         n = 7
@@ -465,11 +465,11 @@ def test_count_report_adds_a_calls_report_as_the_numpy_expressions_do():
             np.testing.assert_array_equal(got, want)
 
 
-def test_suspect_scenes_include_every_scene_divergence_flags():
-    """The compiled pre-check may flag more scenes than :meth:`divergence` does, never fewer:
+def test_suspect_worlds_include_every_world_divergence_flags():
+    """The compiled pre-check may flag more worlds than :meth:`divergence` does, never fewer:
     NaN or infinite positions or velocities, and speeds at, just above and just below the
     limit (the last not flagged by either)."""
-    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1)), M.NeoHookean(E=1e4, nu=0.4), n_scenes=8)
+    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1)), M.NeoHookean(E=1e4, nu=0.4), n_worlds=8)
     solver = hg.QuasiNewtonSolver(model, max_speed=2.0)
     x = np.repeat(model.mesh.vertices[None], 8, axis=0)
     v = np.zeros_like(x)
@@ -480,22 +480,22 @@ def test_suspect_scenes_include_every_scene_divergence_flags():
     v[5, 2] = [0.0, np.nextafter(2.0, 3.0), 0.0]
     v[6, 4] = [1.2, 1.6, 1e-4]  # |v| 2.5e-9 m/s above 2
     v[7, 1] = [1.0, 1.0, 1.0]  # well below
-    flagged = solver.suspect_scenes(x, v, np.arange(8))
+    flagged = solver.suspect_worlds(x, v, np.arange(8))
     verdicts = [bool(solver.divergence(x[s], v[s])[0]) for s in range(8)]
     assert verdicts == [False, True, True, True, False, True, True, False]
     assert set(np.flatnonzero(verdicts)) <= set(flagged.tolist())
     assert 0 not in flagged and 7 not in flagged
-    np.testing.assert_array_equal(solver.suspect_scenes(x, v, np.array([0, 7, 2])), [2])
+    np.testing.assert_array_equal(solver.suspect_worlds(x, v, np.array([0, 7, 2])), [2])
 
 
-def test_force_scales_equal_the_per_scene_force_scale():
-    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1)), M.NeoHookean(E=1e4, nu=0.4), n_scenes=3)
+def test_force_scales_equal_the_per_world_force_scale():
+    model = hg.Model(hg.box_mesh((0.02, 0.02, 0.01), (2, 2, 1)), M.NeoHookean(E=1e4, nu=0.4), n_worlds=3)
     solver = hg.QuasiNewtonSolver(model)
     control = model.control()
     assert solver.force_scales(control).tolist() == [solver.force_scale(s, control) for s in range(3)]
     control.external_forces[1, 4] = [0.3, -0.2, 0.1]
     assert solver.force_scales(control).tolist() == [solver.force_scale(s, control) for s in range(3)]
-    weightless = hg.Model(model.mesh, M.NeoHookean(E=1e4, nu=0.4), n_scenes=3, gravity=np.zeros(3))
+    weightless = hg.Model(model.mesh, M.NeoHookean(E=1e4, nu=0.4), n_worlds=3, gravity=np.zeros(3))
     solver = hg.QuasiNewtonSolver(weightless)
     control = weightless.control()
     control.external_forces[2, 0, 2] = 0.5
@@ -542,9 +542,9 @@ def test_bdf2_is_second_order_in_the_step_and_backward_euler_first():
     assert error["bdf2", 0.005] < 0.3 * error["backward_euler", 0.005], error
 
 
-def test_bdf2_forget_restarts_a_scene_as_a_new_solver_would():
-    """After :meth:`forget`, a scene put back to its start is stepped exactly as by a new
-    solver (its state one step back is not carried over); a scene that keeps it is
+def test_bdf2_forget_restarts_a_world_as_a_new_solver_would():
+    """After :meth:`forget`, a world put back to its start is stepped exactly as by a new
+    solver (its state one step back is not carried over); a world that keeps it is
     stepped differently from the same state in a new solver (which expands the state one
     step back about its start)."""
     m = model(M.NeoHookean(E=3e3, nu=0.4))
@@ -568,8 +568,8 @@ def test_bdf2_forget_restarts_a_scene_as_a_new_solver_would():
     assert np.abs(again.x - copy.x).max() > 1e-9
 
 
-def test_forget_restarts_a_scene_that_took_the_newton_fallback_as_a_new_solver_would():
-    """The fallback keeps a lagged factorisation per scene (its inexact solves start from
+def test_forget_restarts_a_world_that_took_the_newton_fallback_as_a_new_solver_would():
+    """The fallback keeps a lagged factorisation per world (its inexact solves start from
     it); :meth:`forget` drops it with the rest, so that an episode restarted after steps the
     fallback took is stepped exactly as by a new solver."""
     m = model(M.NeoHookean(E=4e3, nu=0.45))

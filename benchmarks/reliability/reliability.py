@@ -52,7 +52,7 @@ import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 import heml_gym.envs  # noqa: F401  (registers the envs)
-from heml_gym.benchmarks.common import IMAGES, RESULTS, codegen_target, machine_info, markdown_table, write_json
+from heml_gym.benchmarks.common import IMAGES, RESULTS, checkout_file, codegen_target, machine_info, markdown_table, write_json
 from heml_gym.envs.scripted import scripted_policy
 
 ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
@@ -258,7 +258,7 @@ def bad_inputs() -> list[dict]:
         ("Simulation density -1", lambda: hg.Simulation(hg.HemlForce(box, M.NeoHookean(E=5e3, nu=0.45)), -1.0)),
         ("Simulation safety 2", lambda: sim(integrator="explicit", safety=2.0)),
         ("Simulation step dt = 0", lambda: sim().step(0.0)),
-        ("Model n_scenes 0", lambda: hg.Model(box, M.NeoHookean(E=5e3, nu=0.45), n_scenes=0)),
+        ("Model n_worlds 0", lambda: hg.Model(box, M.NeoHookean(E=5e3, nu=0.45), n_worlds=0)),
         ("material nu = 0.5", lambda: M.NeoHookean(E=5e3, nu=0.5)),
     ]
     out = []
@@ -278,15 +278,13 @@ def cli_inputs() -> list[dict]:
     import subprocess
     import tempfile
 
-    root = Path(__file__).resolve().parents[1]
+    quick = checkout_file("configs/quick.yaml").read_text()
     cases = [("config: a YAML list", "- 1\n- 2\n"), ("config: empty file", ""),
              ("config: misspelt hyperparameter n_stepz",
-              (root / "configs" / "quick.yaml").read_text().replace("n_steps: 128", "n_stepz: 128")),
-             ("config: batch_size -3", (root / "configs" / "quick.yaml").read_text().replace("batch_size: 256",
-                                                                                             "batch_size: -3")),
+              quick.replace("n_steps: 128", "n_stepz: 128")),
+             ("config: batch_size -3", quick.replace("batch_size: 256", "batch_size: -3")),
              ("config: env.kwargs.physics.integrator rk4",
-              (root / "configs" / "quick.yaml").read_text().replace("obs_mode: state",
-                                                                    "obs_mode: state\n  kwargs: {physics: {integrator: rk4}}"))]
+              quick.replace("obs_mode: state", "obs_mode: state\n  kwargs: {physics: {integrator: rk4}}"))]
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         for label, text in cases + [("config: a directory", None)]:
@@ -402,7 +400,10 @@ def report(results: dict) -> str:
             for msg in r["exception_messages"][:3]:
                 lines.append(f"- exception in {r['env']} {r['actions']} streams: `{msg}`")
     if results["bad_inputs"]:
-        lines += ["", "## Bad inputs", "", "Each input below was tried; the error it got is its first line.", ""]
+        where = results.get("bad_inputs_machine")
+        when = (f" (re-measured on their own: {where['cpu']}, {where['date']}, "
+                "`python -m heml_gym.benchmarks.reliability.reliability --bad-inputs-only`)") if where else ""
+        lines += ["", "## Bad inputs", "", f"Each input below was tried; the error it got is its first line{when}.", ""]
         lines.append(markdown_table(["input", "error", "message"],
                                     [[b["input"], b["error"] or "**none**", b["message"].replace("|", "/")]
                                      for b in results["bad_inputs"]]))
@@ -469,10 +470,24 @@ def main(argv=None) -> int:
     ap.add_argument("--no-bad-inputs", action="store_true", help="the soak only (scripts/cpu_matrix.sh)")
     ap.add_argument("--merge", action="store_true", help="replace only these envs' soak rows in the stored "
                     "reliability.json (the other envs' rows are kept, with the machine they ran on)")
+    ap.add_argument("--bad-inputs-only", action="store_true", help="re-measure part 2 only (every bad input's "
+                    "error) into the stored reliability.json, keeping its soak and stream rows")
     ap.add_argument("--part", help=argparse.SUPPRESS)  # internal: one target's rows to this JSON
     args = ap.parse_args(argv)
-    if args.merge and not (Path(args.out) / "reliability.json").is_file():
-        ap.error(f"--merge: there is no stored {Path(args.out) / 'reliability.json'} to merge into")
+    if (args.merge or args.bad_inputs_only) and not (Path(args.out) / "reliability.json").is_file():
+        ap.error(f"--{'merge' if args.merge else 'bad-inputs-only'}: there is no stored {Path(args.out) / 'reliability.json'} to update")
+    if args.bad_inputs_only:
+        import json
+
+        stored = json.loads((Path(args.out) / "reliability.json").read_text())
+        stored["bad_inputs"] = bad_inputs()
+        stored["bad_inputs_machine"] = machine_info()  # part 2 re-measured on its own: when and where
+        write_json("reliability.json", stored, folder=Path(args.out))
+        (Path(args.out) / "reliability.md").write_text(report(stored))
+        accepted = [b["input"] for b in stored["bad_inputs"] if b["error"] is None or "TRACEBACK" in b["message"]
+                    or "LEFT" in b["message"]]
+        print(f"{len(stored['bad_inputs'])} bad inputs; {len(accepted)} not handled cleanly {accepted}")
+        return 1 if accepted else 0
     if args.from_json:
         import json
 

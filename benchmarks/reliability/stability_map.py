@@ -41,7 +41,7 @@ import warnings
 
 # the map counts unconverged steps itself; the facade's warnings would flood the log
 warnings.simplefilter("ignore", hg.NotConvergedWarning)
-from heml_gym.benchmarks.common import IMAGES, RESULTS, machine_info, markdown_table, write_json
+from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json
 from heml_gym import materials as M
 from heml_gym.kinematics import volume_ratios
 
@@ -336,7 +336,7 @@ def git_state() -> dict:
     """Commit of the working tree and whether heml_gym/ had uncommitted changes."""
     import subprocess
 
-    root = Path(__file__).resolve().parents[1]
+    root = ROOT
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
                                 text=True, check=True).stdout.strip()

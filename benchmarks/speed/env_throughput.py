@@ -205,7 +205,7 @@ def stagger_episodes(venv, rng) -> None:
     for k in range(max_steps):
         restart = np.flatnonzero(offsets == k)
         if k and restart.size:
-            env.reset_scenes(restart)
+            env.reset_envs(restart)
         venv.step(rng.uniform(-1.0, 1.0, (n, 4)).astype(np.float32))
 
 

@@ -1,4 +1,4 @@
-"""Replay a recorded control on one scene, and differentiate the replay by the adjoint method.
+"""Replay a recorded control on one world of a model, and differentiate the replay by the adjoint method.
 
 A :class:`ControlLog` is what drove a scene: for each control step, which vertices were
 held (the jaws' grip, an attachment) and where they were driven. :class:`Replay` steps
@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from ..kernel_data import scene_law
+from ..kernel_data import world_law
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeCholesky, FreeSubmatrix, LaggedFactorPCG
 from ..materials import Material
 from ..model import Model
@@ -122,13 +122,13 @@ class ReplayResult:
 
 
 class Replay:
-    """Replay a :class:`ControlLog` on scene ``scene`` of ``model`` for material constants
+    """Replay a :class:`ControlLog` on world ``world`` of ``model`` for material constants
     ``theta``, and give the gradient of a loss on the trajectory in ``theta``.
 
     Parameters
     ----------
     model : Model
-        A HEML model (any law); its scene ``scene``'s material is replaced by
+        A HEML model (any law); its world ``world``'s material is replaced by
         ``material_of(theta)`` for each replay.
     log : ControlLog
     material_of : callable
@@ -148,7 +148,7 @@ class Replay:
     """
 
     def __init__(self, model: Model, log: ControlLog, material_of: Callable[[Sequence[float]], Material],
-                 scene: int = 0, steps: Sequence[float] | None = None, tol: float = 1e-8,
+                 world: int = 0, steps: Sequence[float] | None = None, tol: float = 1e-8,
                  contact_stiffness: float = 1000.0, max_iter: int = 60):
         if not isinstance(log, ControlLog):
             raise TypeError(f"log must be a ControlLog, got {type(log).__name__}")
@@ -156,7 +156,7 @@ class Replay:
             raise ReplayError(f"log: {log.kinematic.shape[1]} vertices, the model has {model.n_vertices}")
         if model.supports.kernel_args().grids.shape[0]:
             raise ReplayError("replays differentiate plane supports only (a mesh support's curvature is not)")
-        self.model, self.log, self.material_of, self.scene = model, log, material_of, int(scene)
+        self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
         self.steps = None if steps is None else np.asarray(steps, dtype=np.float64)
         self.tol = float(tol) * max(float(np.linalg.norm(model.gravity) * model.mass.sum()), 1e-12)
         self.contact_stiffness = float(contact_stiffness)
@@ -171,10 +171,10 @@ class Replay:
 
     # ------------------------------------------------------------------ helpers
     def _set(self, theta) -> None:
-        self.model.set_material(self.scene, self.material_of(tuple(float(t) for t in theta)))
+        self.model.set_material(self.world, self.material_of(tuple(float(t) for t in theta)))
 
     def _law(self):
-        return scene_law(self.model.heml_laws(), self.scene)
+        return world_law(self.model.heml_laws(), self.world)
 
     def _forces(self, x: np.ndarray) -> np.ndarray:
         f = np.zeros_like(x)
@@ -199,7 +199,7 @@ class Replay:
         return out
 
     def _elastic_hessian(self, x: np.ndarray):
-        return self.model.fields[self.scene].hessian(x, project=False)
+        return self.model.fields[self.world].hessian(x, project=False)
 
     # ------------------------------------------------------------------ forward
     def run(self, theta) -> ReplayResult:
@@ -296,7 +296,7 @@ class Replay:
 
     def _step_hessian(self, y, c, k_contact, held, args, project):
         """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n): the solver's own."""
-        return incremental_hessian(self.model.fields[self.scene], self.model.mass, y, c, k_contact, held, args,
+        return incremental_hessian(self.model.fields[self.world], self.model.mass, y, c, k_contact, held, args,
                                    project, self._add_diagonal, self._add_blocks)
 
     # ------------------------------------------------------------------ reverse

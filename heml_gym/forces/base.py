@@ -17,8 +17,8 @@ class ForceField:
 
     What a solver needs is public: :meth:`forces`, :meth:`energy`, :meth:`hessian` (when
     :attr:`has_hessian`), :meth:`with_material` (the same mesh with another material,
-    sharing every material-independent precomputation: that is how a batch of scenes
-    holds one field per scene at the cost of one) and :meth:`kernel_threads`.
+    sharing every material-independent precomputation: that is how a batch of worlds
+    holds one field per world at the cost of one) and :meth:`kernel_threads`.
 
     Subclasses provide serial kernels (``_add_forces_serial``, ``_energy_serial``) and
     parallel ones (``_add_forces_parallel``, ``_energy_parallel``).

@@ -1,6 +1,6 @@
-"""Solvers over a :class:`~heml_gym.model.Model`: each steps all N scenes at once.
+"""Solvers over a :class:`~heml_gym.model.Model`: each steps all N worlds at once.
 
-``solver.step(state_in, state_out, control, dt)`` returns :class:`StepStats` (per scene:
+``solver.step(state_in, state_out, control, dt)`` returns :class:`StepStats` (per world:
 iterations, residual against tolerance, converged, diverged, constraint reactions).
 
 * :class:`ExplicitSolver`: symplectic Euler, sub-stepped below the critical step;
@@ -12,13 +12,13 @@ iterations, residual against tolerance, converged, diverged, constraint reaction
 that knows which integrator goes with which field and scheme).
 """
 
-from .base import SceneStepStats, SimulationDiverged, Solver, StepStats
+from .base import WorldStepStats, SimulationDiverged, Solver, StepStats
 from .explicit import ExplicitSolver
 from .implicit import ImplicitSolver
 from .quasi_newton import QuasiNewtonSolver
 from .factory import INTEGRATORS, SCHEMES, SolverChoiceError, check_solver_choice, make_solver
 from .statics import StaticSolver
 
-__all__ = ["ExplicitSolver", "ImplicitSolver", "QuasiNewtonSolver", "StaticSolver", "StepStats", "SceneStepStats",
+__all__ = ["ExplicitSolver", "ImplicitSolver", "QuasiNewtonSolver", "StaticSolver", "StepStats", "WorldStepStats",
            "SimulationDiverged", "Solver", "INTEGRATORS", "SCHEMES", "SolverChoiceError", "check_solver_choice",
            "make_solver"]

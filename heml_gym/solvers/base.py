@@ -13,7 +13,7 @@ from ..control import Control
 from ..model import Model
 from ..state import State
 
-__all__ = ["StepStats", "SceneStepStats", "SimulationDiverged", "Solver"]
+__all__ = ["StepStats", "WorldStepStats", "SimulationDiverged", "Solver"]
 
 
 class SimulationDiverged(RuntimeError):
@@ -32,13 +32,13 @@ class SimulationDiverged(RuntimeError):
 
 
 @dataclass
-class SceneStepStats:
-    """What a step did to one scene.
+class WorldStepStats:
+    """What a step did to one world.
 
     ``substeps``: sub-steps taken; ``newton_iterations``: Newton iterations in all (0 for
     explicit); ``residual`` (N): the largest final force residual of its Newton solves,
     ``tolerance`` (N) what it had to reach; ``converged``: every solve reached it;
-    ``diverged``: the scene went non-finite or exploded (its state was kept);
+    ``diverged``: the world went non-finite or exploded (its state was kept);
     ``message``: why, when it diverged or did not converge.
     """
 
@@ -53,13 +53,13 @@ class SceneStepStats:
 
 @dataclass
 class StepStats:
-    """What a solver's step did, per scene (arrays of length N).
+    """What a solver's step did, per world (arrays of length N).
 
     ``reaction (N, n, 3)``: the force (N) the constraints exerted on fixed and held
     vertices, averaged over the step's sub-steps (the impulse over the step divided by
     its length); 0 on free vertices. Summed over a gripper's vertices it is the grasp
     force on the tissue (the tissue pulls the gripper with ``-R``). ``refinement (N,)``:
-    the factor by which the solver had to multiply a scene's sub-steps (1: none).
+    the factor by which the solver had to multiply a world's sub-steps (1: none).
     ``fallback (N,)``: the quasi-Newton solver took the step (or a sub-step of it) again by
     Newton's method, its fallback (``refinement`` then counts the Newton steps).
     """
@@ -77,22 +77,22 @@ class StepStats:
     fallback: np.ndarray | None = None
 
     @classmethod
-    def empty(cls, n_scenes: int, n_vertices: int, substeps: int) -> "StepStats":
-        return cls(substeps=int(substeps), newton_iterations=np.zeros(n_scenes, dtype=np.int64),
-                   residual=np.zeros(n_scenes), tolerance=np.full(n_scenes, math.inf),
-                   converged=np.ones(n_scenes, dtype=bool), diverged=np.zeros(n_scenes, dtype=bool),
-                   reaction=np.zeros((n_scenes, n_vertices, 3)), messages=[""] * n_scenes,
-                   elements=[NO_ELEMENTS] * n_scenes,
-                   refinement=np.ones(n_scenes, dtype=np.int64), fallback=np.zeros(n_scenes, dtype=bool))
+    def empty(cls, n_worlds: int, n_vertices: int, substeps: int) -> "StepStats":
+        return cls(substeps=int(substeps), newton_iterations=np.zeros(n_worlds, dtype=np.int64),
+                   residual=np.zeros(n_worlds), tolerance=np.full(n_worlds, math.inf),
+                   converged=np.ones(n_worlds, dtype=bool), diverged=np.zeros(n_worlds, dtype=bool),
+                   reaction=np.zeros((n_worlds, n_vertices, 3)), messages=[""] * n_worlds,
+                   elements=[NO_ELEMENTS] * n_worlds,
+                   refinement=np.ones(n_worlds, dtype=np.int64), fallback=np.zeros(n_worlds, dtype=bool))
 
-    def scene(self, s: int) -> SceneStepStats:
-        """The report of scene ``s``."""
-        return SceneStepStats(self.substeps, int(self.newton_iterations[s]), float(self.residual[s]),
+    def world(self, s: int) -> WorldStepStats:
+        """The report of world ``s``."""
+        return WorldStepStats(self.substeps, int(self.newton_iterations[s]), float(self.residual[s]),
                               float(self.tolerance[s]), bool(self.converged[s]), bool(self.diverged[s]),
                               self.messages[s])
 
 
-#: The ``StepStats.elements`` of a scene that did not diverge (shared, read-only).
+#: The ``StepStats.elements`` of a world that did not diverge (shared, read-only).
 NO_ELEMENTS = np.zeros(0, dtype=np.int64)
 NO_ELEMENTS.flags.writeable = False
 
@@ -109,7 +109,7 @@ def stiffness_damping(field, x: np.ndarray, v: np.ndarray, f_elastic: np.ndarray
 
 class Solver:
     """Base of the solvers: ``step(state_in, state_out, control, dt)`` advances every
-    (active) scene of the model by ``dt`` seconds and returns :class:`StepStats`."""
+    (active) world of the model by ``dt`` seconds and returns :class:`StepStats`."""
 
     def __init__(self, model: Model, max_speed: float = 1e3):
         if not isinstance(model, Model):
@@ -120,15 +120,15 @@ class Solver:
         self.model = model
         self.max_speed = max_speed
 
-    def forget(self, scenes) -> None:
-        """Drop what the solver carries from step to step for ``scenes`` (indices): lagged
-        factorisations, quasi-Newton curvature pairs. A scene started afresh (an episode
+    def forget(self, worlds) -> None:
+        """Drop what the solver carries from step to step for ``worlds`` (indices): lagged
+        factorisations, quasi-Newton curvature pairs. A world started afresh (an episode
         reset) is then stepped exactly as by a new solver: same seed, same trajectory.
         Solvers that carry nothing keep this no-op."""
 
     def _check(self, state_in: State, state_out: State, control: Control, dt: float, active) -> tuple:
         m = self.model
-        shape = (m.n_scenes, m.n_vertices, 3)
+        shape = (m.n_worlds, m.n_vertices, 3)
         for name, s in (("state_in", state_in), ("state_out", state_out)):
             if not isinstance(s, State):
                 raise TypeError(f"{name} must be a heml_gym.State, got {type(s).__name__}")
@@ -142,47 +142,47 @@ class Solver:
         if not math.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt must be a positive number of seconds, got {dt}")
         if active is None:
-            active = np.ones(m.n_scenes, dtype=bool)
+            active = np.ones(m.n_worlds, dtype=bool)
         else:
             active = np.asarray(active, dtype=bool)
-            if active.shape != (m.n_scenes,):
-                raise ValueError(f"active must be a ({m.n_scenes},) mask, got shape {active.shape}")
+            if active.shape != (m.n_worlds,):
+                raise ValueError(f"active must be a ({m.n_worlds},) mask, got shape {active.shape}")
         if state_out is not state_in:
             state_out.assign(state_in)
         return dt, active
 
-    def force_scale(self, scene: int, control: Control) -> float:
-        """Force (N) the solver tolerances of ``scene`` are relative to: its weight plus its
+    def force_scale(self, world: int, control: Control) -> float:
+        """Force (N) the solver tolerances of ``world`` are relative to: its weight plus its
         external load, else (weightless and unloaded) ``E h_min^2``."""
         m = self.model
-        load = float(np.linalg.norm(m.gravity) * m.mass.sum() + np.abs(control.external_forces[scene]).sum())
+        load = float(np.linalg.norm(m.gravity) * m.mass.sum() + np.abs(control.external_forces[world]).sum())
         if load > 0:
             return load
-        return m.materials[scene].young_modulus * m.mesh.min_edge_length ** 2
+        return m.materials[world].young_modulus * m.mesh.min_edge_length ** 2
 
     def force_scales(self, control: Control) -> np.ndarray:
-        """:meth:`force_scale` of every scene, ``(N,)`` N (the same numbers, in one pass)."""
+        """:meth:`force_scale` of every world, ``(N,)`` N (the same numbers, in one pass)."""
         m = self.model
         weight = np.linalg.norm(m.gravity) * m.mass.sum()
         if not control.external_forces.any():  # (+ 0.0: the same numbers)
-            return np.full(m.n_scenes, float(weight)) if weight > 0 else np.array(
-                [self.force_scale(s, control) for s in range(m.n_scenes)])
-        load = weight + np.abs(control.external_forces).reshape(m.n_scenes, -1).sum(axis=1)
+            return np.full(m.n_worlds, float(weight)) if weight > 0 else np.array(
+                [self.force_scale(s, control) for s in range(m.n_worlds)])
+        load = weight + np.abs(control.external_forces).reshape(m.n_worlds, -1).sum(axis=1)
         if np.all(load > 0):
             return load
-        return np.array([load[s] if load[s] > 0 else self.force_scale(s, control) for s in range(m.n_scenes)])
+        return np.array([load[s] if load[s] > 0 else self.force_scale(s, control) for s in range(m.n_worlds)])
 
-    def suspect_scenes(self, x: np.ndarray, v: np.ndarray, scenes: np.ndarray) -> np.ndarray:
-        """Those of ``scenes`` (indices) whose ``x, v`` ``(N, n, 3)`` :meth:`divergence`
+    def suspect_worlds(self, x: np.ndarray, v: np.ndarray, worlds: np.ndarray) -> np.ndarray:
+        """Those of ``worlds`` (indices) whose ``x, v`` ``(N, n, 3)`` :meth:`divergence`
         may flag (a non-finite value or a vertex above ``max_speed``); checking only
-        them gives the same verdicts as checking every scene."""
-        scenes = np.asarray(scenes, dtype=np.int64)
-        flagged = np.zeros(len(scenes), dtype=np.bool_)
-        _flag_suspects(x, v, scenes, self.max_speed, flagged)
-        return scenes[flagged]
+        them gives the same verdicts as checking every world."""
+        worlds = np.asarray(worlds, dtype=np.int64)
+        flagged = np.zeros(len(worlds), dtype=np.bool_)
+        _flag_suspects(x, v, worlds, self.max_speed, flagged)
+        return worlds[flagged]
 
     def divergence(self, x: np.ndarray, v: np.ndarray) -> tuple[str, np.ndarray]:
-        """Why one scene's ``x, v`` ``(n, 3)`` counts as diverged, and the tets touching
+        """Why one world's ``x, v`` ``(n, 3)`` counts as diverged, and the tets touching
         its bad vertices ("" and none if it does not)."""
         bad_vertices = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
         with np.errstate(all="ignore"):
@@ -198,13 +198,13 @@ class Solver:
 
 
 @nb.njit(cache=True)
-def _flag_suspects(x, v, scenes, max_speed, flagged):
-    """``flagged[k]``: scene ``scenes[k]`` of ``x, v (N, n, 3)`` has a non-finite value or
+def _flag_suspects(x, v, worlds, max_speed, flagged):
+    """``flagged[k]``: world ``worlds[k]`` of ``x, v (N, n, 3)`` has a non-finite value or
     a vertex faster than ``max_speed`` (m/s), compared as squares with a relative margin
     of 1e-12 so that no vertex :meth:`Solver.divergence` calls too fast is missed."""
     limit = max_speed * max_speed * (1.0 - 1e-12)
-    for k in range(scenes.shape[0]):
-        s = scenes[k]
+    for k in range(worlds.shape[0]):
+        s = worlds[k]
         for i in range(x.shape[1]):
             speed2 = v[s, i, 0] * v[s, i, 0] + v[s, i, 1] * v[s, i, 1] + v[s, i, 2] * v[s, i, 2]
             position = x[s, i, 0] + x[s, i, 1] + x[s, i, 2]

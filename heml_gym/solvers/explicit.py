@@ -1,19 +1,19 @@
-"""Explicit symplectic Euler over N scenes, sub-stepped below the critical step.
+"""Explicit symplectic Euler over N worlds, sub-stepped below the critical step.
 
 Per sub-step of length ``h``, for every free vertex: ``v += h (f + f_ext + m g - alpha m v
 - beta K v) / m``, ``x += h v``, then out of the supports; held vertices follow their
-targets, fixed ones stay. The elastic forces come from the scene's force field; the
+targets, fixed ones stay. The elastic forces come from the world's force field; the
 work is done by the kernels of :mod:`heml_gym.solvers.kernels_explicit`, picked by what
-the scenes allow:
+the worlds allow:
 
-* Neo-Hookean HEML (constant ``Psi_1``), N > 1: every scene in lockstep, vectorised
-  across scenes (:func:`~heml_gym.solvers.kernels_explicit.lane_substeps`);
-* any HEML law: all sub-steps of all scenes in one compiled call, scenes over threads;
+* Neo-Hookean HEML (constant ``Psi_1``), N > 1: every world in lockstep, vectorised
+  across worlds (:func:`~heml_gym.solvers.kernels_explicit.lane_substeps`);
+* any HEML law: all sub-steps of all worlds in one compiled call, worlds over threads;
 * anything else (F-FEM, mass-tensor, mass-spring, stiffness damping ``beta``, or one
   mesh large enough for the force kernels' own threads): sub-step by sub-step from
   Python, with :func:`~heml_gym.solvers.kernels_explicit.symplectic_euler_update`.
 
-Every path uses the same update. A scene that goes non-finite or faster than
+Every path uses the same update. A world that goes non-finite or faster than
 ``max_speed`` is flagged (``StepStats.diverged``) and keeps the state it had before the
 step; the others go on.
 """
@@ -36,23 +36,23 @@ __all__ = ["ExplicitSolver"]
 
 
 class ExplicitSolver(Solver):
-    """Symplectic Euler for every scene of ``model``.
+    """Symplectic Euler for every world of ``model``.
 
     Parameters
     ----------
     model : Model
     safety : float in (0, 1]
         Sub-steps are at most ``safety`` times the rest-state critical step of the
-        stiffest scene (:meth:`Model.critical_dt`). Large deformations stiffen most laws
+        stiffest world (:meth:`Model.critical_dt`). Large deformations stiffen most laws
         (a 15 % squeeze of a Neo-Hookean cube diverged at 0.9), hence the default 0.5.
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
     refinements : sequence of int
-        A scene that goes bad is stepped again from where it was with this many times
+        A world that goes bad is stepped again from where it was with this many times
         more sub-steps, each in turn, before it is reported diverged: the rest-state
         critical step can be too long for strongly compressed or stretched tissue, whose
-        stiffness grows (``StepStats.refinement`` says which factor a scene needed). Only
-        those scenes pay for it. ``()``: no second try.
+        stiffness grows (``StepStats.refinement`` says which factor a world needed). Only
+        those worlds pay for it. ``()``: no second try.
     """
 
     def __init__(self, model: Model, safety: float = 0.5, max_speed: float = 1e3, refinements=(4, 16)):
@@ -68,35 +68,35 @@ class ExplicitSolver(Solver):
 
     def substeps(self, dt: float, critical_dt: float | None = None) -> int:
         """Sub-steps for a step of ``dt`` s: enough to stay below ``safety`` times
-        ``critical_dt`` (default: the model's, over all scenes)."""
+        ``critical_dt`` (default: the model's, over all worlds)."""
         critical = self.model.critical_dt() if critical_dt is None else float(critical_dt)
         return max(1, math.ceil(dt / (self.safety * critical)))
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int | None = None, active=None) -> StepStats:
-        """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
-        sub-steps (default: :meth:`substeps`); inactive scenes are not touched."""
+        """Advance the ``active`` worlds (default: all) by ``dt`` s in ``substeps`` equal
+        sub-steps (default: :meth:`substeps`); inactive worlds are not touched."""
         dt, active = self._check(state_in, state_out, control, dt, active)
         n_sub = self.substeps(dt) if substeps is None else int(substeps)
         if n_sub < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
         m = self.model
-        stats = StepStats.empty(m.n_scenes, m.n_vertices, n_sub)
+        stats = StepStats.empty(m.n_worlds, m.n_vertices, n_sub)
         state = state_out
         x0, v0 = state.x.copy(), state.v.copy()
         h = dt / n_sub
         fields = m.fields
         heml = all(isinstance(f, HemlForce) for f in fields) and not m.damping.beta
-        one_big_mesh = m.n_scenes == 1 and fields[0].kernel_threads() > 1
+        one_big_mesh = m.n_worlds == 1 and fields[0].kernel_threads() > 1
         with np.errstate(all="ignore"):
-            if heml and not one_big_mesh and all(f.split for f in fields) and m.n_scenes > 1:
+            if heml and not one_big_mesh and all(f.split for f in fields) and m.n_worlds > 1:
                 bad = self._lanes(state, control, h, n_sub, x0, stats.reaction)
             elif heml and not one_big_mesh:
                 bad = self._fused(state, control, h, n_sub, x0, active, stats.reaction)
             else:
                 bad = self._stepwise(state, control, h, n_sub, x0, active, stats.reaction)
             bad[~active] = -1
-            for factor in self.refinements:  # bad scenes again, from where they were, finer
+            for factor in self.refinements:  # bad worlds again, from where they were, finer
                 retry = bad >= 0
                 if not retry.any():
                     break
@@ -124,30 +124,30 @@ class ExplicitSolver(Solver):
     # ------------------------------------------------------------------ paths
     def _fused(self, state, control, h, n_sub, x0, active, reaction):
         m = self.model
-        N = m.n_scenes
+        N = m.n_worlds
         bad = np.full(N, -1, dtype=np.int64)
         parallel = N > 1 and numba.get_num_threads() > 1
-        scenes = ke.ExplicitScenes(state.x, state.v, np.empty_like(state.x), reaction, np.empty_like(state.x),
+        worlds = ke.ExplicitWorlds(state.x, state.v, np.empty_like(state.x), reaction, np.empty_like(state.x),
                                    control.external_forces, control.kinematic, x0, control.targets)
         laws = m.heml_laws()
         if laws.split:
             kernel = ke.split_substeps_parallel if parallel else ke.split_substeps_serial
         else:
             kernel = ke.heml_substeps_parallel if parallel else ke.heml_substeps_serial
-        kernel(scenes, m.heml_body(), laws, m.supports.kernel_args(), self._step(h, n_sub), active, bad)
+        kernel(worlds, m.heml_body(), laws, m.supports.kernel_args(), self._step(h, n_sub), active, bad)
         return bad
 
     def _step(self, h, n_sub) -> ke.ExplicitStep:
         return ke.ExplicitStep(float(h), int(n_sub), float(self.max_speed))
 
     def _lanes(self, state, control, h, n_sub, x0, reaction_out):
-        """All scenes in lockstep, vectorised across scenes (Neo-Hookean HEML)."""
+        """All worlds in lockstep, vectorised across worlds (Neo-Hookean HEML)."""
         m = self.model
-        N = m.n_scenes
+        N = m.n_worlds
         per_thread = math.ceil(N / numba.get_num_threads())
         lanes = min(ke.LANES, 4 * math.ceil(per_thread / 4))
         blocks = math.ceil(N / lanes)
-        pad = blocks * lanes - N  # extra lanes repeat scene 0
+        pad = blocks * lanes - N  # extra lanes repeat world 0
 
         def to_lanes(a):
             a = np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
@@ -161,10 +161,10 @@ class ExplicitSolver(Solver):
         xl, vl = to_lanes(state.x), to_lanes(state.v)
         reaction = np.empty_like(xl)
         bad_lanes = np.empty((blocks, lanes), dtype=np.int64)
-        scenes = ke.LaneScenes(xl, vl, np.empty_like(xl), reaction, to_lanes(control.external_forces),
+        worlds = ke.LaneWorlds(xl, vl, np.empty_like(xl), reaction, to_lanes(control.external_forces),
                                to_lanes(control.kinematic), to_lanes(x0), to_lanes(control.targets),
                                to_lanes(laws.params[:, 0]), to_lanes(laws.params[:, 1]), to_lanes(laws.psi1), bad_lanes)
-        ke.lane_substeps(scenes, m.heml_body(), laws.law[0], m.supports.kernel_args(), self._step(h, n_sub))
+        ke.lane_substeps(worlds, m.heml_body(), laws.law[0], m.supports.kernel_args(), self._step(h, n_sub))
         state.x[:] = from_lanes(xl)
         state.v[:] = from_lanes(vl)
         reaction_out[:] = from_lanes(reaction)
@@ -173,7 +173,7 @@ class ExplicitSolver(Solver):
     def _stepwise(self, state, control, h, n_sub, x0, active, reaction):
         """Sub-step by sub-step from Python: any force field, stiffness damping."""
         m = self.model
-        N, n = m.n_scenes, m.n_vertices
+        N, n = m.n_worlds, m.n_vertices
         supports = m.supports.kernel_args()
         f = np.zeros((n, 3))
         sub_reaction = np.zeros((n, 3))

@@ -1,7 +1,7 @@
 """One place that builds a time-stepping solver from settings: the integrator registry,
 the rules of which integrator goes with which force field and time scheme, and the
 meaning of every setting. Used by :class:`heml_gym.Simulation`, the environments
-(``physics=``) and their scene validation.
+(``physics=``) and their world validation.
 
     solver = make_solver(model, "quasi_newton", newton_tol=3e-3, max_iterations=100)
 """
@@ -58,7 +58,7 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
 
     * ``safety``: explicit sub-steps are at most this fraction of the critical step;
     * ``newton_tol``: an implicit (sub-)step stops at a force residual below this
-      times the scene's load (weight plus external forces);
+      times the world's load (weight plus external forces);
     * ``max_iterations``: iterations per implicit (sub-)step at most: Newton's
       (``implicit``, default 20) or L-BFGS's (``quasi_newton``, default 50); a solve that
       stops above its tolerance is re-taken, then reported, never silent;

@@ -1,6 +1,6 @@
-"""Implicit backward Euler over N scenes: Newton on the incremental potential.
+"""Implicit backward Euler over N worlds: Newton on the incremental potential.
 
-Per (sub-)step of length ``h``, each scene's free positions minimise
+Per (sub-)step of length ``h``, each world's free positions minimise
 
     Phi(x) = 1/2 c |x - x_hat|_M^2 + W(x) - f_ext . x - M g . x + Phi_contact(x)
              [+ beta/(2h) |x - x_n|_K(x_n)^2],   c = 1/h^2 + alpha/h,
@@ -12,7 +12,7 @@ SuperLU) and a line search; then ``v = (x - x_n) / h``. Held vertices follow the
 targets, fixed ones stay. A rigid support adds the penalty ``Phi_contact = sum_i k_i /2
 min(d_i, 0)^2`` (``d_i`` the vertex's signed distance, ``k_i = contact_stiffness * c m_i``),
 so that Newton sees the contact; the result is then projected onto the supports as in
-the explicit solver. Scenes are solved one after the other, each with its own cached
+the explicit solver. Worlds are solved one after the other, each with its own cached
 factorisation. Units: m, s, kg, N.
 """
 
@@ -41,7 +41,7 @@ class _Diverged(Exception):
 
 
 class ImplicitSolver(Solver):
-    """Backward Euler with Newton for every scene of ``model``.
+    """Backward Euler with Newton for every world of ``model``.
 
     Parameters
     ----------
@@ -50,7 +50,7 @@ class ImplicitSolver(Solver):
         mass-spring has its own).
     newton_tol : float
         Newton stops when the force residual on the free vertices is below ``newton_tol``
-        times the scene's load (weight plus external forces; in zero gravity and without
+        times the world's load (weight plus external forces; in zero gravity and without
         load, ``E h_min^2``). The default 1e-3 (0.1 % of the weight) moved a 1/30 s
         trajectory of the LapGym-size slab by 0.02 mm from a 1e-9 solve, against a 125 mm
         sag and 69 mm of time-discretisation error (``benchmarks/speed/simulation_speed.py``).
@@ -105,24 +105,24 @@ class ImplicitSolver(Solver):
         self.linear_solver = linear_solver
         self.contact_stiffness = contact_stiffness
         self.stall_limit = stall_limit
-        n = model.n_scenes
+        n = model.n_worlds
         self.pcg = [LaggedFactorPCG(rtol=1e-2, max_iter=8, factorization="cholesky") for _ in range(n)]
         self._submatrix = [FreeSubmatrix() for _ in range(n)]
         self._add_diagonal = DiagonalAdd()
         self._add_blocks = DiagonalBlockAdd()
 
-    def forget(self, scenes) -> None:
-        """Drop the lagged factorisations of ``scenes`` (see :meth:`Solver.forget`)."""
-        for s in np.atleast_1d(scenes):
+    def forget(self, worlds) -> None:
+        """Drop the lagged factorisations of ``worlds`` (see :meth:`Solver.forget`)."""
+        for s in np.atleast_1d(worlds):
             self.pcg[int(s)].reset()
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
-        """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
+        """Advance the ``active`` worlds (default: all) by ``dt`` s in ``substeps`` equal
         backward Euler steps. A sub-step whose Newton solve stops above tolerance, goes
         non-finite or cannot start (its held vertices invert elements within one step) is
         taken again from its start in ``refinements[0]`` shorter steps, then
-        ``refinements[1]``, ... (``StepStats.refinement``). A scene that still goes
+        ``refinements[1]``, ... (``StepStats.refinement``). A world that still goes
         non-finite, explodes or cannot start is flagged ``diverged`` and keeps its state;
         one whose Newton solve still stops above tolerance is flagged ``converged = False``
         (its state is the last iterate)."""
@@ -131,7 +131,7 @@ class ImplicitSolver(Solver):
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
         m = self.model
-        stats = StepStats.empty(m.n_scenes, m.n_vertices, substeps)
+        stats = StepStats.empty(m.n_worlds, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
         for s in np.flatnonzero(active):
@@ -163,7 +163,7 @@ class ImplicitSolver(Solver):
         return stats
 
     def _retaken_substep(self, s, state, control, h, path, tol, stats) -> bool:
-        """One sub-step of scene ``s`` (the held vertices from ``path[0]`` to ``path[1]``),
+        """One sub-step of world ``s`` (the held vertices from ``path[0]`` to ``path[1]``),
         taken again in ``refinements`` shorter steps while it fails; its step-mean reaction
         added into ``stats.reaction[s]``. True when it converged; raises :class:`_Diverged`
         when even the last re-take diverged or found no start."""

@@ -4,17 +4,17 @@ One update serves every path: :func:`integrate_dof` advances one coordinate of o
 vertex (free, or held on a path or fixed; :func:`free_dof` and :func:`held_dof` are it
 for a vertex whose kind is known) and :func:`~heml_gym.kernels_contact.project_out_of_supports`
 keeps free vertices out of the supports; the kernels below differ only in how they get
-the elastic forces and how they lay out the scenes:
+the elastic forces and how they lay out the worlds:
 
-* :func:`symplectic_euler_update`: one sub-step of one scene given its forces (any field);
-* :func:`split_substeps_serial` / ``_parallel``: all sub-steps of N scenes of a law with
-  constant ``Psi_1`` (Neo-Hookean HEML), per-scene spring weights, one call;
-* :func:`heml_substeps_serial` / ``_parallel``: the same for any law (per-scene law and
+* :func:`symplectic_euler_update`: one sub-step of one world given its forces (any field);
+* :func:`split_substeps_serial` / ``_parallel``: all sub-steps of N worlds of a law with
+  constant ``Psi_1`` (Neo-Hookean HEML), per-world spring weights, one call;
+* :func:`heml_substeps_serial` / ``_parallel``: the same for any law (per-world law and
   constants);
-* :func:`lane_substeps`: Neo-Hookean HEML scenes in lockstep, vectorised across scenes
-  (state stored scene-last, blocks of up to :data:`LANES` scenes, one per thread).
+* :func:`lane_substeps`: Neo-Hookean HEML worlds in lockstep, vectorised across worlds
+  (state stored world-last, blocks of up to :data:`LANES` worlds, one per thread).
 
-Units: m, s, kg, N, Pa. Every kernel reports per scene the first vertex found
+Units: m, s, kg, N, Pa. Every kernel reports per world the first vertex found
 non-finite or faster than ``max_speed`` (m/s), or -1.
 """
 
@@ -39,12 +39,12 @@ from ..kernels_contact import (axis_plane_contact, plane_axis, plane_contact, pr
                                project_out_of_supports)
 from ..laws import volumetric_gradient_fast
 
-#: scenes per block of :func:`lane_substeps` (SIMD lanes); its arrays end in it
+#: worlds per block of :func:`lane_substeps` (SIMD lanes); its arrays end in it
 LANES = 32
 
 
-class ExplicitScenes(NamedTuple):
-    """The N scenes' arrays of a fused explicit step (leading axis N): ``x, v`` (m, m/s),
+class ExplicitWorlds(NamedTuple):
+    """The N worlds' arrays of a fused explicit step (leading axis N): ``x, v`` (m, m/s),
     ``f``, ``sub_reaction`` scratch, ``reaction`` (N: the constraint forces averaged over
     the sub-steps), ``ext`` (N), ``kinematic`` (N, n) held vertices moved from
     ``kin_from`` to ``kin_to`` (m) over the sub-steps."""
@@ -60,8 +60,8 @@ class ExplicitScenes(NamedTuple):
     kin_to: np.ndarray
 
 
-class LaneScenes(NamedTuple):
-    """Scenes in blocks of ``L`` lanes (see :func:`lane_substeps`): ``x, v, f, reaction,
+class LaneWorlds(NamedTuple):
+    """Worlds in blocks of ``L`` lanes (see :func:`lane_substeps`): ``x, v, f, reaction,
     ext, kin_from, kin_to`` ``(B, n, 3, L)``, ``kinematic`` ``(B, n, L)``, the Neo-Hookean
     constants ``p0, p1`` and ``psi1`` (Pa) ``(B, L)``, and the report ``bad_vertex (B, L)``."""
 
@@ -101,7 +101,7 @@ def integrate_dof(x, v, force, m, h, held, target):
     fixed with ``target = x``) moves to ``target`` with the velocity that takes it there.
     Returns ``(x, v, reaction)``: ``reaction`` (N) is the constraint force on a held
     vertex (``m a`` minus every other force), 0 on a free one. Written with selects only,
-    so that a loop over scenes around it vectorises.
+    so that a loop over worlds around it vectorises.
     """
     vn = (target - x) / h if held else v + h * force / m
     reaction = m * (vn - v) / h - force if held else 0.0
@@ -132,7 +132,7 @@ def _flagged(vx, vy, vz, px, py, pz, limit):
 @nb.njit(cache=True)
 def symplectic_euler_update(x, v, f, mass, gravity, ext, alpha, h, fixed, kinematic,
                             kin_from, kin_to, frac, max_speed, reaction, supports):
-    """One symplectic Euler sub-step of one scene, in place, given its elastic forces ``f`` (N).
+    """One symplectic Euler sub-step of one world, in place, given its elastic forces ``f`` (N).
 
     ``x, v, f, ext, kin_from, kin_to, reaction``: ``(n, 3)``; ``fixed``, ``kinematic``:
     ``(n,)`` masks. Fixed vertices keep ``x`` and get ``v = 0``; kinematic ones move to
@@ -174,117 +174,117 @@ def _add_mean_reaction(reaction, sub_reaction, fixed, kinematic, n_sub):
                 reaction[i, d] += sub_reaction[i, d] / n_sub
 
 
-# ------------------------------------------------------- fused kernels, scene by scene
+# ------------------------------------------------------- fused kernels, world by world
 @nb.njit(cache=True, inline="always")
-def _update_scene(s, k, scenes, body, supports, step):
-    """Sub-step ``k`` (1..n_sub) of scene ``s`` from its elastic forces ``scenes.f[s]``:
+def _update_world(s, k, worlds, body, supports, step):
+    """Sub-step ``k`` (1..n_sub) of world ``s`` from its elastic forces ``worlds.f[s]``:
     the update and the reaction's mean; returns the first bad vertex or -1."""
-    kinematic = scenes.kinematic[s]
+    kinematic = worlds.kinematic[s]
     n_sub = step.n_sub
-    bad = symplectic_euler_update(scenes.x[s], scenes.v[s], scenes.f[s], body.mass, body.gravity, scenes.ext[s],
-                                  body.alpha, step.h, body.fixed, kinematic, scenes.kin_from[s], scenes.kin_to[s],
-                                  k / n_sub, step.max_speed, scenes.sub_reaction[s], supports)
+    bad = symplectic_euler_update(worlds.x[s], worlds.v[s], worlds.f[s], body.mass, body.gravity, worlds.ext[s],
+                                  body.alpha, step.h, body.fixed, kinematic, worlds.kin_from[s], worlds.kin_to[s],
+                                  k / n_sub, step.max_speed, worlds.sub_reaction[s], supports)
     if bad < 0:
-        _add_mean_reaction(scenes.reaction[s], scenes.sub_reaction[s], body.fixed, kinematic, n_sub)
+        _add_mean_reaction(worlds.reaction[s], worlds.sub_reaction[s], body.fixed, kinematic, n_sub)
     return bad
 
 
 @nb.njit(cache=True, inline="always")
-def _split_scene(s, scenes, body, laws, supports, step):
-    xs, fs = scenes.x[s], scenes.f[s]
+def _split_world(s, worlds, body, laws, supports, step):
+    xs, fs = worlds.x[s], worlds.f[s]
     tets = body.tets
-    scenes.reaction[s][:, :] = 0.0
+    worlds.reaction[s][:, :] = 0.0
     for k in range(1, step.n_sub + 1):
         fs[:, :] = 0.0
         constant_psi1_forces_chunk(xs, tets, body.inv_det, laws.weights[s], laws.law[s], laws.params[s], fs, 0,
                                    tets.shape[0])
-        bad = _update_scene(s, k, scenes, body, supports, step)
+        bad = _update_world(s, k, worlds, body, supports, step)
         if bad >= 0:
             return bad
     return -1
 
 
 @nb.njit(cache=True, inline="always")
-def _heml_scene(s, scenes, body, laws, supports, step):
-    xs, fs = scenes.x[s], scenes.f[s]
+def _heml_world(s, worlds, body, laws, supports, step):
+    xs, fs = worlds.x[s], worlds.f[s]
     tets = body.tets
-    scenes.reaction[s][:, :] = 0.0
+    worlds.reaction[s][:, :] = 0.0
     for k in range(1, step.n_sub + 1):
         fs[:, :] = 0.0
         heml_forces_chunk(xs, tets, body.coef_t, laws.q_t, laws.use_q, laws.law[s], laws.params[s], fs, 0,
                           tets.shape[0])
-        bad = _update_scene(s, k, scenes, body, supports, step)
+        bad = _update_world(s, k, worlds, body, supports, step)
         if bad >= 0:
             return bad
     return -1
 
 
 @nb.njit(cache=True)
-def split_substeps_serial(scenes, body, laws, supports, step, active, bad):
-    """``step.n_sub`` sub-steps of length ``step.h`` (s) of every ``active`` scene of a
+def split_substeps_serial(worlds, body, laws, supports, step, active, bad):
+    """``step.n_sub`` sub-steps of length ``step.h`` (s) of every ``active`` world of a
     constant-``Psi_1`` HEML body (Neo-Hookean: ``laws.split``, the forces from the
-    per-scene spring weights), scene after scene, in place: ``scenes``
-    (:class:`ExplicitScenes`), the model's ``body`` and ``laws``
+    per-world spring weights), world after world, in place: ``worlds``
+    (:class:`ExplicitWorlds`), the model's ``body`` and ``laws``
     (:class:`~heml_gym.kernel_data.HemlBody`, :class:`~heml_gym.kernel_data.HemlLaws`),
     ``supports`` (:class:`~heml_gym.kernel_data.SupportArrays`), ``step``
-    (:class:`ExplicitStep`). ``bad[s]``: the first bad vertex of scene ``s`` (its
+    (:class:`ExplicitStep`). ``bad[s]``: the first bad vertex of world ``s`` (its
     integration stopped there) or -1.
     """
-    for s in range(scenes.x.shape[0]):
+    for s in range(worlds.x.shape[0]):
         bad[s] = -1
         if active[s]:
-            bad[s] = _split_scene(s, scenes, body, laws, supports, step)
+            bad[s] = _split_world(s, worlds, body, laws, supports, step)
 
 
 @nb.njit(cache=True, parallel=True)
-def split_substeps_parallel(scenes, body, laws, supports, step, active, bad):
-    """:func:`split_substeps_serial` with the scenes spread over the threads."""
-    for s in prange(scenes.x.shape[0]):
+def split_substeps_parallel(worlds, body, laws, supports, step, active, bad):
+    """:func:`split_substeps_serial` with the worlds spread over the threads."""
+    for s in prange(worlds.x.shape[0]):
         bad[s] = -1
         if active[s]:
-            bad[s] = _split_scene(s, scenes, body, laws, supports, step)
+            bad[s] = _split_world(s, worlds, body, laws, supports, step)
 
 
 @nb.njit(cache=True)
-def heml_substeps_serial(scenes, body, laws, supports, step, active, bad):
-    """As :func:`split_substeps_serial` for any law (per-scene law and constants)."""
-    for s in range(scenes.x.shape[0]):
+def heml_substeps_serial(worlds, body, laws, supports, step, active, bad):
+    """As :func:`split_substeps_serial` for any law (per-world law and constants)."""
+    for s in range(worlds.x.shape[0]):
         bad[s] = -1
         if active[s]:
-            bad[s] = _heml_scene(s, scenes, body, laws, supports, step)
+            bad[s] = _heml_world(s, worlds, body, laws, supports, step)
 
 
 @nb.njit(cache=True, parallel=True)
-def heml_substeps_parallel(scenes, body, laws, supports, step, active, bad):
-    """:func:`heml_substeps_serial` with the scenes spread over the threads."""
-    for s in prange(scenes.x.shape[0]):
+def heml_substeps_parallel(worlds, body, laws, supports, step, active, bad):
+    """:func:`heml_substeps_serial` with the worlds spread over the threads."""
+    for s in prange(worlds.x.shape[0]):
         bad[s] = -1
         if active[s]:
-            bad[s] = _heml_scene(s, scenes, body, laws, supports, step)
+            bad[s] = _heml_world(s, worlds, body, laws, supports, step)
 
 
-# --------------------------------------------------- scenes in lockstep, across lanes
+# --------------------------------------------------- worlds in lockstep, across lanes
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath={"contract"})
 def lane_substeps(lanes_, body, law, supports, step):
-    """``n_sub`` sub-steps of length ``h`` (s) of Neo-Hookean HEML scenes, vectorised across
-    scenes: ``lanes_`` (:class:`LaneScenes`), the model's ``body``
+    """``n_sub`` sub-steps of length ``h`` (s) of Neo-Hookean HEML worlds, vectorised across
+    worlds: ``lanes_`` (:class:`LaneWorlds`), the model's ``body``
     (:class:`~heml_gym.kernel_data.HemlBody`), the law id ``law``, ``supports``
     (:class:`~heml_gym.kernel_data.SupportArrays`), ``step`` (:class:`ExplicitStep`).
 
-    Scenes come in blocks of ``L`` <= :data:`LANES`: ``x, v, f, reaction, ext, kin_from,
+    Worlds come in blocks of ``L`` <= :data:`LANES`: ``x, v, f, reaction, ext, kin_from,
     kin_to`` are ``(B, n, 3, L)`` (m, m/s, N, N, N, m, m), entry ``[b, i, d, q]`` being
-    vertex ``i``, axis ``d`` of scene ``b L + q``; ``kinematic``: ``(B, n, L)`` held
+    vertex ``i``, axis ``d`` of world ``b L + q``; ``kinematic``: ``(B, n, L)`` held
     vertices, moved from ``kin_from`` to ``kin_to`` over the sub-steps; ``body.fixed``:
     ``(n,)``, shared; ``body.edge_weights``: ``(6, m)`` ``2 V0 a_k`` (m^3); ``psi1``:
-    ``(B, L)`` the constant ``Psi_1`` (Pa) of each scene, so its spring weights are
+    ``(B, L)`` the constant ``Psi_1`` (Pa) of each world, so its spring weights are
     ``psi1 * base_w``; ``p0, p1``: ``(B, L)`` its Neo-Hookean constants (Pa). The update
     per vertex is :func:`integrate_dof` and the supports' projection, as in every path.
 
     ``reaction`` receives the constraint forces (N) on fixed and held vertices averaged
-    over the sub-steps. ``bad_vertex[b, q]`` becomes the first vertex of the scene found
+    over the sub-steps. ``bad_vertex[b, q]`` becomes the first vertex of the world found
     non-finite or faster than ``max_speed`` (m/s), else -1. A tet whose J is not
     positive, normal and finite gives NaN forces (Neo-Hookean is undefined there), so
-    such a scene is flagged too. Scenes run in lockstep: a flagged scene keeps being
+    such a world is flagged too. Worlds run in lockstep: a flagged world keeps being
     integrated (its values are meaningless; the caller restores it).
     """
     x, v, f, reaction, ext, kinematic, kin_from, kin_to, p0, p1, psi1, bad_vertex = lanes_
@@ -294,7 +294,7 @@ def lane_substeps(lanes_, body, law, supports, step):
     h, n_sub, max_speed = step
     n_blocks, n, _, lanes = x.shape
     if lanes > LANES:
-        raise ValueError("too many scenes per block")
+        raise ValueError("too many worlds per block")
     m = tets.shape[0]
     limit = max_speed * max_speed
     n_planes = planes.shape[0]
@@ -332,7 +332,7 @@ def lane_substeps(lanes_, body, law, supports, step):
                 w12 = base_w[3, t]
                 w13 = base_w[4, t]
                 w23 = base_w[5, t]
-                for q in range(lanes):  # vectorises across scenes
+                for q in range(lanes):  # vectorises across worlds
                     ax, ay, az, bx, by, bz, cx, cy, cz = edge_vectors(edges, q)
                     c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = edge_cofactors(ax, ay, az, bx, by, bz, cx, cy, cz)
                     jac = (ax * c1x + ay * c1y + az * c1z) * idet
@@ -357,7 +357,7 @@ def lane_substeps(lanes_, body, law, supports, step):
                 if fixed[i]:
                     for d in range(3):
                         gd = gravity[d]
-                        for q in range(lanes):  # vectorises across scenes
+                        for q in range(lanes):  # vectorises across worlds
                             vq = vb[i, d, q]
                             xq = xb[i, d, q]
                             force = total_force(fb[i, d, q], eb[i, d, q], mi, gd, alpha, vq)
@@ -369,7 +369,7 @@ def lane_substeps(lanes_, body, law, supports, step):
                 size[:] = 0.0
                 for d in range(3):
                     gd = gravity[d]
-                    for q in range(lanes):  # vectorises across scenes (selects, no branches)
+                    for q in range(lanes):  # vectorises across worlds (selects, no branches)
                         vq = vb[i, d, q]
                         xq = xb[i, d, q]
                         force = total_force(fb[i, d, q], eb[i, d, q], mi, gd, alpha, vq)
@@ -389,13 +389,13 @@ def lane_substeps(lanes_, body, law, supports, step):
                     axis = plane_axis(nx, ny, nz)
                     if axis >= 0:  # an axis-aligned plane: one coordinate
                         sign = planes[s, axis]
-                        for q in range(lanes):  # vectorises across scenes
+                        for q in range(lanes):  # vectorises across worlds
                             p, w = axis_plane_contact(sign, c, xb[i, axis, q], vb[i, axis, q])
                             free = not held[i, q]
                             xb[i, axis, q] = p if free else xb[i, axis, q]
                             vb[i, axis, q] = w if free else vb[i, axis, q]
                         continue
-                    for q in range(lanes):  # vectorises across scenes
+                    for q in range(lanes):  # vectorises across worlds
                         px, py, pz, vx, vy, vz = plane_contact(nx, ny, nz, c, xb[i, 0, q], xb[i, 1, q], xb[i, 2, q],
                                                                vb[i, 0, q], vb[i, 1, q], vb[i, 2, q])
                         free = not held[i, q]

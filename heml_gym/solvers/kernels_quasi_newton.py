@@ -1,5 +1,5 @@
-"""Numba kernels of the quasi-Newton (L-BFGS) backward Euler solver: one scene per call
-of :func:`_lbfgs_scene`, scenes over threads in :func:`lbfgs_steps_parallel`, and the
+"""Numba kernels of the quasi-Newton (L-BFGS) backward Euler solver: one world per call
+of :func:`_lbfgs_world`, worlds over threads in :func:`lbfgs_steps_parallel`, and the
 assembly and factorisation of its scalar initial Hessians (:func:`factor_jobs`). The
 kernels take the model's bundles (:mod:`heml_gym.kernel_data`) and the solver's own
 (:class:`InitialHessians`, :class:`LbfgsMemory`, :class:`Bdf2History`, :class:`Substep`).
@@ -44,15 +44,15 @@ from typing import NamedTuple
 
 from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
                                    heml_energy_chunk, heml_forces_chunk)
-from ..kernel_data import scene_law
+from ..kernel_data import world_law
 from ..kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
 from ..kernels_contact import signed_distances
 
 
 # ------------------------------------------------------------------------ bundles
-# (the model's: heml_gym.kernel_data.HemlBody / HemlLaws / SceneLaw / SupportArrays)
+# (the model's: heml_gym.kernel_data.HemlBody / HemlLaws / WorldLaw / SupportArrays)
 class InitialHessians(NamedTuple):
-    """The solver's factorised initial Hessians (envelope storage, float32), per scene two
+    """The solver's factorised initial Hessians (envelope storage, float32), per world two
     entries of up to three factors (one per distinct contact penalty over the axes)."""
 
     inverse: np.ndarray  #: (n,) int64: vertex -> row of the factor (a bandwidth-reducing order)
@@ -67,8 +67,8 @@ class InitialHessians(NamedTuple):
     stiffness: np.ndarray  #: (N,) the Laplacian's weight (Pa)
 
 
-class SceneHessian(NamedTuple):
-    """One scene's current initial Hessian (see :func:`scene_hessian`)."""
+class WorldHessian(NamedTuple):
+    """One world's current initial Hessian (see :func:`world_hessian`)."""
 
     inverse: np.ndarray
     first: np.ndarray
@@ -82,7 +82,7 @@ class SceneHessian(NamedTuple):
 
 
 class LbfgsMemory(NamedTuple):
-    """L-BFGS curvature pairs kept from step to step (stacked over scenes, or one scene's)."""
+    """L-BFGS curvature pairs kept from step to step (stacked over worlds, or one world's)."""
 
     s_hist: np.ndarray  #: ([N,] history, n, 3) steps (m)
     y_hist: np.ndarray  #: ([N,] history, n, 3) gradient changes (N)
@@ -92,7 +92,7 @@ class LbfgsMemory(NamedTuple):
 
 class Bdf2History(NamedTuple):
     """BDF2's state one step back (``(.., 0, 3)`` arrays under backward Euler) and that
-    step's length (s; 0: none), stacked over scenes or one scene's (``history_h``: a
+    step's length (s; 0: none), stacked over worlds or one world's (``history_h``: a
     one-element slice)."""
 
     x_prev: np.ndarray
@@ -127,10 +127,10 @@ class SubstepWork(NamedTuple):
 
 
 @nb.njit(cache=True, inline="always")
-def scene_hessian(hessians, s):
-    """Scene ``s``'s current :class:`SceneHessian` of ``hessians`` (:class:`InitialHessians`)."""
+def world_hessian(hessians, s):
+    """World ``s``'s current :class:`WorldHessian` of ``hessians`` (:class:`InitialHessians`)."""
     e = hessians.entry[s]
-    return SceneHessian(hessians.inverse, hessians.first, hessians.ptr, hessians.values[s, e],
+    return WorldHessian(hessians.inverse, hessians.first, hessians.ptr, hessians.values[s, e],
                         hessians.axis_slot[s, e], hessians.edge_i, hessians.edge_j, hessians.edge_w,
                         hessians.stiffness[s])
 
@@ -181,15 +181,15 @@ def assemble_factor(values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge
 
 
 @nb.njit(cache=True, parallel=True)
-def factor_jobs(job_scene, job_entry, job_slot, values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
+def factor_jobs(job_world, job_entry, job_slot, values, first, ptr, diag_pos, edge_pos, edge_i, edge_j, edge_w,
                 lap_diag, mass, c, stiffness, held, extra, status):
     """Factorise ``values[s, entry, slot]`` (single precision) for each job ``(s, entry,
-    slot)`` (over threads), with the scene's ``stiffness[s]``, ``held[s]`` and ``extra[s,
+    slot)`` (over threads), with the world's ``stiffness[s]``, ``held[s]`` and ``extra[s,
     entry, slot]`` (see :func:`assemble_factor`); ``status[job]`` receives its result. A
     factor whose single-precision pivots fail (a matrix too ill-conditioned for them) is
     factorised in double precision and rounded."""
-    for k in prange(job_scene.shape[0]):
-        s = job_scene[k]
+    for k in prange(job_world.shape[0]):
+        s = job_world[k]
         e = job_entry[k]
         slot = job_slot[k]
         target = values[s, e, slot]
@@ -242,7 +242,7 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supp
                            k_contact):
     """``Phi(x)`` (J) and, if ``want_gradient``, its gradient into ``g`` (N; zero on held
     vertices): ``body`` (:class:`~heml_gym.kernel_data.HemlBody`), ``law``
-    (:class:`~heml_gym.kernel_data.SceneLaw`), ``supports``
+    (:class:`~heml_gym.kernel_data.WorldLaw`), ``supports``
     (:class:`~heml_gym.kernel_data.SupportArrays`), the inertia weight ``c`` (1/s^2), the
     inertial target ``x_hat`` (m), the ``load`` (N), the ``held`` mask and the support
     penalty ``k_contact`` (1/s^2, times a vertex's mass). ``f``, ``dist``, ``normal`` are
@@ -385,7 +385,7 @@ def _positive_volumes(x, tets, inv_det, vt_ptr, vt_tets, moved):
     return True
 
 
-# ----------------------------------------------------------------------- one scene
+# ----------------------------------------------------------------------- one world
 @nb.njit(cache=True)
 def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev, work):
     """What a sub-step of length ``h`` (s) needs before its minimisation, whichever method
@@ -515,12 +515,12 @@ def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, 
 
 
 @nb.njit(cache=True)
-def _lbfgs_scene(x, v, targets, kinematic, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
+def _lbfgs_world(x, v, targets, kinematic, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
                  reaction, out):
-    """One backward Euler (``sub.order`` 1) or BDF2 (2) sub-step of one scene by L-BFGS, in
+    """One backward Euler (``sub.order`` 1) or BDF2 (2) sub-step of one world by L-BFGS, in
     place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best of four
     starts, :func:`end_substep`. ``body``, ``law``, ``supports``: the model's (see
-    :mod:`heml_gym.kernel_data`); ``hessian``: the scene's :class:`SceneHessian`;
+    :mod:`heml_gym.kernel_data`); ``hessian``: the world's :class:`WorldHessian`;
     ``memory``: its :class:`LbfgsMemory`; ``history``: its :class:`Bdf2History`; ``tol``:
     the force residual (N) to reach.
 
@@ -586,7 +586,7 @@ def _lbfgs_scene(x, v, targets, kinematic, ext, body, law, supports, hessian, me
     x[:, :] = trial
     last_at_x = True  # ``f`` holds the elastic forces at ``x``
     gnorm = math.sqrt(_dot(g, g))
-    stored = memory.memory[0]  # curvature pairs kept from the scene's earlier steps (same initial Hessian)
+    stored = memory.memory[0]  # curvature pairs kept from the world's earlier steps (same initial Hessian)
     newest = memory.memory[1]
     it = 0
     while gnorm > tol and it < sub.max_iter:
@@ -656,11 +656,11 @@ def _lbfgs_scene(x, v, targets, kinematic, ext, body, law, supports, hessian, me
 
 
 @nb.njit(cache=True, inline="always")
-def _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
+def _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
                 reaction, out):
-    """:func:`_lbfgs_scene` of scene ``s`` of the stacked bundles."""
-    _lbfgs_scene(x[s], v[s], targets[s], kinematic[s], ext[s], body, scene_law(laws, s), supports,
-                 scene_hessian(hessians, s),
+    """:func:`_lbfgs_world` of world ``s`` of the stacked bundles."""
+    _lbfgs_world(x[s], v[s], targets[s], kinematic[s], ext[s], body, world_law(laws, s), supports,
+                 world_hessian(hessians, s),
                  LbfgsMemory(memory.s_hist[s], memory.y_hist[s], memory.rho[s], memory.memory[s]), tol[s], sub,
                  Bdf2History(history.x_prev[s], history.v_prev[s], history.history_h[s:s + 1]), r_prev[s],
                  reaction[s], out[s])
@@ -669,31 +669,31 @@ def _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians
 @nb.njit(cache=True, parallel=True)
 def lbfgs_steps_parallel(x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
                          active, r_prev, reaction, out):
-    """:func:`_lbfgs_scene` for every ``active`` scene (leading axis N of the arrays and of
+    """:func:`_lbfgs_world` for every ``active`` world (leading axis N of the arrays and of
     ``laws`` (:class:`~heml_gym.kernel_data.HemlLaws`), ``hessians``
     (:class:`InitialHessians`), ``memory`` (:class:`LbfgsMemory`), ``history``
-    (:class:`Bdf2History`)), scenes over threads; scene ``s`` preconditions with its
+    (:class:`Bdf2History`)), worlds over threads; world ``s`` preconditions with its
     current initial Hessian ``hessians.values[s, hessians.entry[s]]``."""
     for s in prange(x.shape[0]):
         if active[s]:
-            _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+            _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
                         r_prev, reaction, out)
 
 
 @nb.njit(cache=True)
 def lbfgs_steps_serial(x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
                        active, r_prev, reaction, out):
-    """:func:`lbfgs_steps_parallel` scene after scene."""
+    """:func:`lbfgs_steps_parallel` world after world."""
     for s in range(x.shape[0]):
         if active[s]:
-            _scene_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+            _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
                         r_prev, reaction, out)
 
 
 @nb.njit(cache=True)
 def count_report(run, out, iterations, residual, converged, feasible):
     """Add one call's ``out (N, 4)`` report (iterations, force residual N, converged,
-    feasible start) of the ``run`` scenes into the step's ``iterations``, ``residual``
+    feasible start) of the ``run`` worlds into the step's ``iterations``, ``residual``
     (the largest, NaN kept), ``converged`` and ``feasible`` (in place)."""
     for s in range(run.shape[0]):
         if not run[s]:

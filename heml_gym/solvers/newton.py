@@ -1,5 +1,5 @@
 """Newton's method on a potential over the free degrees of freedom, as the implicit and
-static solvers use it (one scene at a time)."""
+static solvers use it (one world at a time)."""
 
 from __future__ import annotations
 

@@ -10,10 +10,10 @@ the support penalty of the vertices in contact on its diagonal (see
 :mod:`heml_gym.solvers.kernels_quasi_newton`). It is a third of the size of the full
 Hessian, does not depend on how the tissue is turned (the rest stiffness ``K(X)`` does,
 and stalls L-BFGS once the tissue has rotated), and is factorised (an envelope Cholesky
-factor per scene and axis, stored in single precision: it only preconditions) only when
-what it holds changes: the scene's material, the held vertices (a grasp or a release),
+factor per world and axis, stored in single precision: it only preconditions) only when
+what it holds changes: the world's material, the held vertices (a grasp or a release),
 the step length, or, by more than ``contact_refresh`` vertices, the set of vertices in
-contact. Each scene keeps its two latest initial Hessians, so that undoing a change (a
+contact. Each world keeps its two latest initial Hessians, so that undoing a change (a
 release after a grasp, the normal step after a refined one) costs no factorisation.
 
 ``scheme="bdf2"`` replaces backward Euler by the second-order backward differentiation
@@ -22,7 +22,7 @@ same potential to minimise with another weight of the inertia and another predic
 position, so the same cost per step, and far less numerical damping (backward Euler's
 error is first order in the step). On the retraction scenes' 0.05-0.1 s steps it is no
 more accurate and less robust: those steps do not resolve the tissue's sag oscillation,
-which backward Euler damps out (docs/dynamics.md). It reads the state one step back; a scene without
+which backward Euler damps out (docs/dynamics.md). It reads the state one step back; a world without
 one (its first step, or after :meth:`QuasiNewtonSolver.forget`, a refined step, or a change
 of step length) expands it about the step's start with the start's acceleration, which
 keeps the scheme second order. Both schemes are A-stable.
@@ -31,7 +31,7 @@ The constraint force on held vertices is reported as the step mean, by the trape
 rule between each sub-step's start and end (backward Euler's own force is the end's: half
 a step late against the step-mean force of the explicit solver).
 
-All iterations of all scenes run in one compiled call, scenes over threads. Each scene
+All iterations of all worlds run in one compiled call, worlds over threads. Each world
 reports its iterations, residual against its tolerance and whether it converged. Units:
 m, s, kg, N.
 """
@@ -46,7 +46,7 @@ import scipy.sparse as sp
 
 from ..control import Control
 from ..forces.heml import HemlForce, assembled_edge_weights
-from ..kernel_data import scene_law
+from ..kernel_data import world_law
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeLayout, FreeSubmatrix, LaggedFactorPCG
 from ..model import Model
 from ..state import State
@@ -81,15 +81,15 @@ def incremental_hessian(field, mass, y, c, k_contact, held, potential_args, proj
 
 
 class QuasiNewtonSolver(Solver):
-    """Backward Euler for every scene of ``model`` by L-BFGS (HEML force fields, any law).
+    """Backward Euler for every world of ``model`` by L-BFGS (HEML force fields, any law).
 
     Parameters
     ----------
     model : Model
-        Every scene's field must be a :class:`~heml_gym.HemlForce`.
+        Every world's field must be a :class:`~heml_gym.HemlForce`.
     newton_tol : float
         A step stops when the force residual on the free vertices is below ``newton_tol``
-        times the scene's load (weight plus external forces), as for the Newton solver.
+        times the world's load (weight plus external forces), as for the Newton solver.
     max_iter : int
         L-BFGS iterations per step at most; a step that stops above its tolerance is
         reported (``StepStats.converged``), never silently.
@@ -130,7 +130,7 @@ class QuasiNewtonSolver(Solver):
         iterations a step takes, never where it converges (to ``newton_tol``). 1 suits
         bulky tissue (the lobe: 12.4 L-BFGS iterations per env step at 1, 12.9 at 1.25);
         the thin two-layer flap, which bends, converges in 16.9 at 1.25 against 22.5 at 1
-        (``TissueRetraction``'s scene sets 1.25; ``benchmarks/speed/hessian_scale.py``,
+        (``TissueRetraction``'s world sets 1.25; ``benchmarks/speed/hessian_scale.py``,
         2026-11-26).
     max_speed : float, m/s
         A vertex faster than this counts as exploded.
@@ -184,7 +184,7 @@ class QuasiNewtonSolver(Solver):
                              f"got {fallback!r}")
         self.fallback = tuple(int(r) for r in fallback)
         self.max_newton = int(max_newton)
-        self._newton_linear: dict = {}  # per scene: the Newton fallback's lagged factorisation
+        self._newton_linear: dict = {}  # per world: the Newton fallback's lagged factorisation
         self._free_submatrix = FreeSubmatrix()
         self._add_diagonal = DiagonalAdd()
         self._add_blocks = DiagonalBlockAdd()
@@ -204,8 +204,8 @@ class QuasiNewtonSolver(Solver):
         self._diag_pos = self.layout.positions(np.arange(n), np.arange(n))
         self._edge_pos = self.layout.positions(self._edge_i, self._edge_j)
         self._contact_margin = 0.01 * mesh.min_edge_length  # m: closer to a support than this is in contact
-        N = model.n_scenes
-        # per scene two initial Hessians ("entries", the current one ``_entry[s]``), each up to
+        N = model.n_worlds
+        # per world two initial Hessians ("entries", the current one ``_entry[s]``), each up to
         # three factors (one per distinct contact penalty over the axes, ``_axis_slot``)
         self._values = np.zeros((N, 2, 3, self.layout.size), dtype=np.float32)
         self._axis_slot = np.zeros((N, 2, 3), dtype=np.int64)
@@ -220,12 +220,12 @@ class QuasiNewtonSolver(Solver):
         self._rho = np.zeros((N, self.history))
         self._memory = np.zeros((N, 2), dtype=np.int64)
         self._memory[:, 1] = -1
-        # BDF2: each scene's state one step back, and that step's length (0: none)
+        # BDF2: each world's state one step back, and that step's length (0: none)
         kept = n if self.order == 2 else 0  # (backward Euler keeps none)
         self._x_prev = np.zeros((N, kept, 3))
         self._v_prev = np.zeros((N, kept, 3))
         self._history_h = np.zeros(N)
-        self._stiffness = (-1, None)  # (model.material_revision, stiffness per scene), see _stiffnesses
+        self._stiffness = (-1, None)  # (model.material_revision, stiffness per world), see _stiffnesses
         self.factorizations = 0
 
     def laplacian(self) -> sp.csr_matrix:
@@ -238,12 +238,12 @@ class QuasiNewtonSolver(Solver):
                             shape=(n, n))
         return (sp.diags(self._lap_diag) - off).tocsr()
 
-    def forget(self, scenes) -> None:
+    def forget(self, worlds) -> None:
         """Drop the initial Hessians, curvature pairs, the Newton fallback's lagged
-        factorisation and (BDF2) the state one step back of ``scenes`` (see
+        factorisation and (BDF2) the state one step back of ``worlds`` (see
         :meth:`Solver.forget`): their next step factorises afresh and starts BDF2 from the
         expansion of its start (see :mod:`.kernels_quasi_newton`)."""
-        for s in np.atleast_1d(scenes):
+        for s in np.atleast_1d(worlds):
             s = int(s)
             self._factor_key[s] = [None, None]
             self._factor_contact[s] = False
@@ -257,14 +257,14 @@ class QuasiNewtonSolver(Solver):
         return float(kq.inertia(self.order, float(h), float(self.model.damping.alpha)))
 
     # ------------------------------------------------------------ initial Hessians
-    def stiffness(self, scene: int) -> float:
-        """``hessian_scale (lambda + mu)`` (Pa), ``lambda + mu`` of ``scene``'s material at
+    def stiffness(self, world: int) -> float:
+        """``hessian_scale (lambda + mu)`` (Pa), ``lambda + mu`` of ``world``'s material at
         small strain: the weight of the Laplacian in its initial Hessian."""
-        mat = self.model.materials[scene]
+        mat = self.model.materials[world]
         return self.hessian_scale * float(mat.lame_lambda + mat.shear_modulus)
 
-    def _refresh_factors(self, scenes: np.ndarray, held: np.ndarray, x: np.ndarray, c: np.ndarray) -> None:
-        """Make current, for each of ``scenes``, the initial Hessian of its material, held
+    def _refresh_factors(self, worlds: np.ndarray, held: np.ndarray, x: np.ndarray, c: np.ndarray) -> None:
+        """Make current, for each of ``worlds``, the initial Hessian of its material, held
         set and step length: the current entry, else the other one if it holds it (a grasp
         undone, a refined step over), else factorised into the other (older) entry; and
         factorise it again when the contact set moved by more than ``contact_refresh``
@@ -272,15 +272,15 @@ class QuasiNewtonSolver(Solver):
         curvature pairs are dropped whenever the initial Hessian changes entry."""
         m = self.model
         n = m.n_vertices
-        if len(scenes) == 0:
+        if len(worlds) == 0:
             return
         stiffness = self._stiffnesses()
         if len(m.supports):
-            d, normal = m.supports.signed_distance(x if len(scenes) == m.n_scenes else x[scenes])
-            contact = (d.reshape(len(scenes), n) <= self._contact_margin) & ~held[scenes]
-            normal = normal.reshape(len(scenes), n, 3)
+            d, normal = m.supports.signed_distance(x if len(worlds) == m.n_worlds else x[worlds])
+            contact = (d.reshape(len(worlds), n) <= self._contact_margin) & ~held[worlds]
+            normal = normal.reshape(len(worlds), n, 3)
         jobs = []
-        for k, s in enumerate(scenes):
+        for k, s in enumerate(worlds):
             key = (held[s].tobytes(), stiffness[s], c[s])
             ent = int(self._entry[s])
             if key != self._factor_key[s][ent]:
@@ -324,13 +324,13 @@ class QuasiNewtonSolver(Solver):
             bad = int(np.argmax(status >= 0))
             s = int(jobs[bad, 0])
             self._factor_key[s][int(jobs[bad, 1])] = None
-            raise ValueError(f"the initial Hessian of scene {s} is not positive definite: check its material "
+            raise ValueError(f"the initial Hessian of world {s} is not positive definite: check its material "
                              f"({m.materials[s]!r})")
 
     # ------------------------------------------------------------------------ step
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
-        """Advance the ``active`` scenes (default: all) by ``dt`` s in ``substeps`` equal
+        """Advance the ``active`` worlds (default: all) by ``dt`` s in ``substeps`` equal
         steps of the scheme (backward Euler or BDF2). A sub-step whose L-BFGS stops above
         its tolerance, or that has no start without inverted elements (held vertices driven
         into the tissue faster than it can give way), is taken again in ``refinements[0]``
@@ -339,7 +339,7 @@ class QuasiNewtonSolver(Solver):
         move of the held vertices);
         ``StepStats.refinement`` says by how much. A sub-step still unconverged is taken
         again by Newton's method in ``fallback[0]`` steps, then ``fallback[1]``, ...
-        (``StepStats.fallback``; its ``refinement`` then counts the Newton steps). A scene
+        (``StepStats.fallback``; its ``refinement`` then counts the Newton steps). A world
         that goes non-finite, explodes or still cannot start is flagged ``diverged`` (its
         state kept); one whose solve still stops above tolerance ``converged = False``."""
         dt, active = self._check(state_in, state_out, control, dt, active)
@@ -347,7 +347,7 @@ class QuasiNewtonSolver(Solver):
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
         m = self.model
-        N = m.n_scenes
+        N = m.n_worlds
         stats = StepStats.empty(N, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
@@ -403,7 +403,7 @@ class QuasiNewtonSolver(Solver):
                 stats.reaction += contribution
         stats.reaction /= substeps
         check = active & ~(feasible & stats.converged)  # (the others: only those divergence may flag)
-        check[self.suspect_scenes(x, v, np.flatnonzero(active))] = True
+        check[self.suspect_worlds(x, v, np.flatnonzero(active))] = True
         for s in np.flatnonzero(check):
             reason, elements = self.divergence(x[s], v[s])
             if not feasible[s]:
@@ -432,20 +432,20 @@ class QuasiNewtonSolver(Solver):
                     laws=m.heml_laws(), supports=m.supports.kernel_args(), stiffness=self._stiffnesses())
 
     def _stiffnesses(self) -> np.ndarray:
-        """:meth:`stiffness` of every scene (Pa), kept until a scene's material changes."""
+        """:meth:`stiffness` of every world (Pa), kept until a world's material changes."""
         revision, stiffness = self._stiffness
         if revision != self.model.material_revision:
-            stiffness = np.array([self.stiffness(s) for s in range(self.model.n_scenes)])
+            stiffness = np.array([self.stiffness(s) for s in range(self.model.n_worlds)])
             self._stiffness = (self.model.material_revision, stiffness)
         return stiffness
 
     def _advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
                  r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
-        """One backward Euler step of length ``h`` (s) of the ``run`` scenes, their held
+        """One backward Euler step of length ``h`` (s) of the ``run`` worlds, their held
         vertices moved a ``fraction`` of the way to their targets; the step-mean reaction
         added into ``contribution``. Returns the kernel's ``(N, 4)`` report."""
         m = self.model
-        N = m.n_scenes
+        N = m.n_worlds
         out = np.zeros((N, 4))
         if not run.any():
             return out
@@ -474,29 +474,29 @@ class QuasiNewtonSolver(Solver):
 
     def _newton_advance(self, a: dict, run: np.ndarray, h: float, fraction: float, first_substep: bool,
                         r_prev: np.ndarray, contribution: np.ndarray) -> np.ndarray:
-        """:meth:`_advance` by Newton's method, scene after scene: the same sub-step
+        """:meth:`_advance` by Newton's method, world after world: the same sub-step
         (:func:`~.kernels_quasi_newton.begin_substep`, the same incremental potential,
         :func:`~.kernels_quasi_newton.end_substep`), minimised by
         :func:`heml_gym.solvers.newton.minimize` from the lower-potential of the explicit
-        predictor and the step's start. The scene's L-BFGS curvature pairs are dropped
+        predictor and the step's start. The world's L-BFGS curvature pairs are dropped
         (its next step starts them afresh)."""
         m = self.model
-        out = np.zeros((m.n_scenes, 4))
+        out = np.zeros((m.n_worlds, 4))
         for s in np.flatnonzero(run):
-            out[s] = self._newton_scene(a, int(s), h, fraction, first_substep, r_prev[s], contribution[s])
+            out[s] = self._newton_world(a, int(s), h, fraction, first_substep, r_prev[s], contribution[s])
             self._memory[s] = (0, -1)
         return out
 
-    def _newton_scene(self, a: dict, s: int, h: float, fraction: float, first_substep: bool,
+    def _newton_world(self, a: dict, s: int, h: float, fraction: float, first_substep: bool,
                       r_prev: np.ndarray, reaction: np.ndarray) -> tuple:
-        """One sub-step of scene ``s`` by Newton; returns ``(iterations, residual (N),
+        """One sub-step of world ``s`` by Newton; returns ``(iterations, residual (N),
         converged, feasible)`` as the L-BFGS kernel reports them."""
         m = self.model
         n = m.n_vertices
         control = a["control"]
         x, v = a["x"][s], a["v"][s]
         field = m.fields[s]
-        body, law, supports = a["body"], scene_law(a["laws"], s), a["supports"]
+        body, law, supports = a["body"], world_law(a["laws"], s), a["supports"]
         work = kq.substep_work(n, self.order)
         x_n, v_n, held, f = work.x_n, work.v_n, work.held, work.f
         sub = self._substep(h, fraction, first_substep)
@@ -543,5 +543,5 @@ class QuasiNewtonSolver(Solver):
 
     @staticmethod
     def _count(stats: StepStats, run: np.ndarray, out: np.ndarray, feasible: np.ndarray) -> None:
-        """Add one kernel call's report of the ``run`` scenes to ``stats`` (and ``feasible``)."""
+        """Add one kernel call's report of the ``run`` worlds to ``stats`` (and ``feasible``)."""
         kq.count_report(run, out, stats.newton_iterations, stats.residual, stats.converged, feasible)

@@ -1,4 +1,4 @@
-"""Static equilibrium of N scenes: Newton on the potential energy, with load stepping."""
+"""Static equilibrium of N worlds: Newton on the potential energy, with load stepping."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ __all__ = ["StaticSolver"]
 
 
 class StaticSolver(Solver):
-    """Equilibrium ``f_elastic(x) + f_ext + M g = 0`` on the free vertices of every scene.
+    """Equilibrium ``f_elastic(x) + f_ext + M g = 0`` on the free vertices of every world.
 
     Parameters
     ----------
@@ -26,7 +26,7 @@ class StaticSolver(Solver):
     load_steps : int
         Loads are ramped in this many equal increments, each solved to convergence.
     tol : float
-        Each increment is solved to a force residual below ``tol`` times the scene's
+        Each increment is solved to a force residual below ``tol`` times the world's
         load (weight plus external forces, N). The residual cannot go below round-off:
         HEML's edge springs carry forces of order ``E L^2`` that cancel at equilibrium,
         so the floor is about ``1e-16 E L^2`` per vertex (``L`` the edge length); for a
@@ -49,18 +49,18 @@ class StaticSolver(Solver):
         if not (math.isfinite(tol) and tol > 0):
             raise ValueError(f"tol must be a positive number, got {tol}")
         self.load_steps, self.tol, self.max_iter = int(load_steps), tol, int(max_iter)
-        self._submatrix = [FreeSubmatrix() for _ in range(model.n_scenes)]
+        self._submatrix = [FreeSubmatrix() for _ in range(model.n_worlds)]
 
     def solve(self, state: State, control: Control, active=None) -> StepStats:
-        """Move the free vertices of the ``active`` scenes (default: all) of ``state`` to
+        """Move the free vertices of the ``active`` worlds (default: all) of ``state`` to
         equilibrium, in place, with held vertices on their targets; velocities become 0.
         ``StepStats.reaction`` holds the forces (N) the constraints then exert.
-        A scene whose last increment does not converge is flagged ``converged = False``
+        A world whose last increment does not converge is flagged ``converged = False``
         (``residual`` and ``tolerance`` say by how much); a non-finite one ``diverged``
         (its state is kept)."""
         _, active = self._check(state, state, control, 1.0, active)
         m = self.model
-        stats = StepStats.empty(m.n_scenes, m.n_vertices, self.load_steps)
+        stats = StepStats.empty(m.n_worlds, m.n_vertices, self.load_steps)
         for s in np.flatnonzero(active):
             field = m.fields[s]
             kin = control.kinematic[s]
