@@ -1,4 +1,5 @@
-"""The one registry of learning algorithms: config names to Stable-Baselines3 classes."""
+"""The one registry of learning algorithms: config names to their classes (Stable-Baselines3,
+RLlib, and behaviour cloning's hyperparameters)."""
 
 from __future__ import annotations
 
@@ -6,9 +7,10 @@ import importlib
 
 #: Algorithm name (``algorithm.name`` in a run config) -> "module:Class".
 ALGORITHMS = {"PPO": "stable_baselines3:PPO", "SAC": "stable_baselines3:SAC",
-              "RLlibPPO": "ray.rllib.algorithms.ppo:PPO"}
-#: Which training path runs each algorithm: Stable-Baselines3, or RLlib (distributed sampling).
-BACKENDS = {"PPO": "sb3", "SAC": "sb3", "RLlibPPO": "rllib"}
+              "RLlibPPO": "ray.rllib.algorithms.ppo:PPO", "BC": "heml_gym.agents.bc:BehaviourCloning"}
+#: Which training path runs each algorithm: Stable-Baselines3, RLlib (distributed sampling),
+#: or behaviour cloning from demonstrations (:mod:`heml_gym.agents.bc`).
+BACKENDS = {"PPO": "sb3", "SAC": "sb3", "RLlibPPO": "rllib", "BC": "bc"}
 
 
 def algorithm_class(name: str):

@@ -68,9 +68,12 @@ def _train(args) -> int:
                    address=args.address)
     ev = result["final_evaluation"]
     print(f"run folder: {result['run_dir']}  ({result['timesteps']} env steps)")
-    model_file = "rllib_checkpoint/" if (Path(result["run_dir"]) / "rllib_checkpoint").is_dir() else "model.zip"
-    print(f"  model:       {Path(result['run_dir']) / model_file}")
-    print(f"  checkpoints: {Path(result['run_dir']) / 'checkpoints'}")
+    run_dir = Path(result["run_dir"])
+    model_file = "rllib_checkpoint/" if (run_dir / "rllib_checkpoint").is_dir() else (
+        "policy.pt" if (run_dir / "policy.pt").is_file() else "model.zip")
+    print(f"  model:       {run_dir / model_file}")
+    if (run_dir / "checkpoints").is_dir():
+        print(f"  checkpoints: {run_dir / 'checkpoints'}")
     if (Path(result["run_dir"]) / "tb").is_dir():
         print(f"  tensorboard: tensorboard --logdir {Path(result['run_dir']) / 'tb'}")
     print(f"  evaluation:  success {ev['success_rate']:.0%} (95% CI {ev['success_ci95'][0]:.0%}-"
@@ -238,6 +241,20 @@ def _export(args) -> int:
         if len(values) != 6:
             raise ValueError(f"--workspace: six numbers (m), x0,y0,z0,x1,y1,z1, got {len(values)}")
         workspace = (values[:3], values[3:])
+    from .bc import is_bc_run
+
+    if is_bc_run(Path(args.run)):  # behaviour cloning: its network and statistics, read without unpickling
+        from .bc import load_bc_network
+        from .config import load_config
+        from .run_files import NORMALIZER_FILE, load_normalizer
+
+        cfg = load_config(Path(args.run) / "config.yaml")
+        model = load_bc_network(Path(args.run), cfg)[0]
+        normalizer = load_normalizer(Path(args.run) / NORMALIZER_FILE)
+        export_policy(model, normalizer, out, cfg.env.id, run=str(args.run), speed_limit=args.speed_limit,
+                      workspace=workspace, max_speed=make_env(cfg).unwrapped.task.settings.max_speed)
+        print(f"written: {out}  (heml-gym rollout --policy {out} --rrd r.rrd)")
+        return 0
     path, cfg = model_file(args.run)
     if cfg is None:
         raise ExportError(f"{path}: no run config beside it (export reads a run folder or a checkpoint of one)")

@@ -20,6 +20,9 @@ evaluation / checkpoint schedule::
     checkpoint: {every_steps: 50000}
     seed: 0
 
+Behaviour cloning (``algorithm.name: BC``) learns from demonstrations instead, named in a
+``demos`` section (:class:`DemosConfig`, :mod:`heml_gym.agents.bc`).
+
 A config may start from another: ``base: quick.yaml`` (a path relative to the config's own
 folder) reads that config first and lays this one's keys over it (nested mappings merge,
 anything else replaces), so an ablation names only what it changes::
@@ -39,6 +42,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import types
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
@@ -93,12 +97,26 @@ class ConstraintConfig:
 
 
 @dataclass
+class DemosConfig:
+    """The demonstrations of a BC run (:mod:`heml_gym.agents.bc`): the local Minari dataset
+    ``dataset``, recorded first (``policy`` for ``episodes`` episodes seeded from ``seed``)
+    when it is not in ``root`` (None: ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``)."""
+
+    dataset: str | None = None
+    policy: str = "scripted"
+    episodes: int = 100
+    seed: int = 0
+    root: str | None = None
+
+
+@dataclass
 class RunConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     constraint: ConstraintConfig = field(default_factory=ConstraintConfig)
+    demos: DemosConfig = field(default_factory=DemosConfig)
     seed: int = 0
     name: str = "run"
 
@@ -130,12 +148,11 @@ def _build(cls, data: Any, path: str):
         if is_dataclass(expected):
             kwargs[name] = _build(expected, value, key)
             continue
-        optional = expected == (float | None)
-        if optional:
+        if isinstance(expected, types.UnionType):  # "X | None": None, or an X
             if value is None:
                 kwargs[name] = None
                 continue
-            expected = float
+            expected = next(t for t in expected.__args__ if t is not type(None))
         if expected is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if expected is int and isinstance(value, float) and value.is_integer():
@@ -165,6 +182,7 @@ def validate(cfg: RunConfig) -> RunConfig:
             if not ok:
                 raise ConfigError(f"config key 'constraint.{key}' must be a finite number "
                                   f"{'>= 0' if low is not None else '> 0'}, got {value!r}")
+    _check_demos(cfg)
     if cfg.env.obs_mode not in OBS_MODES:
         raise ConfigError(f"config key 'env.obs_mode' must be one of {OBS_MODES}, got {cfg.env.obs_mode!r}")
     for key, value in [("env.num_envs", cfg.env.num_envs),
@@ -189,6 +207,29 @@ def validate(cfg: RunConfig) -> RunConfig:
         raise ConfigError(f"config key {exc}") from None
     _check_hyperparameters(cfg)
     return cfg
+
+
+def _check_demos(cfg: RunConfig) -> None:
+    """A BC run names its demonstrations and reads state observations; no other run has demos."""
+    d = cfg.demos
+    if BACKENDS[cfg.algorithm.name] != "bc":
+        if d != DemosConfig():
+            raise ConfigError(f"config key 'demos': only BC runs read demonstrations, not {cfg.algorithm.name}")
+        return
+    if not d.dataset or not d.dataset.strip():
+        raise ConfigError("config key 'demos.dataset': name the Minari dataset to learn from (e.g. "
+                          "heml-gym/tissue-retraction-scripted-100-v0; recorded first when it is not there)")
+    if d.episodes < 1:
+        raise ConfigError(f"config key 'demos.episodes' must be >= 1, got {d.episodes}")
+    if cfg.env.obs_mode != "state":
+        raise ConfigError(f"config key 'env.obs_mode': BC reads the state observation, got {cfg.env.obs_mode!r}")
+    from .bc import BehaviourCloning
+
+    try:
+        BehaviourCloning(**{k: v for k, v in cfg.algorithm.hyperparameters.items()
+                            if k in inspect.signature(BehaviourCloning).parameters})
+    except ValueError as exc:
+        raise ConfigError(f"config key 'algorithm.hyperparameters.{exc}'") from None
 
 
 #: hyperparameters of the RLlib path that are not PPOConfig.training arguments

@@ -71,8 +71,13 @@ def _layers(module) -> list[tuple[str, object]]:
 
 def policy_layers(model) -> tuple[list, bool]:
     """The deterministic policy's layers from the (normalised) observation to the action,
-    and whether its output is squashed by tanh (SAC)."""
+    and whether its output is squashed by tanh (SAC); a ``torch.nn.Sequential`` (a BC
+    network, :mod:`heml_gym.agents.bc`) is its own layers."""
+    import torch.nn as nn
     from stable_baselines3 import PPO, SAC
+
+    if isinstance(model, nn.Sequential):
+        return _layers(model), False
 
     policy = model.policy
     if isinstance(model, PPO):
@@ -89,6 +94,16 @@ def policy_layers(model) -> tuple[list, bool]:
     raise ExportError(f"{type(model).__name__} policies do not export (PPO and SAC do)")
 
 
+def observation_size(model) -> int | None:
+    """The length of the observation ``model`` reads (an SB3 model, or a torch MLP: its
+    first layer's inputs); None for a non-vector observation."""
+    import torch.nn as nn
+
+    if isinstance(model, nn.Sequential):
+        return next(m.in_features for m in model.modules() if isinstance(m, nn.Linear))
+    return int(model.observation_space.shape[0]) if model.observation_space.shape else None
+
+
 def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limit: float | None = None,
                   workspace: tuple | None = None, max_speed: float = 0.05) -> Path:
     """Write ``model`` (SB3 PPO / SAC) with ``normalizer`` (the run's VecNormalize statistics,
@@ -99,7 +114,7 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
 
     from heml_gym.envs import STATE_SPEC
 
-    obs_dim = int(model.observation_space.shape[0]) if model.observation_space.shape else None
+    obs_dim = observation_size(model)
     if obs_dim != len(STATE_SPEC):
         raise ExportError(f"the policy reads {model.observation_space} observations; only the state observation "
                           f"({len(STATE_SPEC)} fields) exports")

@@ -195,6 +195,12 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
                            trust_pickle=trust_pickle)
     if address is not None:
         raise ConfigError("--address is for RLlibPPO runs; spread SB3 runs over a cluster with heml-gym sweep")
+    if BACKENDS[cfg.algorithm.name] == "bc":
+        if resume is not None:
+            raise ConfigError("--resume: a BC run is fitted in one go (train it again)")
+        from .bc import train_bc
+
+        return train_bc(cfg, run_dir, progress_bar=progress_bar)
     if resume is not None:
         resume = Path(resume)
         check_resume(cfg, resume)
@@ -274,9 +280,13 @@ def load_policy(path: str | Path, trust_pickle: bool = False):
     with only the former pickled statistics and an RLlib checkpoint (RLlib pickles its
     modules) are refused with :class:`~heml_gym.agents.run_files.UntrustedPickle` unless
     ``trust_pickle``: for folders you trust."""
+    from .bc import is_bc_run, load_bc_policy
     from .rllib_backend import is_rllib_run, load_rllib_policy
 
     path = Path(path)
+    if is_bc_run(path):
+        cfg = load_config(path / "config.yaml")
+        return load_bc_policy(path, cfg), None, cfg
     if is_rllib_run(path):
         if not trust_pickle:
             raise UntrustedPickle(f"{path} is an RLlib checkpoint, which RLlib reads by unpickling (code in it would "

@@ -1,0 +1,79 @@
+"""Behaviour cloning across seeds (issue 35, item 4): BC from 100 scripted episodes per env.
+
+Records each env's demonstration dataset once (``heml-gym demos ENV --policy scripted
+--episodes 100``, seeds 0-99, into ``runs/minari``), then fits ``configs/<env>_bc.yaml``
+for each seed on a local Ray instance (one CPU per trial, ``heml-gym sweep``; finished
+trials are kept) and stores per seed the final success on 20 fresh episodes (the same
+evaluation seeds as the RL results), as ``docs/benchmarks/<env>_bc_sweep.{json,md}`` and
+``docs/img/<env>_bc_sweep.png`` (the RL sweeps' format, so ``agent_results.py`` lists BC
+beside PPO and SAC).
+
+    python -m heml_gym.benchmarks.learning.bc [--envs tissue,organ] [--seeds 0,1,2,3,4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, write_json
+
+#: env name -> its BC config
+CONFIGS = {"tissue": "configs/tissue_bc.yaml", "organ": "configs/organ_bc.yaml"}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--envs", default="tissue,organ", help=f"comma-separated, of {', '.join(CONFIGS)}")
+    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--out", default=str(ROOT / "runs"), help="where the run folders and datasets go")
+    args = ap.parse_args(argv)
+    envs = [e for e in args.envs.split(",") if e]
+    unknown = [e for e in envs if e not in CONFIGS]
+    if unknown or not envs:
+        ap.error(f"--envs: give names among {', '.join(CONFIGS)}, got {args.envs!r}")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    out = Path(args.out)
+    root = (out / "minari").resolve()
+    os.environ["MINARI_DATASETS_PATH"] = str(root)  # Ray's workers inherit it
+
+    import minari
+
+    from heml_gym.agents.config import load_config
+    from heml_gym.agents.demos import collect_demos
+    from heml_gym.agents.sweep import chart, plan_sweep, run_sweep
+    from heml_gym.benchmarks.learning.quick_sweep import collect, table
+
+    for env in envs:
+        config = ROOT / CONFIGS[env]
+        cfg = load_config(config)
+        if cfg.demos.dataset not in minari.list_local_datasets():  # once, before the trials read it in parallel
+            summary = collect_demos(cfg.env.id, cfg.demos.policy, cfg.demos.episodes, cfg.demos.dataset,
+                                    seed=cfg.demos.seed)
+            print(f"{cfg.demos.dataset}: {summary['episodes']} episodes, {summary['steps']} steps, demonstrator "
+                  f"success {summary['success_rate']:.0%}", flush=True)
+        sweep_dir = out / f"sweep-{env}_bc"
+        trials = plan_sweep(config, seeds, {"demos.root": str(root)}, {}, sweep_dir)
+        summary = run_sweep(trials, sweep_dir, verbose=False)
+        name = f"{env}_bc_sweep"
+        command = f"python -m heml_gym.benchmarks.learning.bc --envs {env}" + (
+            f" --seeds {args.seeds}" if args.seeds != ap.get_default("seeds") else "")
+        result = collect(trials, summary, config, max(1, os.cpu_count() or 1), command)
+        dataset = minari.load_dataset(cfg.demos.dataset)
+        result["demos"] = {"dataset": cfg.demos.dataset, "policy": cfg.demos.policy,
+                           "episodes": int(dataset.total_episodes), "transitions": int(dataset.total_steps)}
+        result["note"] = (f"BC from {dataset.total_episodes} episodes ({dataset.total_steps:,} transitions) of the "
+                          f"{cfg.demos.policy} policy; it takes no env steps while it learns (the env steps column: "
+                          "demonstration transitions).")
+        write_json(f"{name}.json", result, envs=[cfg.env.id])
+        text = table(result, name)
+        (RESULTS / f"{name}.md").write_text(text)
+        IMAGES.mkdir(parents=True, exist_ok=True)
+        chart(trials, summary, IMAGES / f"{name}.png")
+        print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
