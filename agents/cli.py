@@ -273,7 +273,7 @@ def _demos(args) -> int:
 
     _known_env(args.env, "ENV")
     summary = collect_demos(args.env, args.policy, args.episodes, args.out, seed=args.seed, root=args.root,
-                            reference_episodes=args.reference_episodes)
+                            reference_episodes=args.reference_episodes, action_noise=args.action_noise)
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -365,6 +365,9 @@ def main(argv=None) -> int:
     d.add_argument("--seed", type=int, default=0, help="episode k is reset with seed + k")
     d.add_argument("--root", help="the Minari datasets folder (default: MINARI_DATASETS_PATH or ~/.minari/datasets)")
     d.add_argument("--reference-episodes", type=int, default=5, help="random episodes for Minari's ref_min_score")
+    d.add_argument("--action-noise", type=float, default=0.0,
+                   help="std of Gaussian noise on the executed velocity commands (the policy's own action is kept in "
+                        "infos['expert_action']: demonstrations that show recovery, for behaviour cloning)")
     d.set_defaults(func=_demos)
 
     o = sub.add_parser("observe", help="record an observation file (.npz) from a simulated scripted retraction")

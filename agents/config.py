@@ -100,13 +100,16 @@ class ConstraintConfig:
 class DemosConfig:
     """The demonstrations of a BC run (:mod:`heml_gym.agents.bc`): the local Minari dataset
     ``dataset``, recorded first (``policy`` for ``episodes`` episodes seeded from ``seed``)
-    when it is not in ``root`` (None: ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``)."""
+    when it is not in ``root`` (None: ``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``),
+    its velocity commands executed with Gaussian noise of standard deviation ``action_noise``
+    (:mod:`heml_gym.agents.demos`)."""
 
     dataset: str | None = None
     policy: str = "scripted"
     episodes: int = 100
     seed: int = 0
     root: str | None = None
+    action_noise: float = 0.0
 
 
 @dataclass
@@ -221,6 +224,8 @@ def _check_demos(cfg: RunConfig) -> None:
                           "heml-gym/tissue-retraction-scripted-100-v0; recorded first when it is not there)")
     if d.episodes < 1:
         raise ConfigError(f"config key 'demos.episodes' must be >= 1, got {d.episodes}")
+    if not (math.isfinite(d.action_noise) and d.action_noise >= 0):
+        raise ConfigError(f"config key 'demos.action_noise' must be a finite number >= 0, got {d.action_noise}")
     if cfg.env.obs_mode != "state":
         raise ConfigError(f"config key 'env.obs_mode': BC reads the state observation, got {cfg.env.obs_mode!r}")
     from .bc import BehaviourCloning

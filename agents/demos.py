@@ -5,6 +5,13 @@ Rolls a policy (the scripted fold, a shipped pretrained policy, a run folder or 
 (observations, actions, rewards, terminations, truncations, and every step's ``info``:
 grasp force, gauge strain, exposure, cost, ...), loadable with ``minari.load_dataset(NAME)``.
 Datasets go under ``MINARI_DATASETS_PATH`` (``--root``), else ``~/.minari/datasets``.
+
+``--action-noise SIGMA`` adds Gaussian noise of standard deviation SIGMA to the gripper's
+three velocity commands the env executes (the grasp command is kept): the episodes then
+visit the states around the demonstrator's path and show how it recovers from them, what
+behaviour cloning needs to hold its course (DART, Laskey et al. 2017). ``actions`` are
+what the env executed; the demonstrator's own action at step t is
+``infos["expert_action"][t + 1]`` (``infos[0]`` is the reset's), the label to imitate.
 The dataset's ``ref_max_score`` is the demonstrations' mean return; its ``ref_min_score``
 is Minari's estimate from ``reference_episodes`` random episodes.
 """
@@ -41,10 +48,15 @@ def _policy(spec: str, env_id: str):
 
 
 def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed: int = 0,
-                  root: str | os.PathLike | None = None, reference_episodes: int = 5) -> dict:
-    """Write ``episodes`` episodes of ``policy`` in ``env_id`` as Minari dataset ``dataset_id``."""
+                  root: str | os.PathLike | None = None, reference_episodes: int = 5,
+                  action_noise: float = 0.0) -> dict:
+    """Write ``episodes`` episodes of ``policy`` in ``env_id`` as Minari dataset ``dataset_id``;
+    ``action_noise``: the standard deviation of the noise on the executed velocity commands
+    (see the module's docstring)."""
     if episodes < 1:
         raise ValueError(f"--episodes: must be >= 1, got {episodes}")
+    if not (isinstance(action_noise, (int, float)) and np.isfinite(action_noise) and action_noise >= 0):
+        raise ValueError(f"--action-noise: a finite standard deviation >= 0, got {action_noise!r}")
     if root is not None:
         os.environ["MINARI_DATASETS_PATH"] = str(Path(root).expanduser().resolve())
     import gymnasium as gym
@@ -59,16 +71,25 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
     act, name = _policy(policy, env_id)
     env = gym.make(env_id)
     buffers, returns, successes = [], [], 0
+    noise = np.random.default_rng(seed)
     for k in range(episodes):  # (Minari's DataCollector would need jax; the buffers are written directly)
         obs, info = env.reset(seed=seed + k)
         if hasattr(act, "reset"):
             act.reset()
         observations, actions, rewards, terminations, truncations = [obs], [], [], [], []
+        if action_noise:
+            info = {**info, "expert_action": np.zeros(env.action_space.shape, dtype=np.float32)}
         infos = {key: [value] for key, value in info.items()}
         done = False
         while not done:
             action = np.asarray(act(obs), dtype=np.float32)
+            expert = action
+            if action_noise:
+                action = action.copy()
+                action[:3] = np.clip(action[:3] + action_noise * noise.standard_normal(3), -1.0, 1.0)
             obs, reward, terminated, truncated, info = env.step(action)
+            if action_noise:
+                info = {**info, "expert_action": expert}
             observations.append(obs)
             actions.append(action)
             rewards.append(float(reward))
@@ -89,10 +110,12 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
         dataset = minari.create_dataset_from_buffers(
             dataset_id=dataset_id, buffer=buffers, env=env_id, eval_env=env_id, algorithm_name=name,
             author="heml-gym", ref_max_score=float(np.mean(returns)), num_episodes_average_score=reference_episodes,
-            description=f"{episodes} episodes of {name} in {env_id} (seeds {seed}-{seed + episodes - 1}); infos "
-                        "hold grasp_force (N), max_strain, exposure, cost and damage (strain x s) per step",
+            description=f"{episodes} episodes of {name} in {env_id} (seeds {seed}-{seed + episodes - 1})"
+                        + (f", its velocity commands executed with Gaussian noise of standard deviation "
+                           f"{action_noise:g} (its own action: infos['expert_action'][t + 1])" if action_noise else "")
+                        + "; infos hold grasp_force (N), max_strain, exposure, cost and damage (strain x s) per step",
             requirements=["heml-gym"])
     env.close()
     return {"dataset": dataset_id, "episodes": dataset.total_episodes, "steps": int(dataset.total_steps),
-            "success_rate": successes / episodes, "mean_return": float(np.mean(returns)),
+            "success_rate": successes / episodes, "mean_return": float(np.mean(returns)), "action_noise": action_noise,
             "root": os.environ.get("MINARI_DATASETS_PATH", str(Path.home() / ".minari" / "datasets"))}

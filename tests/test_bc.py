@@ -107,6 +107,7 @@ def test_a_bc_run_trains_from_demos_loads_without_pickle_and_exports(tmp_path):
     ({"algorithm": {"hyperparameters": {"hidden": [0]}}}, "hidden"),
     ({"demos": {"dataset": None}}, "demos.dataset"),
     ({"demos": {"episodes": 0}}, "demos.episodes"),
+    ({"demos": {"action_noise": -0.1}}, "demos.action_noise"),
     ({"algorithm": {"name": "PPO", "hyperparameters": {}}}, "demos"),
 ])
 def test_a_bad_bc_config_fails_naming_the_key(tmp_path, change, key):

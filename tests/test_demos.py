@@ -43,3 +43,38 @@ def test_a_scripted_demo_dataset_loads_and_equals_a_direct_rollout(tmp_path, mon
     # a second dataset of the same name is refused, nothing overwritten
     assert main(["demos", TISSUE_RETRACTION, "--out", name, "--episodes", "1", "--root", str(tmp_path)]) == 2
     assert "exists" in capsys.readouterr().err
+
+
+def test_noisy_demos_keep_the_demonstrators_own_actions_as_labels(tmp_path, monkeypatch):
+    """With --action-noise the env executes perturbed velocity commands (the stored
+    actions: replaying them reproduces the episode) while infos['expert_action'] holds what
+    the scripted policy itself chose at each stored observation (recomputed here by a fresh
+    scripted policy fed the stored observations); the grasp command is never perturbed."""
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    name = "heml-gym/tissue-retraction/noisy-v0"
+    assert main(["demos", TISSUE_RETRACTION, "--out", name, "--episodes", "2", "--seed", "7",
+                 "--action-noise", "0.3", "--root", str(tmp_path)]) == 0
+
+    import minari
+
+    env = gym.make(TISSUE_RETRACTION)
+    policy = scripted_policy(env.unwrapped.scene)
+    perturbed = 0
+    for k, episode in enumerate(minari.load_dataset(name).iterate_episodes()):
+        expert = np.asarray(episode.infos["expert_action"])
+        assert expert.shape == (len(episode.actions) + 1, 4)
+        policy.reset()
+        obs, _ = env.reset(seed=7 + k)
+        for t in range(len(episode.actions)):
+            np.testing.assert_allclose(expert[t + 1], policy(episode.observations[t]), atol=1e-6)
+            assert episode.actions[t][3] == expert[t + 1][3]  # the grasp command as chosen
+            perturbed += bool(np.abs(episode.actions[t][:3] - expert[t + 1][:3]).max() > 1e-3)
+            obs, *_ = env.step(episode.actions[t])
+            np.testing.assert_array_equal(episode.observations[t + 1], obs)
+    assert perturbed > 10
+
+
+def test_bad_action_noise_is_refused(tmp_path, capsys):
+    assert main(["demos", TISSUE_RETRACTION, "--out", "heml-gym/x/y-v0", "--action-noise", "-1",
+                 "--root", str(tmp_path)]) == 2
+    assert "--action-noise" in capsys.readouterr().err

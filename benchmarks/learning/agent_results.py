@@ -1,4 +1,4 @@
-"""Learning results across seeds: PPO and SAC on both retraction tasks.
+"""Learning results across seeds: PPO, SAC and behaviour cloning on both retraction tasks.
 
 Collects the seed sweeps of the shipped configs (each run by ``benchmarks/learning/quick_sweep.py``,
 i.e. ``heml-gym sweep CONFIG --seeds ...``, one CPU per trial; ``SWEEPS`` below names
@@ -34,13 +34,20 @@ SWEEPS = [
      "0,1,2,3,4"),
     ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v1", 2,
      "0,1,2,3,4"),
+    ("tissue_bc_sweep", "configs/tissue_bc.yaml", "BC", "heml_gym/TissueRetraction-v1", 1, "0,1,2,3,4"),
+    ("organ_bc_sweep", "configs/organ_bc.yaml", "BC", "heml_gym/OrganRetraction-v1", 1, "0,1,2,3,4"),
 ]
+#: algorithms that learn from demonstrations, without env steps (no learning curve: a line at their IQM)
+OFFLINE = ("BC",)
 #: line colours of the chart by (algorithm, difficulty)
-COLOURS = {("PPO", 1): "tab:blue", ("SAC", 1): "tab:orange", ("PPO", 2): "tab:purple", ("SAC", 2): "tab:brown"}
+COLOURS = {("PPO", 1): "tab:blue", ("SAC", 1): "tab:orange", ("PPO", 2): "tab:purple", ("SAC", 2): "tab:brown",
+           ("BC", 1): "tab:green"}
 BAR_SUCCESS = 0.9
 
 
 def command(name: str, config: str, seeds: str) -> str:
+    if name.endswith("_bc_sweep"):
+        return f"python -m heml_gym.benchmarks.learning.bc --envs {name.split('_')[0]} --seeds {seeds}"
     if name == "quick_sweep":
         return f"python benchmarks/learning/quick_sweep.py --seeds {seeds}"
     return f"python benchmarks/learning/quick_sweep.py --config {config} --name {name} --seeds {seeds}"
@@ -96,9 +103,12 @@ def collect() -> dict:
                  "trials_at_once": sweep.get("trials_at_once"), "command": sweep.get("command"),
                  "seeds": done, "failed_seeds": [s for s in sweep["seeds"] if s["status"] != "finished"],
                  "seeds_at_90_percent": sum(f >= BAR_SUCCESS for f in finals)}
+        if "demos" in sweep:
+            group["demos"] = sweep["demos"]
         if finals:
             group["iqm"] = iqm(finals)
             group["iqm_ci95"] = list(iqm_interval(finals))
+        if finals and algo not in OFFLINE:
             steps = np.unique([e["env_steps"] for s in done for e in s["evaluations"]])
             group["curve_steps"] = curve_iqm(done, "env_steps", steps.astype(float))
             if all("wall_s" in e for s in done for e in s["evaluations"]):
@@ -129,6 +139,11 @@ def chart(results: dict, path: Path) -> None:
                     if all(key in e for e in s["evaluations"]):
                         ax.plot([e[key] / scale for e in s["evaluations"]],
                                 [e["success_rate"] for e in s["evaluations"]], color=c, alpha=0.3, lw=0.9)
+                if g["algorithm"] in OFFLINE and "iqm" in g:
+                    demos = g.get("demos", {})
+                    ax.axhline(g["iqm"], color=c, lw=2.4, ls="-.",
+                               label=f"{g['algorithm']} from {demos.get('episodes', '?')} {demos.get('policy', '')} "
+                                     f"demos (no env steps): IQM of {len(g['seeds'])} seeds")
                 if curve in g:
                     x = np.array(g[curve]["x"]) / scale
                     ax.plot(x, g[curve]["iqm"], color=c, lw=2.4,
@@ -169,9 +184,11 @@ def markdown(results: dict) -> str:
                      f"{g['seeds_at_90_percent']} of {len(g['seeds'])}",
                      " / ".join(f"{s['success_rate']:.0%}" for s in g["seeds"]),
                      f"{g['iqm']:.0%} ({g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})" if "iqm" in g else "-",
+                     "- (offline)" if g["algorithm"] in OFFLINE else
                      (f"{min(reached) // 1000}-{max(reached) // 1000} k" if reached else "never")
                      + (f" ({len(firsts) - len(reached)} never)" if reached and len(reached) < len(firsts) else ""),
-                     f"{max(s['env_steps'] for s in g['seeds']) // 1000} k",
+                     f"0 ({g['demos']['transitions']:,} demo steps)" if g["algorithm"] in OFFLINE and "demos" in g
+                     else f"{max(s['env_steps'] for s in g['seeds']) // 1000} k",
                      f"{min(walls):.1f}-{max(walls):.1f}",
                      f"{g['machine']['cpu']}, {g['machine']['date']}, {g['trials_at_once']} at a time"])
     if rows:

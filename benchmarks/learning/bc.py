@@ -1,7 +1,7 @@
 """Behaviour cloning across seeds (issue 35, item 4): BC from 100 scripted episodes per env.
 
 Records each env's demonstration dataset once (``heml-gym demos ENV --policy scripted
---episodes 100``, seeds 0-99, into ``runs/minari``), then fits ``configs/<env>_bc.yaml``
+--episodes 100 --action-noise 0.3``, seeds 0-99, into ``runs/minari``), then fits ``configs/<env>_bc.yaml``
 for each seed on a local Ray instance (one CPU per trial, ``heml-gym sweep``; finished
 trials are kept) and stores per seed the final success on 20 fresh episodes (the same
 evaluation seeds as the RL results), as ``docs/benchmarks/<env>_bc_sweep.{json,md}`` and
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
         cfg = load_config(config)
         if cfg.demos.dataset not in minari.list_local_datasets():  # once, before the trials read it in parallel
             summary = collect_demos(cfg.env.id, cfg.demos.policy, cfg.demos.episodes, cfg.demos.dataset,
-                                    seed=cfg.demos.seed)
+                                    seed=cfg.demos.seed, action_noise=cfg.demos.action_noise)
             print(f"{cfg.demos.dataset}: {summary['episodes']} episodes, {summary['steps']} steps, demonstrator "
                   f"success {summary['success_rate']:.0%}", flush=True)
         sweep_dir = out / f"sweep-{env}_bc"
@@ -62,9 +62,11 @@ def main(argv=None) -> int:
         result = collect(trials, summary, config, max(1, os.cpu_count() or 1), command)
         dataset = minari.load_dataset(cfg.demos.dataset)
         result["demos"] = {"dataset": cfg.demos.dataset, "policy": cfg.demos.policy,
+                           "action_noise": cfg.demos.action_noise,
                            "episodes": int(dataset.total_episodes), "transitions": int(dataset.total_steps)}
         result["note"] = (f"BC from {dataset.total_episodes} episodes ({dataset.total_steps:,} transitions) of the "
-                          f"{cfg.demos.policy} policy; it takes no env steps while it learns (the env steps column: "
+                          f"{cfg.demos.policy} policy, its velocity commands executed with Gaussian noise of "
+                          f"standard deviation {cfg.demos.action_noise:g} (its own actions the labels); it takes no env steps while it learns (the env steps column: "
                           "demonstration transitions).")
         write_json(f"{name}.json", result, envs=[cfg.env.id])
         text = table(result, name)
