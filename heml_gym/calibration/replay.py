@@ -157,6 +157,9 @@ class Replay:
         if model.supports.kernel_args().grids.shape[0]:
             raise ReplayError("replays differentiate plane supports only (a mesh support's curvature is not)")
         self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
+        #: each sub-step's converged positions of the latest run: the next run's Newton may
+        #: start there (a fit's successive constants are close, so are their trajectories)
+        self._previous: list[np.ndarray] = []
         self.steps = None if steps is None else np.asarray(steps, dtype=np.float64)
         self.tol = float(tol) * max(float(np.linalg.norm(model.gravity) * model.mass.sum()), 1e-12)
         self.contact_stiffness = float(contact_stiffness)
@@ -213,6 +216,7 @@ class Replay:
         x, v = log.x0.copy(), log.v0.copy()
         xs, forces = [x.copy()], []
         tape, iterations, worst = [], 0, 0.0
+        previous, self._previous = self._previous, []
         ext = np.zeros((n, 3))
         history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
         for t in range(log.steps):
@@ -242,16 +246,20 @@ class Replay:
                 def hessian(y, project, c=c, k_contact=k_contact, held=held, args=args):
                     return self._step_hessian(y.reshape(n, 3), c, k_contact, held, args, project)
 
-                y0, best = x.copy(), math.inf
-                for candidate in (work.x_n + h * work.v_n, work.x_n.copy()):  # the lower-potential start
+                y0, best, warm = x.copy(), math.inf, False
+                starts = [work.x_n + h * work.v_n, work.x_n.copy()]
+                if len(previous) > len(self._previous):  # where the previous run's Newton ended
+                    starts.append(previous[len(self._previous)].copy())
+                for i, candidate in enumerate(starts):  # the lowest-potential start
                     candidate[held] = x[held]
                     phi = potential(candidate)
                     if phi < best:
-                        y0, best = candidate, phi
+                        y0, best, warm = candidate, phi, i == 2
                 free = np.repeat(~held, 3)
                 with np.errstate(all="ignore"):
                     result = minimize(y0, potential, gradient, hessian, free, self.tol, self.max_iter,
-                                      self._submatrix, self._linear, (free.tobytes(), h), stall_limit=None)
+                                      self._submatrix, self._linear, (free.tobytes(), h), stall_limit=None,
+                                      min_iter=2 if warm else 0)  # (a warm start may lie within tol already)
                 if not (result.finite and result.converged):
                     raise ReplayError(f"control step {t}, sub-step {k}: Newton stopped at a force residual of "
                                       f"{result.residual:.3g} N, above the replay's tolerance of {self.tol:.3g} N "
@@ -260,6 +268,7 @@ class Replay:
                 iterations += result.iterations
                 worst = max(worst, result.residual)
                 y = result.x.reshape(n, 3)
+                self._previous.append(y.copy())
                 x[:] = y
                 kq.potential_and_gradient(x, True, g, f, dist, normal, *args)
                 inside = (dist < 0.0) & ~held if n_supports else np.zeros(n, dtype=bool)

@@ -26,7 +26,7 @@ class NewtonResult:
 
 
 def minimize(x, potential, gradient, hessian, free, tol, max_iter, submatrix: FreeSubmatrix,
-             pcg=None, pcg_key=None, stall_limit: int | None = 5) -> NewtonResult:
+             pcg=None, pcg_key=None, stall_limit: int | None = 5, min_iter: int = 0) -> NewtonResult:
     """Minimise ``potential`` over the free dofs (``free``: ``(3n,)`` mask) from ``x`` by Newton.
 
     Each iteration solves with the exact Hessian first and, if that gives no descent
@@ -38,8 +38,10 @@ def minimize(x, potential, gradient, hessian, free, tol, max_iter, submatrix: Fr
     non-finite energies (inverted elements of ln J laws) are halved. It stops when the
     residual is below ``tol`` (N), after ``max_iter`` iterations, when the line search
     finds no progress, or after ``stall_limit`` iterations in a row that cut the residual
-    by less than 1 % (the round-off floor; None: never). ``hessian(x, project)`` returns a
-    CSR matrix.
+    by less than 1 % (the round-off floor; None: never); it takes at least ``min_iter``
+    iterations (a start already within ``tol`` of another problem's minimum, such as the
+    solution for nearby constants, is still moved to this one's). ``hessian(x, project)``
+    returns a CSR matrix.
     """
     g = gradient(x)
     gnorm = float(np.linalg.norm(g[free]))
@@ -47,7 +49,7 @@ def minimize(x, potential, gradient, hessian, free, tol, max_iter, submatrix: Fr
     stalled = 0
     phi_x = None
     limit = np.inf if stall_limit is None else stall_limit
-    while gnorm > tol and it < max_iter and stalled < limit:
+    while (gnorm > tol or it < min_iter) and it < max_iter and stalled < limit:
         it += 1
         gf = g[free]
         for project in (False, True):
