@@ -20,97 +20,182 @@ Timelines
                   included), so episodes lie one after another.
 ``sim_time``      duration (s): ``step * control_dt``, simulated time with episodes laid
                   end to end, each reset frame one ``control_dt`` after the previous
-                  episode's last frame.
+                  episode's last frame (the timeline the blueprint plays).
 ``episode``       sequence: episode index (0-based).
 ``episode_step``  sequence: env steps since the episode's reset (0 on the reset frame).
-                  Simulated time within the episode is ``episode_step * control_dt``.
+                  Simulated time within the episode is ``episode_step * control_dt``;
+                  switch the time panel to it to lay the episodes' plot lines over each
+                  other (each episode has its own series, see below).
 
 Entities
 --------
 ``world``                     static view coordinates (right-handed, z up).
 ``world/tissue``              :class:`rerun.Mesh3D`: the tissue surface, flat-shaded (each
                               surface triangle with its own three vertices and its face
-                              normal, so a flat slab does not look creased; m), coloured by
-                              the strain of the most strained mesh edge at each vertex (a
-                              local view; pale pink at rest to red at
-                              ``settings.damage_strain``); the triangles are logged once,
-                              statically.
+                              normal; m), coloured by the *gauge strain* (the strain
+                              ``info["max_strain"]`` is the largest of, see
+                              :mod:`heml_gym.envs.strain_gauges`): a vertex shows the largest
+                              strain of the gauge segments at its nearest gauge point (and
+                              of every gauge point whose nearest surface vertex it is), so
+                              the reddest vertex shows the plotted max gauge strain; pale
+                              pink (``palette.TISSUE``) at 0, linearly to red
+                              (``palette.STRAINED``) at ``settings.damage_strain`` and above
+                              (:func:`strain_colours`; the ``legend/strain_scale`` colour
+                              bar). The triangles are logged once, statically.
 ``world/attachment``          static :class:`rerun.Points3D`: the fixed tissue vertices.
-``world/support``             static :class:`rerun.Mesh3D`: what the tissue rests on.
+``world/support``             static :class:`rerun.Mesh3D`: what the tissue rests on,
+                              translucent (``SUPPORT_ALPHA``) so that the target below it
+                              stays visible.
 ``world/gripper``             :class:`rerun.Boxes3D`: the jaws, grey when open, green when
-                              closed on tissue.
+                              closed on tissue (no label: the state is in ``status``).
 ``world/held``                :class:`rerun.Points3D`: the tissue vertices the jaws hold
                               (empty when none).
 ``world/grasp_force``         :class:`rerun.Arrows3D`: the force of the tissue on the
-                              gripper, drawn from the gripper; the tissue's weight draws an
-                              arrow ``FORCE_ARROW_FRACTION`` of the scene's size long.
+                              gripper, drawn with its tip on the top of the jaws (so that
+                              it stays above the tissue it pulls into), labelled with its
+                              magnitude; the tissue's weight draws an arrow
+                              ``FORCE_ARROW_FRACTION`` of the scene's size long.
 ``world/target``              :class:`rerun.Points3D`: the target (tumour) as a sphere of
                               the target radius, labelled with its exposure.
-``world/camera``              the task camera: :class:`rerun.Transform3D` (its pose) and
-                              :class:`rerun.Pinhole` (``CAMERA_SIZE`` pixels), per episode;
-                              ``world/camera/image`` (:class:`rerun.Image`) and
-                              ``world/camera/depth`` (:class:`rerun.DepthImage`, m) per frame.
-``plots/reward_terms/<term>`` :class:`rerun.Scalars`: each shaping term of the step's
-                              ``info`` (``exposure``, ``lift``, ``grasp``, ``strain``,
-                              ``effort``); ``plots/return/total`` and ``plots/return/success``
-                              apart; on step frames only (no reward at reset).
-``plots/exposure/exposure``   exposure of the target (0..1), every frame;
-``plots/exposure/success_threshold``  ``settings.success_exposure``, every frame.
-``plots/strain/max_strain``   largest gauge strain (``info["max_strain"]``), every frame;
-``plots/strain/damage_threshold``  ``settings.damage_strain``, every frame.
-``plots/grasp_force``         magnitude of the grasp force (N), every frame.
-``plots/outcome``             one marker at each episode's last frame: 1 success, 0 time-out,
-                              -1 torn or diverged.
+``world/camera``              the task camera in the 3D view: :class:`rerun.Transform3D`
+                              (its pose) and :class:`rerun.Pinhole` (``CAMERA_SIZE``
+                              pixels), per episode; no image under it (images are 2D only).
+``camera/rgb``                :class:`rerun.Image`: the task camera's colour image.
+``camera/depth``              :class:`rerun.DepthImage` (m along the optical axis, ``far``
+                              = 10 m where nothing is seen), in a 2D view of its own,
+                              coloured over the depth range of the first frame.
+``camera/segmentation``       :class:`rerun.SegmentationImage` with a static
+                              :class:`rerun.AnnotationContext` (``SEGMENT_COLOURS``: the
+                              labels of :data:`heml_gym.envs.camera.SEGMENT_IDS`).
+``status``                    :class:`rerun.TextDocument` (markdown), every frame: episode,
+                              step, success, exposure against its threshold, max gauge
+                              strain against the damage strain, hold timer against
+                              ``settings.hold_time``, gripper, grasp force, action, reward.
+``legend``                    static :class:`rerun.TextDocument`: what the colours mean;
+                              ``legend/strain_scale``: the strain colour bar (an image,
+                              strain 0 on the left to ``damage_strain`` on the right).
+``plots/<group>/<series>/ep<k>``  :class:`rerun.Scalars`, one series per episode ``k`` (so
+                              lines are not joined across resets and episodes can be laid
+                              over each other on ``episode_step``), see ``SERIES``:
+                              ``exposure/exposure``, ``strain/max_strain``,
+                              ``success/hold_time`` (s), ``success/success`` (0/1),
+                              ``grasp_force/grasp_force`` (N) on every frame;
+                              ``action/<move_x|move_y|move_z|grip>`` (the action the
+                              policy returned for the previous frame's observation, as
+                              passed to ``env.step``), ``reward/total`` and
+                              ``reward/terms/<term>`` (every reward term of the step's
+                              ``info``) on step frames only.
+``plots/<group>/<threshold>`` constant lines, every frame: ``exposure/success_threshold``
+                              (``settings.success_exposure``), ``strain/damage_threshold``
+                              (``settings.damage_strain``), ``success/hold_required``
+                              (``settings.hold_time``).
+``plots/episode_start``       a marker (value 0) at each episode's reset frame, shown in
+                              every plot; ``plots/success/outcome`` one marker at each
+                              episode's last frame: 1 success, 0 time-out, -1 torn or
+                              diverged.
 ``log/episodes``              :class:`rerun.TextLog`: one line at each episode's start (seed,
                               Young's modulus) and one at its end (outcome, steps, return).
 
-The blueprint frames the whole workspace in the 3D view from a fixed eye (no automatic
-framing that clips the lifted flap or jumps), shows the task camera's image below it and
-the plots beside them, and plays the ``sim_time`` timeline at real time (10 env steps per
-simulated second at the default ``control_dt``).
+The blueprint (``BLUEPRINT_VIEWS`` names its views): the 3D scene from a fixed eye that
+frames the whole workspace, the task camera's colour, depth and segmentation images side by
+side below it; on the right the status text and the strain colour bar, then the plots of
+exposure, success (hold timer), strain and, in tabs, grasp force, actions, rewards and the
+episode log. Plots have no legends (their titles name the series and colours), the same
+height, and linked time axes; the time panel is collapsed and plays ``sim_time`` at real
+time.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
+from heml_gym.envs.camera import SEGMENT_IDS
 from heml_gym.envs.core import RewardWeights
 from heml_gym.envs.palette import (ATTACHMENT, FORCE, HELD, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN,
                                    STRAINED, SUPPORT, TARGET, TISSUE)
 
-__all__ = ["record_rollouts", "FORCE_ARROW_FRACTION", "SCALAR_ENTITIES", "REWARD_TERMS", "REWARD_ENTITIES"]
+__all__ = ["ACTION_NAMES", "BLUEPRINT_VIEWS", "CAMERA_SIZE", "FORCE_ARROW_FRACTION", "OUTCOME_VALUES", "REWARD_TERMS",
+           "SEGMENT_COLOURS", "SERIES", "THRESHOLDS", "record_rollouts", "series_entity", "strain_colours"]
 
 #: the grasp-force arrow is this fraction of the scene's size long at the tissue's weight
 FORCE_ARROW_FRACTION = 0.3
+#: opacity (0..255) of the support in the 3D view: translucent, so the target below shows
+SUPPORT_ALPHA = 70
 #: reward terms of the task (``info["reward_<term>"]``)
 REWARD_TERMS = tuple(f.name for f in fields(RewardWeights))
-#: the shaping terms (plotted together, apart from the total and the success bonus)
-SHAPING_TERMS = tuple(t for t in REWARD_TERMS if t != "success")
-#: the entity of each reward series
-REWARD_ENTITIES = {**{t: f"plots/reward_terms/{t}" for t in SHAPING_TERMS}, "success": "plots/return/success",
-                   "total": "plots/return/total"}
-#: every scalar series entity, and whether it is logged on every frame (True) or on step
-#: frames only (False: the reward series)
-SCALAR_ENTITIES = {
-    **{e: False for e in REWARD_ENTITIES.values()},
-    "plots/exposure/exposure": True,
-    "plots/exposure/success_threshold": True,
-    "plots/strain/max_strain": True,
-    "plots/strain/damage_threshold": True,
-    "plots/grasp_force": True,
+#: the action's components (``env.step``'s 4-vector: gripper velocity x, y, z; grip command)
+ACTION_NAMES = ("move_x", "move_y", "move_z", "grip")
+#: series logged per episode: name -> (entity base, logged on every frame (True) or on step
+#: frames only (False)); episode ``k`` logs to :func:`series_entity` (``<base>/ep<k>``)
+SERIES = {
+    "exposure": ("plots/exposure/exposure", True),
+    "max_strain": ("plots/strain/max_strain", True),
+    "hold_time": ("plots/success/hold_time", True),
+    "is_success": ("plots/success/success", True),
+    "grasp_force": ("plots/grasp_force/grasp_force", True),
+    **{f"action_{a}": (f"plots/action/{a}", False) for a in ACTION_NAMES},
+    "reward": ("plots/reward/total", False),
+    **{f"reward_{t}": (f"plots/reward/terms/{t}", False) for t in REWARD_TERMS},
+}
+#: constant lines (every frame, one series for the whole recording): entity -> the
+#: :class:`~heml_gym.envs.core.TaskSettings` field it shows
+THRESHOLDS = {
+    "plots/exposure/success_threshold": "success_exposure",
+    "plots/strain/damage_threshold": "damage_strain",
+    "plots/success/hold_required": "hold_time",
 }
 #: size (height, width, pixels) of the task camera's images in the recording
 CAMERA_SIZE = (240, 320)
-#: outcome of an episode as the ``plots/outcome`` marker at its last frame
+#: outcome of an episode as the ``plots/success/outcome`` marker at its last frame
 OUTCOME_VALUES = {"success": 1.0, "truncated": 0.0, "unfinished": 0.0, "terminated": -0.5, "torn": -1.0,
                   "diverged": -1.0}
+#: colour of each segmentation label in ``camera/segmentation``
+SEGMENT_COLOURS = {"background": (0, 0, 0), "tissue": tuple(TISSUE), "target": tuple(TARGET),
+                   "instrument": tuple(JAWS_CLOSED), "support": (70, 90, 160)}
+#: colours of the plotted series (by entity base)
+SERIES_COLOURS = {
+    "plots/exposure/exposure": TARGET, "plots/strain/max_strain": STRAINED, "plots/success/hold_time": HELD,
+    "plots/success/success": JAWS_CLOSED, "plots/grasp_force/grasp_force": FORCE, "plots/reward/total": (255, 255, 255),
+    "plots/action/move_x": (230, 80, 80), "plots/action/move_y": (80, 200, 80), "plots/action/move_z": (90, 140, 255),
+    "plots/action/grip": (200, 200, 200),
+    "plots/exposure/success_threshold": JAWS_CLOSED, "plots/strain/damage_threshold": (150, 150, 150),
+    "plots/success/hold_required": (150, 150, 150),
+}
+#: the blueprint's views: name -> origin
+BLUEPRINT_VIEWS = {
+    "scene": "world",
+    "camera RGB": "camera/rgb",
+    "camera depth": "camera/depth",
+    "camera segmentation": "camera/segmentation",
+    "status": "status",
+    "strain colours": "legend/strain_scale",
+    "colour legend": "legend",
+    "exposure (yellow), success threshold (green)": "plots/exposure",
+    "hold timer s (blue) vs needed (grey), success (green)": "plots/success",
+    "max gauge strain (red), damage strain (grey)": "plots/strain",
+    "grasp force (N)": "plots/grasp_force",
+    "action: move x red, y green, z blue; grip grey": "plots/action",
+    "reward: total (white) and terms": "plots/reward",
+    "episode log": "log",
+}
 
 
+def series_entity(base: str, episode: int) -> str:
+    """The entity of series ``base`` (a ``SERIES`` entity base) in episode ``episode``."""
+    return f"{base}/ep{episode}"
+
+
+def strain_colours(strain: np.ndarray, damage_strain: float) -> np.ndarray:
+    """``(n, 3)`` uint8: pale pink (``TISSUE``) at strain 0, linearly to red (``STRAINED``)
+    at ``damage_strain`` and above (NaN: red)."""
+    s = np.clip(np.nan_to_num(np.asarray(strain, dtype=np.float64) / damage_strain, nan=1.0), 0.0, 1.0)
+    return np.rint((1.0 - s)[:, None] * TISSUE + s[:, None] * STRAINED).astype(np.uint8)
 
 
 def _import_rerun():
@@ -142,37 +227,93 @@ def _check_writable(path: Path) -> None:
 
 
 def _blueprint(rrb, geometry):
-    """A 3D view framing the whole workspace from a fixed eye, the task camera's image, the
-    plots (shaping terms apart from the total and the success bonus), the episode log;
-    playback on ``sim_time`` at real time."""
+    """The layout (see the module docstring): 3D scene (seen from the task camera's side)
+    over the camera images on the left;
+    status, colour bar and plots (linked time axes, no legends) on the right."""
     low, high = (np.asarray(v, dtype=np.float64) for v in geometry.workspace)
     centre = 0.5 * (low + high)
     extent = float(np.linalg.norm(high - low))
-    eye = centre + extent * np.array([0.55, -0.75, 0.5])
-    plots = [
-        rrb.TimeSeriesView(origin="plots/reward_terms", name="shaping reward terms"),
-        rrb.TimeSeriesView(origin="plots/return", name="reward: total and success bonus"),
-        rrb.TimeSeriesView(origin="plots/exposure", name="exposure"),
-        rrb.TimeSeriesView(origin="plots/strain", name="strain"),
-        rrb.TimeSeriesView(origin="plots/grasp_force", name="grasp force (N)"),
-        rrb.TimeSeriesView(origin="plots/outcome", name="episode outcome (1 success, -1 torn / diverged)"),
-        rrb.TextLogView(origin="log", name="episodes"),
-    ]
+    # from the task camera's side (what it must see, the 3D view shows too): its azimuth
+    # turned 30 degrees aside (a camera looking straight down: from -y, +x) and its
+    # elevation kept between 25 and 50 degrees, so the tissue is seen obliquely
+    towards_camera = np.asarray(geometry.camera, dtype=np.float64) - centre
+    horizontal = float(np.hypot(towards_camera[0], towards_camera[1]))
+    if horizontal < 0.2 * abs(towards_camera[2]):
+        azimuth = np.arctan2(-0.75, 0.55)
+    else:
+        azimuth = np.arctan2(towards_camera[1], towards_camera[0]) - np.radians(30.0)
+    elevation = np.clip(np.arctan2(towards_camera[2], horizontal), np.radians(25.0), np.radians(50.0))
+    direction = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                          np.sin(elevation)])
+    eye = centre + 1.0 * extent * direction
+    names = {origin: name for name, origin in BLUEPRINT_VIEWS.items()}
+    linked = rrb.TimeAxis(link=rrb.components.LinkAxis.LinkToGlobal)
+    no_legend = rrb.PlotLegend(visible=False)
+
+    def plot(origin):
+        return rrb.TimeSeriesView(origin=origin, name=names[origin], axis_x=linked, plot_legend=no_legend,
+                                  contents=["$origin/**", "/plots/episode_start"])
+
+    images = [rrb.Spatial2DView(origin=o, name=names[o]) for o in ("camera/rgb", "camera/depth",
+                                                                    "camera/segmentation")]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(origin="world", name="scene",
+                rrb.Spatial3DView(origin="world", name=names["world"],
                                   eye_controls=rrb.EyeControls3D(position=eye, look_target=centre,
                                                                  eye_up=(0.0, 0.0, 1.0))),
-                rrb.Spatial2DView(origin="world/camera", name="task camera"),
-                row_shares=[3, 2],
+                rrb.Horizontal(*images),
+                row_shares=[5, 2],
             ),
-            rrb.Vertical(*plots),
-            column_shares=[3, 2],
+            rrb.Vertical(
+                rrb.Horizontal(rrb.TextDocumentView(origin="status", name=names["status"]),
+                               rrb.Spatial2DView(origin="legend/strain_scale", name=names["legend/strain_scale"]),
+                               column_shares=[3, 2]),
+                plot("plots/exposure"),
+                plot("plots/success"),
+                plot("plots/strain"),
+                rrb.Tabs(plot("plots/grasp_force"), plot("plots/action"), plot("plots/reward"),
+                         rrb.TextLogView(origin="log", name=names["log"]),
+                         rrb.TextDocumentView(origin="legend", name=names["legend"])),
+                row_shares=[4, 3, 3, 3, 3],
+            ),
+            column_shares=[11, 9],
         ),
-        rrb.TimePanel(timeline="sim_time", playback_speed=1.0),
-        collapse_panels=True,
+        rrb.TimePanel(timeline="sim_time", playback_speed=1.0, state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
+
+
+class _StrainField:
+    """Per surface vertex, the gauge strain of :class:`~heml_gym.envs.strain_gauges.StrainGauges`
+    ``gauges``: a gauge point's strain is the largest of its segments'; a vertex shows its
+    nearest gauge point's (at rest) and that of every gauge point whose nearest surface
+    vertex it is, so the largest over the surface equals the gauges' largest strain."""
+
+    def __init__(self, gauges, rest_vertices: np.ndarray, surface_faces: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.gauges = gauges
+        self.n_vertices = len(rest_vertices)
+        surface = np.unique(np.asarray(surface_faces).ravel())
+        self.surface = surface
+        _, self.nearest_point = cKDTree(gauges.points).query(rest_vertices[surface])
+        _, nearest_vertex = cKDTree(rest_vertices[surface]).query(gauges.points)
+        self.owner = surface[nearest_vertex]  # (P,) the surface vertex each gauge point reports to
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        g = self.gauges
+        p = g.positions(x)
+        seg = np.abs(np.linalg.norm(p[g.pairs[:, 1]] - p[g.pairs[:, 0]], axis=1) / g.rest_length - 1.0)
+        seg = np.nan_to_num(seg, nan=np.inf)
+        point = np.zeros(len(g.points))
+        np.maximum.at(point, g.pairs[:, 0], seg)
+        np.maximum.at(point, g.pairs[:, 1], seg)
+        out = np.zeros(self.n_vertices)
+        out[self.surface] = point[self.nearest_point]
+        np.maximum.at(out, self.owner, point)
+        return out
 
 
 class _SceneLogger:
@@ -182,17 +323,16 @@ class _SceneLogger:
         self.rr, self.rec, self.env = rr, rec, env
         geometry = env.geometry
         self.geometry = geometry
+        self.settings = geometry.settings
         self.faces = np.asarray(geometry.surface_faces, dtype=np.int64)
-        self.edges = np.asarray(geometry.edges)
-        self.rest_length = np.linalg.norm(geometry.rest_vertices[self.edges[:, 1]]
-                                          - geometry.rest_vertices[self.edges[:, 0]], axis=1)
-        self.n_vertices = len(geometry.rest_vertices)
+        self.strain = _StrainField(env.task.gauges, np.asarray(geometry.rest_vertices), self.faces)
         extent = float(np.linalg.norm(np.ptp(geometry.rest_vertices, axis=0)))
         #: m of arrow per N: the tissue's weight draws FORCE_ARROW_FRACTION of the scene's size
         self.force_scale = FORCE_ARROW_FRACTION * extent / max(geometry.weight, 1e-9)
+        self.depth_range = None
 
     def log_static(self) -> None:
-        rr, rec, geo = self.rr, self.rec, self.geometry
+        rr, rec, geo, st = self.rr, self.rec, self.geometry, self.settings
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         # flat-shaded: every triangle its own three vertices, so a flat slab does not look creased
         rec.log("world/tissue", rr.Mesh3D.from_fields(
@@ -202,23 +342,59 @@ class _SceneLogger:
         sv, sf = geo.support_mesh
         if len(sf):
             rec.log("world/support", rr.Mesh3D(vertex_positions=sv, triangle_indices=sf,
-                                               albedo_factor=SUPPORT), static=True)
-        st = geo.settings
-        styles = {
-            **{REWARD_ENTITIES[t]: (t, None) for t in SHAPING_TERMS},
-            REWARD_ENTITIES["total"]: ("total", [255, 255, 255]),
-            REWARD_ENTITIES["success"]: ("success bonus", [120, 200, 120]),
-            "plots/exposure/exposure": ("exposure", TARGET),
-            "plots/exposure/success_threshold": (f"success ({st.success_exposure:g})", [120, 200, 120]),
-            "plots/strain/max_strain": ("max gauge strain", STRAINED),
-            "plots/strain/damage_threshold": (f"damage ({st.damage_strain:g})", [150, 150, 150]),
-            "plots/grasp_force": ("grasp force (N)", FORCE),
-            "plots/outcome": ("outcome", [200, 200, 200]),
-        }
-        for entity, (name, colour) in styles.items():
-            style = rr.SeriesLines(names=name) if colour is None else rr.SeriesLines(names=name, colors=colour)
-            rec.log(entity, style, static=True)
-        rec.log("plots/outcome", rr.SeriesPoints(markers="diamond", marker_sizes=6.0), static=True)
+                                               albedo_factor=[*SUPPORT, SUPPORT_ALPHA]), static=True)
+        rec.log("camera/segmentation", rr.AnnotationContext(
+            [rr.AnnotationInfo(id=SEGMENT_IDS[name], label=name, color=colour)
+             for name, colour in SEGMENT_COLOURS.items()]), static=True)
+        for entity, field in THRESHOLDS.items():
+            rec.log(entity, rr.SeriesLines(names=f"{field} ({getattr(st, field):g})",
+                                           colors=SERIES_COLOURS[entity], widths=1.0), static=True)
+        rec.log("plots/episode_start", rr.SeriesPoints(names="episode start", markers="right", marker_sizes=5.0,
+                                                       colors=[200, 200, 255]), static=True)
+        rec.log("plots/success/outcome", rr.SeriesPoints(names="outcome (1 success, -1 torn / diverged)",
+                                                         markers="diamond", marker_sizes=6.0,
+                                                         colors=[255, 255, 255]), static=True)
+        rec.log("legend", rr.TextDocument(self._legend(), media_type=rr.MediaType.MARKDOWN), static=True)
+        # the colour bar: strain 0 (left) to damage_strain (right), labelled below
+        width, height = 200, 24
+        bar = strain_colours(np.linspace(0.0, st.damage_strain, width), st.damage_strain)
+        rec.log("legend/strain_scale", rr.Image(np.repeat(bar[None], height, axis=0)), static=True)
+        ticks = np.array([0.0, 0.5, 1.0])
+        rec.log("legend/strain_scale/ticks", rr.Points2D(
+            np.stack([ticks * (width - 1), np.full(3, height + 6.0)], axis=1), radii=1.0,
+            colors=[200, 200, 200],
+            labels=[f"{v * st.damage_strain:g}" + (" damage" if v == 1.0 else "") for v in ticks]), static=True)
+
+    def _depth_range(self, view: dict) -> tuple[float, float]:
+        """One depth colour scale for the recording (m): from the nearest corner of the
+        workspace (where the gripper and lifted tissue can be) to the farthest of those
+        corners and of what the first frame sees."""
+        low, high = (np.asarray(v, dtype=np.float64) for v in self.geometry.workspace)
+        corners = np.array([[(low, high)[i][0], (low, high)[j][1], (low, high)[k][2]]
+                            for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        z = (corners - view["eye"]) @ view["rotation"][2]
+        depth = view["depth"]
+        seen = depth[depth < depth.max()]
+        near = float(np.clip(z.min(), 1e-3, None))
+        far = max(float(z.max()), float(seen.max()) if seen.size else near + 1e-3)
+        return near, far
+
+    def _legend(self) -> str:
+        st = self.settings
+        return (f"Tissue colour: gauge strain, pale pink 0 to red at the damage strain "
+                f"{st.damage_strain:g} (the red line of the strain plot). Yellow sphere: target; "
+                f"green jaws: closed, grey: open; blue dots: held tissue; orange arrow: grasp force; "
+                f"translucent: support.")
+
+    def start_episode(self, k: int) -> None:
+        """Static styles of episode ``k``'s series."""
+        rr, rec = self.rr, self.rec
+        for name, (base, _) in SERIES.items():
+            colour = SERIES_COLOURS.get(base)
+            label = f"{name} (episode {k})"
+            style = rr.SeriesLines(names=label) if colour is None else rr.SeriesLines(names=label, colors=colour)
+            rec.log(series_entity(base, k), style, static=True)
+        rec.log("plots/episode_start", rr.Scalars(0.0))
 
     def log_camera_pose(self, view: dict) -> None:
         """The task camera as a pinhole at its pose (the pose can change per episode)."""
@@ -229,18 +405,12 @@ class _SceneLogger:
                                            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.03))
 
     def vertex_colours(self, x: np.ndarray) -> np.ndarray:
-        """Per-vertex colour: strain of the most strained incident edge, pink to red at
-        the damage threshold."""
-        e = self.edges
-        strain = np.abs(np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1) / self.rest_length - 1.0)
-        per_vertex = np.zeros(self.n_vertices)
-        np.maximum.at(per_vertex, e[:, 0], strain)
-        np.maximum.at(per_vertex, e[:, 1], strain)
-        s = np.clip(np.nan_to_num(per_vertex / self.geometry.settings.damage_strain, nan=1.0), 0.0, 1.0)
-        return ((1.0 - s)[:, None] * TISSUE + s[:, None] * STRAINED).astype(np.uint8)
+        """Per-vertex colour: the gauge strain at the vertex (:class:`_StrainField`)."""
+        return strain_colours(self.strain(x), self.settings.damage_strain)
 
-    def log_frame(self, snap, info: dict[str, Any], view: dict) -> None:
-        rr, rec, geo = self.rr, self.rec, self.geometry
+    def log_frame(self, k: int, snap, info: dict[str, Any], view: dict, action=None, reward=None,
+                  ret: float = 0.0, episode_step: int = 0) -> None:
+        rr, rec, geo, st = self.rr, self.rec, self.geometry, self.settings
         x = np.nan_to_num(np.asarray(snap.positions, dtype=np.float64))
         tri = x[self.faces]  # (f, 3, 3): unshared vertices, flat normals
         normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -254,33 +424,63 @@ class _SceneLogger:
         rec.log("world/gripper", rr.Boxes3D(centers=[gripper + np.array(JAW_OFFSET)],
                                             half_sizes=[np.array(JAW_HALF_SIZE)],
                                             colors=[JAWS_CLOSED if snap.grasping else JAWS_OPEN],
-                                            labels=["closed" if snap.grasping else "open"],
                                             fill_mode="solid"))
         held = x[snap.held]
         rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=HELD))
         force = np.nan_to_num(np.asarray(snap.grasp_force, dtype=np.float64))
-        rec.log("world/grasp_force", rr.Arrows3D(origins=[gripper], vectors=[force * self.force_scale],
-                                                 colors=[FORCE], labels=[f"{np.linalg.norm(force):.3f} N"]))
+        vector = force * self.force_scale
+        jaw_top = gripper + np.array(JAW_OFFSET) + np.array([0.0, 0.0, JAW_HALF_SIZE[2]])
+        rec.log("world/grasp_force", rr.Arrows3D(origins=[jaw_top - vector], vectors=[vector], colors=[FORCE],
+                                                 labels=[f"{np.linalg.norm(force):.2f} N"]))
         exposure = float(info["exposure"])
         rec.log("world/target", rr.Points3D([snap.target], radii=float(geo.target_radius), colors=[TARGET],
-                                            labels=[f"exposure {exposure:.0%}"]))
-        rec.log("world/camera/image", rr.Image(view["rgb"]))
-        rec.log("world/camera/depth", rr.DepthImage(view["depth"], meter=1.0))
-        st = geo.settings
-        rec.log("plots/exposure/exposure", rr.Scalars(exposure))
-        rec.log("plots/exposure/success_threshold", rr.Scalars(float(st.success_exposure)))
-        rec.log("plots/strain/max_strain", rr.Scalars(float(info["max_strain"])))
-        rec.log("plots/strain/damage_threshold", rr.Scalars(float(st.damage_strain)))
-        rec.log("plots/grasp_force", rr.Scalars(float(info["grasp_force"])))
+                                            labels=[f"target {exposure:.0%} exposed"]))
+        rec.log("camera/rgb", rr.Image(view["rgb"]))
+        if self.depth_range is None:
+            self.depth_range = self._depth_range(view)
+        rec.log("camera/depth", rr.DepthImage(view["depth"], meter=1.0, colormap="viridis",
+                                              depth_range=self.depth_range))
+        rec.log("camera/segmentation", rr.SegmentationImage(view["segmentation"]))
+        # plots
+        for entity, field in THRESHOLDS.items():
+            rec.log(entity, rr.Scalars(float(getattr(st, field))))
+        values = {"exposure": exposure, "max_strain": float(info["max_strain"]),
+                  "hold_time": float(info["hold_time"]), "is_success": float(bool(info["is_success"])),
+                  "grasp_force": float(info["grasp_force"])}
+        if action is not None:
+            a = np.asarray(action, dtype=np.float64).reshape(-1)
+            values.update({f"action_{n}": float(v) for n, v in zip(ACTION_NAMES, a)})
+            values["reward"] = float(reward)
+            values.update({f"reward_{t}": float(info.get(f"reward_{t}", 0.0)) for t in REWARD_TERMS})
+        for name, value in values.items():
+            rec.log(series_entity(SERIES[name][0], k), rr.Scalars(value))
+        rec.log("status", rr.TextDocument(self._status(k, episode_step, snap, info, action, reward, ret),
+                                          media_type=rr.MediaType.MARKDOWN))
 
-    def log_rewards(self, reward: float, info: dict[str, Any]) -> None:
-        rr, rec = self.rr, self.rec
-        for term in REWARD_TERMS:
-            rec.log(REWARD_ENTITIES[term], rr.Scalars(float(info.get(f"reward_{term}", 0.0))))
-        rec.log(REWARD_ENTITIES["total"], rr.Scalars(float(reward)))
+    def _status(self, k, episode_step, snap, info, action, reward, ret) -> str:
+        st = self.settings
+        exposure, strain, hold = float(info["exposure"]), float(info["max_strain"]), float(info["hold_time"])
+
+        def ok(good: bool) -> str:
+            return "yes" if good else "no"
+
+        lines = [
+            (f"**episode {k}, step {episode_step}** ({episode_step * st.control_dt:.1f} s): "
+             f"**success: {ok(bool(info['is_success']))}**"),
+            f"- exposure **{exposure:.0%}** (needs >= {st.success_exposure:.0%}: {ok(exposure >= st.success_exposure)})",
+            f"- max gauge strain **{strain:.3f}** (needs < {st.damage_strain:g}: {ok(strain < st.damage_strain)})",
+            f"- held **{hold:.1f} s** of {st.hold_time:g} s",
+            (f"- jaws {'closed' if snap.grasping else 'open'}, holding {len(snap.held)} vertices, "
+             f"force {float(info['grasp_force']):.2f} N"),
+        ]
+        if action is not None:
+            a = np.asarray(action, dtype=np.float64).reshape(-1)
+            lines.append(f"- action: move ({a[0]:+.2f}, {a[1]:+.2f}, {a[2]:+.2f}), grip {a[3]:+.2f}; "
+                         f"reward {float(reward):+.3f}, return {ret:+.3f}")
+        return "\n".join(lines)
 
     def log_outcome(self, outcome: str) -> None:
-        self.rec.log("plots/outcome", self.rr.Scalars(OUTCOME_VALUES.get(outcome, 0.0)))
+        self.rec.log("plots/success/outcome", self.rr.Scalars(OUTCOME_VALUES.get(outcome, 0.0)))
 
 
 def _outcome(info: dict[str, Any], terminated: bool, truncated: bool) -> str:
@@ -365,24 +565,26 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
             if hasattr(policy, "reset"):
                 policy.reset()
             set_time(k, 0)
+            logger.start_episode(k)
             young = scene_env.snapshot().young_modulus
             rec.log("log/episodes", rr.TextLog(
                 f"episode {k} start: seed {episode_seed}, E = {young:.0f} Pa, "
                 f"exposure {float(info['exposure']):.2f}", level="INFO"))
             view = scene_env.camera_view(0, CAMERA_SIZE)
             logger.log_camera_pose(view)
-            logger.log_frame(scene_env.snapshot(), info, view)
+            logger.log_frame(k, scene_env.snapshot(), info, view)
             frame += 1
             steps, ret, done = 0, 0.0, False
             terminated = truncated = False
             while not done:
-                obs, reward, terminated, truncated, info = env.step(policy(obs))
+                action = policy(obs)
+                obs, reward, terminated, truncated, info = env.step(action)
                 steps += 1
                 ret += float(reward)
                 done = bool(terminated or truncated)
                 set_time(k, steps)
-                logger.log_frame(scene_env.snapshot(), info, scene_env.camera_view(0, CAMERA_SIZE))
-                logger.log_rewards(reward, info)
+                logger.log_frame(k, scene_env.snapshot(), info, scene_env.camera_view(0, CAMERA_SIZE),
+                                 action=action, reward=reward, ret=ret, episode_step=steps)
                 if done:
                     outcome = _outcome(info, terminated, truncated)
                     logger.log_outcome(outcome)

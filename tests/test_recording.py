@@ -1,4 +1,12 @@
-"""Rollout recordings: record scripted episodes to an .rrd and read them back with rerun's API."""
+"""Rollout recordings: record scripted episodes to an .rrd and read them back with rerun's API.
+
+What is checked against an independent replay of the same seeded episodes (a fresh env and
+policy, no recording): the frames and timelines, episode boundaries (the env's episode
+lengths), the target, the camera images (colour, depth and segmentation in 2D entities of
+their own, none in the 3D scene), the actions (what the policy returned), the hold timer
+and success, the strain colours (the reddest vertex shows the env's gauge strain), and the
+blueprint (depth in its own view, plots without legends on a linked time axis).
+"""
 
 from __future__ import annotations
 
@@ -10,36 +18,47 @@ import pytest
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from heml_gym.agents.recording import REWARD_ENTITIES, REWARD_TERMS, SCALAR_ENTITIES, record_rollouts  # noqa: E402
+from heml_gym.agents.recording import (ACTION_NAMES, BLUEPRINT_VIEWS, CAMERA_SIZE, REWARD_TERMS,  # noqa: E402
+                                       SERIES, THRESHOLDS, record_rollouts, series_entity)
+from heml_gym.envs.camera import SEGMENT_IDS  # noqa: E402
 from heml_gym.envs.core import TaskSettings  # noqa: E402
+from heml_gym.envs.palette import STRAINED, TISSUE  # noqa: E402
 from heml_gym.envs.scripted import scripted_policy  # noqa: E402
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv  # noqa: E402
 
-MAX_STEPS = 8
+MAX_STEPS = 30
 EPISODES = 2
 SEED = 3
+#: a short hold, so that the scripted policy succeeds within MAX_STEPS (a success and its hold timer)
+HOLD_TIME = 0.3
 
 
 def _env():
-    return TissueRetractionEnv(settings=TaskSettings(max_steps=MAX_STEPS))
+    return TissueRetractionEnv(settings=TaskSettings(max_steps=MAX_STEPS, hold_time=HOLD_TIME))
 
 
 def _replay(episodes: int, seed: int):
-    """The same rollouts, played without recording: per frame the info of reset / step."""
+    """The same rollouts, played without recording: per frame the info of reset / step and
+    the target's place; per step the reward, its info and the policy's action; the episode
+    lengths."""
     env, policy = _env(), scripted_policy("TissueRetraction")
-    frames, rewards, lengths = [], [], []
+    frames, targets, rewards, actions, lengths = [], [], [], [], []
     for k in range(episodes):
         obs, info = env.reset(seed=seed + k)
         policy.reset()
         frames.append(info)
+        targets.append(env.snapshot().target)
         done, n = False, 0
         while not done:
-            obs, reward, terminated, truncated, info = env.step(policy(obs))
+            action = np.array(policy(obs), dtype=np.float64)
+            obs, reward, terminated, truncated, info = env.step(action)
             frames.append(info)
+            targets.append(env.snapshot().target)
             rewards.append((reward, info))
+            actions.append(action)
             done, n = terminated or truncated, n + 1
         lengths.append(n)
-    return frames, rewards, lengths
+    return frames, np.array(targets), rewards, np.array(actions), lengths
 
 
 def _temporal(store) -> dict[str, dict[str, list]]:
@@ -89,114 +108,215 @@ def recording(tmp_path_factory):
 
 def test_summary_matches_an_independent_replay(recording):
     path, summary, _ = recording
-    frames, _, lengths = _replay(EPISODES, SEED)
+    frames, _, _, _, lengths = _replay(EPISODES, SEED)
     assert summary["episodes"] == EPISODES
     assert summary["episode_lengths"] == lengths
     assert summary["steps"] == sum(lengths)
     assert summary["frames"] == len(frames) == sum(lengths) + EPISODES
     assert summary["path"] == str(path)
     assert 0.0 <= summary["success_rate"] <= 1.0
+    # the settings give the recording a success (with its hold timer) to show
+    assert any(summary["successes"]) and lengths[0] < MAX_STEPS
 
 
-def test_rrd_layout_and_frames(recording):
-    path, summary, env = recording
-    assert path.is_file() and path.stat().st_size > 0
+@pytest.fixture(scope="module")
+def replay():
+    return _replay(EPISODES, SEED)
 
+
+@pytest.fixture(scope="module")
+def store(recording):
+    path, summary, _ = recording
     reader = RrdReader(path)
     (entry,) = reader.recordings()
     assert entry.recording_id == summary["recording_id"]
     assert entry.application_id == "heml_gym"
-    # the blueprint: a 3D view and the camera view beside 6 time-series views and the episode log
-    (bp_entry,) = reader.blueprints()
-    bp_paths = reader.stream(store=bp_entry).collect().schema().entity_paths()
-    assert sum(1 for p in bp_paths if p.startswith("/view/") and p.count("/") == 2) == 9
+    return reader.stream().collect()
 
-    store = reader.stream().collect()
+
+@pytest.fixture(scope="module")
+def data(store):
+    return _temporal(store)
+
+
+def _blueprint_views(path) -> dict[str, dict]:
+    """The blueprint's views: display name -> {"class", "origin", "legend", "link", "query"}."""
+    reader = RrdReader(path)
+    (bp_entry,) = reader.blueprints()
+    views: dict[str, dict] = {}
+    for chunk in reader.stream(store=bp_entry).collect().stream().to_chunks():
+        parts = chunk.entity_path.strip("/").split("/")
+        if parts[0] != "view":
+            continue
+        batch = chunk.to_record_batch()
+        view = views.setdefault(parts[1], {})
+        for name in batch.schema.names:
+            value = batch.column(name).to_pylist()[-1]
+            key = {"ViewBlueprint:class_identifier": "class", "ViewBlueprint:space_origin": "origin",
+                   "ViewBlueprint:display_name": "name", "PlotLegend:visible": "legend", "TimeAxis:link": "link",
+                   "ViewContents:query": "query"}.get(name)
+            if key is not None:
+                view[key] = value if key == "query" else value[0]
+    return {v["name"]: v for v in views.values()}
+
+
+def test_blueprint_views(recording):
+    path, _, _ = recording
+    views = _blueprint_views(path)
+    assert {n: v["origin"] for n, v in views.items()} == BLUEPRINT_VIEWS
+    by_origin = {v["origin"]: v for v in views.values()}
+    assert by_origin["world"]["class"] == "3D"
+    # colour, depth and segmentation each in a 2D view of their own, outside the 3D scene
+    for origin in ("camera/rgb", "camera/depth", "camera/segmentation"):
+        assert by_origin[origin]["class"] == "2D"
+    plots = [v for v in views.values() if v["class"] == "TimeSeries"]
+    assert len(plots) == 6
+    for v in plots:  # no legend over the data; time axes linked; the episode markers in every plot
+        assert v["legend"] is False and v["link"] == 2  # LinkAxis.LinkToGlobal
+        assert "/plots/episode_start" in v["query"]
+
+
+def test_entities_and_archetypes(store):
     schema = store.schema()
     paths = set(schema.entity_paths())
-    world = {"/world/tissue", "/world/gripper", "/world/target", "/world/held", "/world/grasp_force",
-             "/world/camera", "/world/camera/image", "/world/camera/depth", "/world/support", "/plots/outcome"}
-    scalars = {"/" + e for e in SCALAR_ENTITIES}
-    assert world | scalars | {"/log/episodes"} <= paths
+    expected = {
+        ("/world/tissue", "Mesh3D"), ("/world/gripper", "Boxes3D"), ("/world/target", "Points3D"),
+        ("/world/held", "Points3D"), ("/world/grasp_force", "Arrows3D"), ("/world/camera", "Pinhole"),
+        ("/world/support", "Mesh3D"), ("/camera/rgb", "Image"), ("/camera/depth", "DepthImage"),
+        ("/camera/segmentation", "SegmentationImage"), ("/camera/segmentation", "AnnotationContext"),
+        ("/status", "TextDocument"), ("/legend", "TextDocument"), ("/legend/strain_scale", "Image"),
+        ("/log/episodes", "TextLog"), ("/plots/episode_start", "Scalars"), ("/plots/success/outcome", "Scalars"),
+    }
+    for entity, archetype in expected:
+        assert entity in paths, entity
+        assert schema.column_names_for(entity_path=entity, archetype=archetype), (entity, archetype)
+    # nothing of the camera's images in the 3D scene: no image, depth image or point cloud
+    # under world/camera (the depth is not drawn over the scene)
+    assert not [p for p in paths if p.startswith("/world/camera/")]
     index = {c.name for c in schema.index_columns()}
     assert {"step", "sim_time", "episode", "episode_step"} <= index
-    for entity, archetype in [("/world/tissue", "Mesh3D"), ("/world/gripper", "Boxes3D"),
-                              ("/world/target", "Points3D"), ("/world/camera", "Pinhole"),
-                              ("/world/camera/image", "Image"), ("/world/camera/depth", "DepthImage")]:
-        assert schema.column_names_for(entity_path=entity, archetype=archetype)
+    # the support is translucent (the target below it stays visible)
+    (albedo,) = _static(store)["/world/support"]["Mesh3D:albedo_factor"]
+    assert (albedo[0] & 0xFF) < 255  # RGBA packed as 0xRRGGBBAA
 
-    n_frames, n_steps = summary["frames"], summary["steps"]
-    frames, rewards, lengths = _replay(EPISODES, SEED)
-    data = _temporal(store)
 
-    # one mesh row per frame, on consecutive steps; sim_time = step * control_dt
+def test_frames_timelines_and_mesh(recording, replay, data, store):
+    _, summary, env = recording
+    frames, _, _, _, lengths = replay
+    n_frames = summary["frames"]
     mesh = data["/world/tissue"]
     assert mesh["step"] == list(range(n_frames)) == list(range(len(frames)))
     dt_ns = round(env.unwrapped.task.settings.control_dt * 1e9)
     assert mesh["sim_time"] == [s * dt_ns for s in mesh["step"]]
-    expected_episode = [k for k, n in enumerate(lengths) for _ in range(n + 1)]
-    expected_episode_step = [i for n in lengths for i in range(n + 1)]
-    assert mesh["episode"] == expected_episode
-    assert mesh["episode_step"] == expected_episode_step
+    # episode boundaries where the env's episodes end
+    assert mesh["episode"] == [k for k, n in enumerate(lengths) for _ in range(n + 1)]
+    assert mesh["episode_step"] == [i for n in lengths for i in range(n + 1)]
 
-    # the mesh: the scene's surface triangles, flat-shaded (three own vertices each)
     task = env.unwrapped.task
     faces = task.scene.surface_faces
     assert all(len(v) == 3 * len(faces) for v in mesh["Mesh3D:vertex_positions"])
     assert all(len(c) == 3 * len(faces) for c in mesh["Mesh3D:vertex_colors"])
     (triangles,) = _static(store)["/world/tissue"]["Mesh3D:triangle_indices"]
     np.testing.assert_array_equal(np.array(triangles), np.arange(3 * len(faces)).reshape(-1, 3))
-    # the last frame's positions are the env's final state (recorded as float32)
     np.testing.assert_allclose(np.array(mesh["Mesh3D:vertex_positions"][-1]), task.x[0][faces].reshape(-1, 3),
                                atol=1e-6)
-    # the normals are the faces' own: perpendicular to the triangle's edges
     tri = np.array(mesh["Mesh3D:vertex_positions"][-1]).reshape(-1, 3, 3)
     normals = np.array(mesh["Mesh3D:vertex_normals"][-1]).reshape(-1, 3, 3)
     assert np.abs((normals[:, 0] * (tri[:, 1] - tri[:, 0])).sum(axis=1)).max() < 1e-5
-    # the camera image is the env's own view of that frame: the last one equals the env's
-    # render of its final state, colour and depth
-    from heml_gym.agents.recording import CAMERA_SIZE
+    for entity in ("/world/gripper", "/world/target", "/world/held", "/world/grasp_force", "/camera/rgb",
+                   "/camera/depth", "/camera/segmentation", "/status"):
+        assert data[entity]["step"] == list(range(n_frames)), entity
 
-    image = data["/world/camera/image"]
-    assert image["step"] == list(range(n_frames))
+
+def test_strain_colours_show_the_gauge_strain(recording, replay, data):
+    """The reddest vertex of every frame shows the env's max gauge strain (pale pink 0 to red
+    at the damage strain): colours and the strain plot agree."""
+    _, _, env = recording
+    frames = replay[0]
+    damage = env.unwrapped.task.settings.damage_strain
+    shown = []
+    for colours in data["/world/tissue"]["Mesh3D:vertex_colors"]:
+        green = (np.array(colours, dtype=np.uint32) >> 16) & 0xFF  # RGBA packed as 0xRRGGBBAA
+        shown.append((TISSUE[1] - green.min()) / (TISSUE[1] - STRAINED[1]) * damage)
+    expected = np.minimum([f["max_strain"] for f in frames], damage)
+    assert max(expected) > 0.05  # the tissue is strained at all
+    np.testing.assert_allclose(shown, expected, atol=damage / (TISSUE[1] - STRAINED[1]))
+
+
+def test_target_and_camera_images(recording, replay, data):
+    _, _, env = recording
+    targets = replay[1]
+    target = data["/world/target"]
+    np.testing.assert_allclose(np.array([p[0] for p in target["Points3D:positions"]]), targets, atol=1e-6)
+    radius = env.unwrapped.task.scene.target_radius
+    assert all(r == [pytest.approx(radius)] for r in target["Points3D:radii"])
+    # the last images are the env's own view of its final state: colour, depth, segmentation
     view = env.unwrapped.camera_view(0, CAMERA_SIZE)
-    recorded = np.frombuffer(bytes(image["Image:buffer"][-1][0]), dtype=np.uint8).reshape(view["rgb"].shape)
-    np.testing.assert_array_equal(recorded, view["rgb"])
-    depth = data["/world/camera/depth"]
-    recorded_depth = np.frombuffer(bytes(depth["DepthImage:buffer"][-1][0]), dtype=view["depth"].dtype)
-    np.testing.assert_array_equal(recorded_depth.reshape(view["depth"].shape), view["depth"])
+    rgb = np.frombuffer(bytes(data["/camera/rgb"]["Image:buffer"][-1][0]), dtype=np.uint8)
+    np.testing.assert_array_equal(rgb.reshape(view["rgb"].shape), view["rgb"])
+    depth = np.frombuffer(bytes(data["/camera/depth"]["DepthImage:buffer"][-1][0]), dtype=view["depth"].dtype)
+    np.testing.assert_array_equal(depth.reshape(view["depth"].shape), view["depth"])
+    seg = np.frombuffer(bytes(data["/camera/segmentation"]["SegmentationImage:buffer"][-1][0]), dtype=np.uint8)
+    seg = seg.reshape(view["segmentation"].shape)
+    np.testing.assert_array_equal(seg, view["segmentation"])
+    assert {SEGMENT_IDS["tissue"], SEGMENT_IDS["target"]} <= set(np.unique(seg))
 
-    for entity in ("/world/gripper", "/world/target", "/world/held"):
-        assert data[entity]["step"] == list(range(n_frames))
 
-    # scalar series: one value per frame (measurements) or per step (rewards), equal to
-    # the values of the independent replay
-    step_frames = [s for s, i in zip(range(n_frames), expected_episode_step) if i > 0]
-    for entity, every_frame in SCALAR_ENTITIES.items():
-        series = data["/" + entity]
-        assert series["step"] == (list(range(n_frames)) if every_frame else step_frames), entity
-        assert all(len(v) == 1 for v in series["Scalars:scalars"]), entity
-        assert len(series["Scalars:scalars"]) == (n_frames if every_frame else n_steps)
-    values = {e: np.array(data["/" + e]["Scalars:scalars"])[:, 0] for e in SCALAR_ENTITIES}
-    np.testing.assert_allclose(values["plots/exposure/exposure"], [f["exposure"] for f in frames])
-    np.testing.assert_allclose(values["plots/strain/max_strain"], [f["max_strain"] for f in frames])
-    np.testing.assert_allclose(values["plots/grasp_force"], [f["grasp_force"] for f in frames])
-    np.testing.assert_allclose(values[REWARD_ENTITIES["total"]], [r for r, _ in rewards])
-    for term in REWARD_TERMS:
-        np.testing.assert_allclose(values[REWARD_ENTITIES[term]], [i[f"reward_{term}"] for _, i in rewards])
-    # one outcome marker per episode, at its last frame
-    outcome = data["/plots/outcome"]
-    ends = list(np.cumsum([n + 1 for n in lengths]) - 1)
-    assert outcome["step"] == ends
+def test_series_match_the_replay(recording, replay, data):
+    """Per episode series (lines not joined across resets): values, actions, hold timer and
+    success equal the replay's; the episode markers sit on its resets and ends."""
+    _, summary, env = recording
+    frames, _, rewards, actions, lengths = replay
+    starts = np.concatenate([[0], np.cumsum([n + 1 for n in lengths])[:-1]])  # reset frames
 
-    # episode boundaries: a start and an end line per episode
+    def by_episode(seq, k, every_frame):
+        """Episode k's part of a per-frame (n + 1 values) or per-step (n values) sequence."""
+        first = starts[k] if every_frame else starts[k] - k  # k reset frames before it have no step
+        return seq[first:first + lengths[k] + (1 if every_frame else 0)]
+
+    step_values = {
+        **{f"action_{a}": actions[:, i] for i, a in enumerate(ACTION_NAMES)},
+        "reward": [r for r, _ in rewards],
+        **{f"reward_{t}": [i[f"reward_{t}"] for _, i in rewards] for t in REWARD_TERMS},
+    }
+    frame_values = {"exposure": [f["exposure"] for f in frames], "max_strain": [f["max_strain"] for f in frames],
+                    "hold_time": [f["hold_time"] for f in frames],
+                    "is_success": [float(f["is_success"]) for f in frames],
+                    "grasp_force": [f["grasp_force"] for f in frames]}
+    assert set(step_values) | set(frame_values) == set(SERIES)
+    for name, (base, every_frame) in SERIES.items():
+        truth = np.asarray(frame_values[name] if every_frame else step_values[name], dtype=np.float64)
+        for k, n in enumerate(lengths):
+            series = data["/" + series_entity(base, k)]
+            assert series["episode"] == [k] * len(series["step"]), name
+            assert series["episode_step"] == list(range(0 if every_frame else 1, n + 1)), name
+            assert series["step"] == list(range(starts[k] + (0 if every_frame else 1), starts[k] + n + 1)), name
+            np.testing.assert_allclose(np.array(series["Scalars:scalars"])[:, 0], by_episode(truth, k, every_frame),
+                                       err_msg=name)
+    # the hold timer runs up to the setting and the success comes after it
+    hold = np.array(data["/" + series_entity(SERIES["hold_time"][0], 0)]["Scalars:scalars"])[:, 0]
+    success = np.array(data["/" + series_entity(SERIES["is_success"][0], 0)]["Scalars:scalars"])[:, 0]
+    assert summary["successes"][0] and success[-1] == 1.0 and success[:-1].max() == 0.0
+    assert hold[-1] == pytest.approx(HOLD_TIME)
+    st = env.unwrapped.task.settings
+    for entity, field in THRESHOLDS.items():
+        assert np.array(data["/" + entity]["Scalars:scalars"])[:, 0].tolist() == [getattr(st, field)] * len(frames)
+    # episode markers: a start marker on each reset frame, an outcome marker at each end
+    assert data["/plots/episode_start"]["step"] == starts.tolist()
+    assert data["/plots/success/outcome"]["step"] == (starts + np.array(lengths)).tolist()
+    np.testing.assert_allclose(np.array(data["/plots/success/outcome"]["Scalars:scalars"])[:, 0],
+                               [1.0 if s else 0.0 for s in summary["successes"]])
+    # the status text of each frame says whether it is a success
+    texts = [row[0] for row in data["/status"]["TextDocument:text"]]
+    assert [("success: yes" in t) for t in texts] == [bool(f["is_success"]) for f in frames]
+    assert all(f"episode {k}, step {i}" in texts[starts[k] + i] for k, n in enumerate(lengths) for i in range(n + 1))
+
+    # episode boundaries in the log: a start and an end line per episode
     log = data["/log/episodes"]
-    texts = [t for row in log["TextLog:text"] for t in row]  # one text per row
-    assert len(texts) == 2 * EPISODES
-    assert [t.split(":")[0] for t in texts] == [f"episode {k} {w}" for k in range(EPISODES)
-                                                for w in ("start", "end")]
+    lines = [t for row in log["TextLog:text"] for t in row]
+    assert [t.split(":")[0] for t in lines] == [f"episode {k} {w}" for k in range(EPISODES) for w in ("start", "end")]
     for k in range(EPISODES):
-        assert summary["outcomes"][k] in texts[2 * k + 1]
+        assert summary["outcomes"][k] in lines[2 * k + 1]
 
 
 def test_two_recordings_do_not_mix(tmp_path):
