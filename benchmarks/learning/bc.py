@@ -4,9 +4,8 @@ Records each env's demonstration dataset once (``heml-gym demos ENV --policy scr
 --episodes 100 --action-noise 0.3``, seeds 0-99, into ``runs/minari``), then fits ``configs/<env>_bc.yaml``
 for each seed on a local Ray instance (one CPU per trial, ``heml-gym sweep``; finished
 trials are kept) and stores per seed the final success on 20 fresh episodes (the same
-evaluation seeds as the RL results), as ``docs/benchmarks/<env>_bc_sweep.{json,md}`` and
-``docs/img/<env>_bc_sweep.png`` (the RL sweeps' format, so ``agent_results.py`` lists BC
-beside PPO and SAC).
+evaluation seeds as the RL results), as ``docs/benchmarks/<env>_bc_sweep.{json,md}``
+(the RL sweeps' format, so ``agent_results.py`` lists BC beside PPO and SAC and charts it).
 
     python -m heml_gym.benchmarks.learning.bc [--envs tissue,organ] [--seeds 0,1,2,3,4]
 """
@@ -14,13 +13,36 @@ beside PPO and SAC).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
 
-from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, write_json
+from heml_gym.benchmarks.common import RESULTS, ROOT, markdown_table, write_json
 
 #: env name -> its BC config
 CONFIGS = {"tissue": "configs/tissue_bc.yaml", "organ": "configs/organ_bc.yaml"}
+
+
+def table(result: dict, name: str) -> str:
+    """The seeds' final success (BC has one evaluation: no curve over env steps)."""
+    m, d = result["machine"], result["demos"]
+    head = (f"`{result['config']}` with {len(result['seeds'])} seeds on {m['cpu']} ({m['cores']} cores), {m['date']}, "
+            f"one CPU per seed (`{result['command']}`). BC from {d['episodes']} episodes ({d['transitions']:,} "
+            f"transitions) of the {d['policy']} policy, its velocity commands executed with Gaussian noise of "
+            f"standard deviation {d['action_noise']:g} (its own actions the labels: Minari dataset "
+            f"`{d['dataset']}`); no env steps while it learns. Final success: 20 fresh seeded evaluation "
+            "episodes (the RL results' evaluation seeds), deterministic policy, 95 % Wilson interval.\n\n")
+    rows = []
+    for s in result["seeds"]:
+        if s["status"] != "finished":
+            rows.append([s["seed"], s["status"], "-"])
+            continue
+        lo, hi = s["success_ci95"]
+        rows.append([s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['wall_s'] / 60:.1f}"])
+    summary = (f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**; IQM of the "
+               f"final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "
+               f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%}).\n" if "iqm" in result else "")
+    return head + markdown_table(["seed", "final success", "wall min (fit and evaluation)"], rows) + summary
 
 
 def main(argv=None) -> int:
@@ -28,11 +50,17 @@ def main(argv=None) -> int:
     ap.add_argument("--envs", default="tissue,organ", help=f"comma-separated, of {', '.join(CONFIGS)}")
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--out", default=str(ROOT / "runs"), help="where the run folders and datasets go")
+    ap.add_argument("--from-json", action="store_true", help="rewrite the reports from the stored results")
     args = ap.parse_args(argv)
     envs = [e for e in args.envs.split(",") if e]
     unknown = [e for e in envs if e not in CONFIGS]
     if unknown or not envs:
         ap.error(f"--envs: give names among {', '.join(CONFIGS)}, got {args.envs!r}")
+    if args.from_json:
+        for env in envs:
+            name = f"{env}_bc_sweep"
+            (RESULTS / f"{name}.md").write_text(table(json.loads((RESULTS / f"{name}.json").read_text()), name))
+        return 0
     seeds = [int(s) for s in args.seeds.split(",")]
     out = Path(args.out)
     root = (out / "minari").resolve()
@@ -42,8 +70,8 @@ def main(argv=None) -> int:
 
     from heml_gym.agents.config import load_config
     from heml_gym.agents.demos import collect_demos
-    from heml_gym.agents.sweep import chart, plan_sweep, run_sweep
-    from heml_gym.benchmarks.learning.quick_sweep import collect, table
+    from heml_gym.agents.sweep import plan_sweep, run_sweep
+    from heml_gym.benchmarks.learning.quick_sweep import collect
 
     for env in envs:
         config = ROOT / CONFIGS[env]
@@ -71,8 +99,6 @@ def main(argv=None) -> int:
         write_json(f"{name}.json", result, envs=[cfg.env.id])
         text = table(result, name)
         (RESULTS / f"{name}.md").write_text(text)
-        IMAGES.mkdir(parents=True, exist_ok=True)
-        chart(trials, summary, IMAGES / f"{name}.png")
         print(text)
     return 0
 

@@ -223,9 +223,11 @@ def agents(data: dict) -> str:
         if g["name"] == "quick_sweep":
             continue
         level = "" if g.get("difficulty", 1) == 1 else f" at difficulty {g['difficulty']}"
+        demos = g.get("demos")
+        budget = (f"from {demos['episodes']} noisy {demos['policy']} episodes, no env steps" if demos
+                  else f"at {max(s['env_steps'] for s in g['seeds']) // 1000} k steps")
         parts.append(f"{g['algorithm']} on {g['env'].split('/')[-1].rsplit('-v', 1)[0]}{level}: "
-                     f"{g['seeds_at_90_percent']} of {len(g['seeds'])} seeds >= 90 % at "
-                     f"{max(s['env_steps'] for s in g['seeds']) // 1000} k steps (IQM {g['iqm']:.0%}, "
+                     f"{g['seeds_at_90_percent']} of {len(g['seeds'])} seeds >= 90 % {budget} (IQM {g['iqm']:.0%}, "
                      f"{g['iqm_ci95'][0]:.0%}-{g['iqm_ci95'][1]:.0%})")
     for m in data["missing"]:
         level = "" if m.get("difficulty", 1) == 1 else f" at difficulty {m['difficulty']}"
