@@ -15,7 +15,8 @@ E and nu) to
 Prediction: the points fit, replayed on another retraction of the same tissue (another
 seed: another gripper start and grasp place), against that retraction's noise-free
 points (RMS, m). Speed (one thread, same machine): the fit's wall time, and one gradient
-(the reverse pass) against one forward replay of the 3 s trajectory, medians of 3.
+(the reverse pass) against one cold forward replay of the 3 s trajectory (its Newton solves
+not started from a previous replay's, as a fit's are), medians of 3.
 Depth observations are read but not fitted yet: no row.
 
 Writes docs/benchmarks/calibration.{json,md}.
@@ -113,6 +114,7 @@ def measure() -> dict:
                 forward, backward = [], []
                 theta = result.theta
                 for _ in range(3):
+                    replay.forget()  # a cold forward replay (a fit's replays start from the previous one's)
                     t0 = time.perf_counter()
                     r = replay.run(theta)
                     t1 = time.perf_counter()

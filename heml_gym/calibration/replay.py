@@ -173,6 +173,11 @@ class Replay:
         self._cholesky = None
 
     # ------------------------------------------------------------------ helpers
+    def forget(self) -> None:
+        """Start the next :meth:`run`'s Newton solves afresh, not from the latest run's
+        trajectory (a cold replay: what timing one forward simulation should measure)."""
+        self._previous = []
+
     def _set(self, theta) -> None:
         self.model.set_material(self.world, self.material_of(tuple(float(t) for t in theta)))
 
