@@ -229,10 +229,11 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
             continue
         B = embed_points(replay.model.mesh, obs.rest_points[held])
         pts = np.stack([B @ x for x in predicted.x])
-        rms = float(np.sqrt(((pts - obs.points[:, held]) ** 2).sum(axis=-1).mean()))
+        squared = ((pts - obs.points[:, held]) ** 2).sum(axis=-1).mean(axis=1)  # per observed time, m^2
         records.append({"law": name, "theta": dict(zip(names, map(float, result.theta))),
                         "std": dict(zip(names, map(float, result.std))), "converged": result.converged,
-                        "heldout_rms_m": rms, "fit_loss": result.loss})
+                        "heldout_rms_m": float(np.sqrt(squared.mean())),
+                        "heldout_rms_per_time_m": np.sqrt(squared).tolist(), "fit_loss": result.loss})
     usable = [r for r in records if "heldout_rms_m" in r and r["converged"]]
     if not usable:
         raise ValueError("--law auto: no law could be fitted (see each law's record)")
