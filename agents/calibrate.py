@@ -58,8 +58,8 @@ def _make(env_id: str, kwargs: dict, physics: dict | None = None):
 
 
 def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
-            force_noise: float = 0.0, young_modulus=None, poisson=None, law=None, env_kwargs: str | None = None
-            ) -> dict:
+            force_noise: float = 0.0, young_modulus=None, poisson=None, law=None, env_kwargs: str | None = None,
+            depth: str | None = None, depth_noise: float = 0.0) -> dict:
     """Record an observation file of ``env_id``'s scripted retraction (the tissue given by
     ``young_modulus`` / ``poisson`` / ``law``, else drawn as the scene draws it)."""
     from heml_gym.envs.observations import record, save_observation
@@ -68,17 +68,27 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
     for name, value in (("--steps", steps), ("--points", points)):
         if value < (1 if name == "--steps" else 0):
             raise ValueError(f"{name}: must be >= {1 if name == '--steps' else 0}, got {value}")
-    for name, value in (("--point-noise", point_noise), ("--force-noise", force_noise)):
+    depth_size = None
+    if depth is not None:
+        try:
+            depth_size = tuple(int(v) for v in str(depth).lower().split("x"))
+        except ValueError:
+            depth_size = ()
+        if len(depth_size) != 2 or not all(8 <= v <= 1024 for v in depth_size):
+            raise ValueError(f"--depth: the depth image's size as HxW pixels (each 8-1024), e.g. 84x84, got {depth!r}")
+    for name, value in (("--point-noise", point_noise), ("--force-noise", force_noise), ("--depth-noise", depth_noise)):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name}: must be >= 0, got {value}")
     if not str(out).endswith(".npz"):
         raise ValueError(f"--out: an observation file ends in .npz, got {out!r}")
     env = _make(env_id, _env_kwargs(env_kwargs), physics_overrides(young_modulus, poisson, law))
     obs = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points,
-                 point_noise=point_noise, force_noise=force_noise, env_id=env_id)
+                 point_noise=point_noise, force_noise=force_noise, env_id=env_id, depth_size=depth_size,
+                 depth_noise=depth_noise)
     obs.meta["env_kwargs"] = _env_kwargs(env_kwargs)
     save_observation(obs, out)
     return {"out": str(out), "steps": obs.steps, "points": 0 if obs.points is None else obs.points.shape[1],
+            "depth": None if obs.depth is None else list(obs.depth.shape[1:]),
             "truth": obs.meta["truth"], "adhesion_width_m": obs.adhesion_width}
 
 
@@ -150,7 +160,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "law_selection": selection,
         "settings": {"env_id": env_id, "env_kwargs": _env_kwargs(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
-                     "observed": [k for k in ("points", "force") if getattr(obs, k) is not None],
+                     "observed": [k for k in ("points", "force", "depth") if getattr(obs, k) is not None],
                      "steps": obs.steps, "mesh": {"vertices": int(replay.model.n_vertices),
                                                    "tets": int(replay.model.mesh.n_tets)}},
         "wall_s": time.perf_counter() - t0,
@@ -159,7 +169,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     if obs.points is not None:
         B = embed_points(replay.model.mesh, obs.rest_points)
         fitted_points = np.stack([B @ x for x in final.x])
-    _chart(out / "fit.png", result, obs, final, fitted_points)
+    _chart(out / "fit.png", result, obs, final, fitted_points, observed.extra)
     record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
@@ -240,13 +250,13 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
     return min(usable, key=lambda r: r["heldout_rms_m"])["law"], records
 
 
-def _chart(path: Path, result, obs, final, fitted_points) -> None:
+def _chart(path: Path, result, obs, final, fitted_points, extra=()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = 1 + (obs.force is not None) + (obs.points is not None)
+    panels = 1 + (obs.force is not None) + (obs.points is not None) + len(extra)
     fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 3.4), constrained_layout=True)
     axes = np.atleast_1d(axes)
     ax = axes[0]
@@ -273,6 +283,18 @@ def _chart(path: Path, result, obs, final, fitted_points) -> None:
         ax.set_xlabel("time (s)")
         ax.set_ylabel("tracked point height (mm)")
         ax.set_title("dots: observed, lines: fitted", fontsize=9)
+        k += 1
+    for term in extra:  # a depth camera's: the last frame's residual image
+        ax = axes[k]
+        k += 1
+        last = final.x.shape[0] - 1
+        image = 1e3 * term.residual_image(final.x[last], last)
+        # the scale of most pixels (the jaws in front of the tissue are off by centimetres)
+        limit = max(float(np.nanpercentile(np.abs(image), 95)), 0.1) if np.isfinite(image).any() else 1.0
+        shown = ax.imshow(image, cmap="coolwarm", vmin=-limit, vmax=limit)
+        fig.colorbar(shown, ax=ax, label="fitted - observed depth (mm)")
+        ax.set_title(f"depth at t = {obs.t[last]:.1f} s (blank: not counted)", fontsize=9)
+        ax.set_axis_off()
     names = ", ".join(f"{n} {v:.4g} ± {s:.2g}" for n, v, s in zip(result.names, result.theta, result.std))
     fig.suptitle(names, fontsize=9)
     fig.savefig(path, dpi=100)

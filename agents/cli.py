@@ -197,7 +197,8 @@ def _observe(args) -> int:
         raise ValueError(f"--out {out}: exists (give a new file)")
     summary = observe(args.env, args.out, seed=args.seed, steps=args.steps, points=args.points,
                       point_noise=args.point_noise, force_noise=args.force_noise, young_modulus=args.young_modulus,
-                      poisson=args.poisson, law=args.law, env_kwargs=args.env_kwargs)
+                      poisson=args.poisson, law=args.law, env_kwargs=args.env_kwargs, depth=args.depth,
+                      depth_noise=args.depth_noise)
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -382,6 +383,8 @@ def main(argv=None) -> int:
     o.add_argument("--poisson", type=float, help="the tissue's Poisson ratio (default: the scene's)")
     o.add_argument("--law", help="the tissue's law (a heml_gym.materials class name; default: the scene's)")
     o.add_argument("--env-kwargs", help="JSON gym.make keyword arguments (e.g. a finer mesh)")
+    o.add_argument("--depth", help="also record the task camera's depth image, HxW pixels (e.g. 84x84)")
+    o.add_argument("--depth-noise", type=float, default=0.0, help="Gaussian noise per depth pixel, m")
     o.set_defaults(func=_observe)
 
     c = sub.add_parser("calibrate", help="fit a scene's tissue to an observation file")

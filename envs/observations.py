@@ -18,8 +18,12 @@ field           shape        meaning
 ``meta``        ()           str, optional: JSON, anything else (how it was made)
 =============== ============ =====================================================
 
-``depth`` (T+1, H, W) m with ``intrinsics`` (3, 3) and ``camera_pose`` (4, 4) is read and
-checked but not fitted yet. :func:`record` makes such a file from a simulated episode
+``depth`` (T+1, H, W) m along the optical axis (``DEPTH_FAR`` = 10 m or more: nothing
+seen), with ``intrinsics`` (3, 3) ``[[f, 0, cx], [0, f, cy], [0, 0, 1]]`` (pixels; pixel
+``(i, j)``'s centre at ``(j + 0.5, i + 0.5)``) and ``camera_pose`` (4, 4) camera to world
+(rotation columns: image right, image down, forward; translation: the eye, m), a depth
+camera's view: fitted against the model's rendered tissue depth
+(:class:`~heml_gym.envs.depth_loss.DepthTerm`). :func:`record` makes such a file from a simulated episode
 (``heml-gym observe``); :func:`calibration_problem` turns one and a scene into what
 :func:`heml_gym.calibration.fit` takes.
 """
@@ -40,6 +44,8 @@ __all__ = ["Observation", "ObservationError", "load_observation", "save_observat
            "calibration_problem", "FIT_PARAMETERS", "physics_from_fit"]
 
 #: Constants a calibration can fit: name -> (unit, bounds).
+#: m: a depth image's value where the camera saw nothing
+DEPTH_FAR = 10.0
 FIT_PARAMETERS = {"young_modulus": ("Pa", (200.0, 200e3)), "poisson_ratio": ("", (0.0, 0.495))}
 
 
@@ -187,12 +193,16 @@ def save_observation(obs: Observation, path) -> Path:
 
 
 def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
-           force_noise: float = 0.0, noise_seed: int = 0, env_id: str | None = None) -> Observation:
+           force_noise: float = 0.0, noise_seed: int = 0, env_id: str | None = None,
+           depth_size: tuple[int, int] | None = None, depth_noise: float = 0.0) -> Observation:
     """Run one episode of the single env ``env`` (``gym.make(...)``) under ``policy``
     (``obs -> action``) for ``steps`` steps and record what a robot would log: the gripper,
     the jaws, ``points`` tracked points on the tissue's upper surface (its free vertices,
-    drawn with ``noise_seed``) with Gaussian noise of ``point_noise`` m per coordinate, and
-    the jaws' force with ``force_noise`` N. The truth (law, E, nu, mesh) goes in ``meta``."""
+    drawn with ``noise_seed``) with Gaussian noise of ``point_noise`` m per coordinate, the
+    jaws' force with ``force_noise`` N, and with ``depth_size`` ``(H, W)`` the task
+    camera's depth image (everything it sees: tissue, jaws, target, support; 10 m where
+    nothing) with Gaussian noise of ``depth_noise`` m, its ``intrinsics`` and
+    ``camera_pose``. The truth (law, E, nu, mesh) goes in ``meta``."""
     task = env.unwrapped.task
     scene = task.scene
     obs, _ = env.reset(seed=seed)
@@ -206,7 +216,14 @@ def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_
     pool = top if top.size >= points else movable
     tracked = rng.choice(pool, size=min(points, pool.size), replace=False) if points else np.zeros(0, dtype=int)
     log = {"gripper": [task.gripper[0].copy()], "grasp": [bool(task.grasping[0])],
-           "points": [task.x[0, tracked].copy()], "force": [np.zeros(3)]}
+           "points": [task.x[0, tracked].copy()], "force": [np.zeros(3)], "depth": []}
+    camera = None
+    if depth_size is not None:
+        view = env.unwrapped.camera_view(0, depth_size)
+        height, width = view["depth"].shape
+        camera = (np.array([[view["focal"], 0.0, 0.5 * width], [0.0, view["focal"], 0.5 * height], [0.0, 0.0, 1.0]]),
+                  np.block([[view["rotation"].T, view["eye"][:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+        log["depth"].append(view["depth"].astype(np.float64))
     for _ in range(steps):
         obs, _, terminated, truncated, info = env.step(policy(obs))
         if info.get("simulation_diverged") or not info.get("solver_converged", True):
@@ -216,22 +233,32 @@ def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_
         log["grasp"].append(bool(task.grasping[0]))
         log["points"].append(task.x[0, tracked].copy())
         log["force"].append(task.grasp_force[0].copy())
+        if camera is not None:
+            log["depth"].append(env.unwrapped.camera_view(0, depth_size)["depth"].astype(np.float64))
         if terminated or truncated:
             break
     T1 = len(log["force"])
     pts = np.array(log["points"]) + rng.normal(0.0, point_noise, (T1, tracked.size, 3)) if points else None
     force = np.array(log["force"]) + rng.normal(0.0, force_noise, (T1, 3))
     force[0] = 0.0
+    depth = None
+    if camera is not None:
+        depth = np.array(log["depth"])
+        seen = depth < DEPTH_FAR
+        depth = np.where(seen, depth + rng.normal(0.0, depth_noise, depth.shape), DEPTH_FAR)
     ph = scene.physics
     meta = {"made_by": "heml_gym.envs.observations.record", "seed": seed, "steps": T1 - 1,
             "truth": {"law": ph.material, "young_modulus": float(task.young_modulus[0]),
                       "poisson_ratio": float(ph.poisson), "material_options": ph.material_options},
             "mesh": {"vertices": int(scene.mesh.n_vertices), "tets": int(scene.mesh.n_tets)},
-            "point_noise_m": point_noise, "force_noise_N": force_noise}
+            "point_noise_m": point_noise, "force_noise_N": force_noise,
+            **({"depth_noise_m": depth_noise} if camera is not None else {})}
     width = float(task.adhesion_width[0]) if scene.adhesion_vertices is not None else None
     return Observation(t=np.arange(T1) * task.settings.control_dt, gripper=np.array(log["gripper"]),
                        grasp=np.array(log["grasp"]), points=pts, rest_points=X[tracked] if points else None,
                        force=force, env_id=env_id or (env.spec.id if env.spec is not None else None),
+                       depth=depth, intrinsics=camera[0] if camera else None,
+                       camera_pose=camera[1] if camera else None,
                        adhesion_width=width, meta=meta)
 
 
@@ -281,16 +308,13 @@ def control_log(env, obs: Observation, young_modulus: float | None = None) -> Co
 
 
 def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_modulus", "poisson_ratio"),
-                        point_scale: float = 1e-3, force_scale: float = 0.05):
+                        point_scale: float = 1e-3, force_scale: float = 0.05, depth_scale: float = 1e-3):
     """``(replay, observed, names, bounds, start)`` for :func:`heml_gym.calibration.fit`:
     the scene of ``env`` replaying ``obs``, the constants ``fit`` (the others kept at the
     scene's values) with their bounds, and the scene's own values as the start."""
     unknown = [name for name in fit if name not in FIT_PARAMETERS]
     if unknown or not fit:
         raise ValueError(f"fit: {unknown[0] if unknown else 'nothing'}: can fit {', '.join(FIT_PARAMETERS)}")
-    if obs.points is None and obs.force is None:
-        raise ObservationError(f"{obs.source}: only depth observed: fitting depth is not supported yet "
-                               "(give points or force)")
     task = env.unwrapped.task
     ph = task.scene.physics
     log = control_log(env, obs)
@@ -303,8 +327,14 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
 
     # the replay's own one-world model: the env's, whose world 0 it re-materialises
     replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0))
+    extra = ()
+    if obs.depth is not None:
+        from .depth_loss import DepthTerm
+
+        extra = (DepthTerm(obs.depth, obs.intrinsics, obs.camera_pose, task.scene.surface_faces, scale=depth_scale,
+                           far=DEPTH_FAR),)
     observed = Observed(points=obs.points, rest_points=obs.rest_points, force=obs.force,
-                        point_scale=point_scale, force_scale=force_scale)
+                        point_scale=point_scale, force_scale=force_scale, extra=extra)
     return replay, observed, list(fit), [FIT_PARAMETERS[name][1] for name in fit], [defaults[name] for name in fit]
 
 

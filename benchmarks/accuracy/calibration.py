@@ -18,7 +18,9 @@ points (RMS, m). Speed (one thread, same machine): the fit's wall time (its kern
 beforehand: a fresh install compiles them once, ~20 s, then caches them), and one gradient
 (the reverse pass) against one cold forward replay of the 3 s trajectory (its Newton solves
 not started from a previous replay's, as a fit's are), medians of 3.
-Depth observations are read but not fitted yet: no row.
+* ``depth``: the task camera's 84 x 84 depth image (everything it sees: the jaws in front of
+  the tissue too), 1 mm Gaussian noise per pixel (E only), against the fitted model's
+  rendered tissue depth (``heml_gym.envs.depth_loss``).
 
 Writes docs/benchmarks/calibration.{json,md}.
 
@@ -47,10 +49,11 @@ CASES = {
                                     "model_label": "10 mm mesh, 0.05 s steps (the default)"},
 }
 SEED, PREDICT_SEED = 1, 7
-POINT_NOISE, FORCE_NOISE = 5e-4, 0.01
+POINT_NOISE, FORCE_NOISE, DEPTH_NOISE = 5e-4, 0.01, 1e-3
+DEPTH_SIZE = (84, 84)
 
 
-def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float):
+def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float, depth_noise: float = 0.0):
     import gymnasium as gym
 
     from heml_gym.envs.observations import record
@@ -60,7 +63,8 @@ def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_nois
                "poisson": TRUTH["poisson_ratio"]}
     env = gym.make(env_id, **{**kwargs, "physics": physics})
     return record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=STEPS, points=10,
-                  point_noise=point_noise, force_noise=force_noise, noise_seed=seed, env_id=env_id)
+                  point_noise=point_noise, force_noise=force_noise, noise_seed=seed, env_id=env_id,
+                  depth_size=DEPTH_SIZE, depth_noise=depth_noise)
 
 
 def fit_case(env_id: str, obs, names, use):
@@ -69,10 +73,12 @@ def fit_case(env_id: str, obs, names, use):
     from heml_gym.calibration import fit
     from heml_gym.envs.observations import calibration_problem
 
-    if use == "points":
+    if use != "force":
         obs.force = None
-    else:
+    if use != "points":
         obs.points = obs.rest_points = None
+    if use != "depth":
+        obs.depth = obs.intrinsics = obs.camera_pose = None
     replay, observed, names, bounds, start = calibration_problem(gym.make(env_id), obs, names)
     warm_up = replay.run(start)
     replay.gradient(start, warm_up, np.zeros_like(warm_up.x))  # compiles the kernels
@@ -93,8 +99,9 @@ def measure() -> dict:
     numba.set_num_threads(1)
     rows, timing = [], []
     for env_id, case in CASES.items():
-        obs = observe(env_id, case["fine"], SEED, POINT_NOISE, FORCE_NOISE)
-        for use, names in (("points", ("young_modulus", "poisson_ratio")), ("force", ("young_modulus",))):
+        obs = observe(env_id, case["fine"], SEED, POINT_NOISE, FORCE_NOISE, DEPTH_NOISE)
+        for use, names in (("points", ("young_modulus", "poisson_ratio")), ("force", ("young_modulus",)),
+                           ("depth", ("young_modulus",))):
             replay, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use)
             row = {"env": env_id, "observed": use, "fine_model": case["fine_label"], "fitted_model": case["model_label"],
                    "fit": list(names), "converged": result.converged, "message": result.message,
@@ -133,7 +140,8 @@ def measure() -> dict:
             print(f"{env_id} {use}: " + ", ".join(f"{n} {row[n]:.5g} ± {row[n + '_std']:.2g}" for n in names)
                   + f" ({wall:.0f} s)", flush=True)
     return {"machine": machine_info(), "truth": TRUTH, "steps": STEPS, "seed": SEED, "predict_seed": PREDICT_SEED,
-            "point_noise_m": POINT_NOISE, "force_noise_N": FORCE_NOISE, "results": rows, "timing": timing}
+            "point_noise_m": POINT_NOISE, "force_noise_N": FORCE_NOISE, "depth_noise_m": DEPTH_NOISE,
+            "depth_size": list(DEPTH_SIZE), "results": rows, "timing": timing}
 
 
 def report(data: dict) -> str:
@@ -142,13 +150,15 @@ def report(data: dict) -> str:
              f"{m['date']}. Truth: E {data['truth']['young_modulus']:,.0f} Pa, nu {data['truth']['poisson_ratio']}, "
              f"observed on the finer model along the scripted retraction and hold ({data['steps']} env steps, seed "
              f"{data['seed']}); points: 10 tracked, {data['point_noise_m'] * 1e3:g} mm noise; force: "
-             f"{data['force_noise_N']:g} N noise. Method: the script's docstring.\n"]
+             f"{data['force_noise_N']:g} N noise"
+             + (f"; depth: {data['depth_size'][0]} x {data['depth_size'][1]} pixels, {data['depth_noise_m'] * 1e3:g} mm "
+                "noise" if "depth_size" in data else "") + ". Method: the script's docstring.\n"]
     rows = []
     for r in data["results"]:
         nu = (f"{r['poisson_ratio']:.3f} ± {r['poisson_ratio_std']:.3f} ({r['poisson_ratio_error']:+.3f})"
               if "poisson_ratio" in r else "not fitted")
-        rms = ", ".join(f"{k.split('_')[0]} {v * (1e3 if k == 'points_m' else 1):.2f} "
-                        f"{'mm' if k == 'points_m' else 'N'}" for k, v in r["residual_rms"].items())
+        rms = ", ".join(f"{k.split('_')[0]} {v * (1e3 if k.endswith('_m') else 1):.2f} "
+                        f"{'mm' if k.endswith('_m') else 'N'}" for k, v in r["residual_rms"].items())
         rows.append([r["env"].split("/")[-1], r["observed"], r["fine_model"], r["fitted_model"],
                      f"{r['young_modulus']:,.0f} ± {r['young_modulus_std']:,.0f} ({100 * r['young_modulus_error']:+.1f} %)",
                      nu, rms, f"{r['prediction_rms_m'] * 1e3:.2f} mm" if "prediction_rms_m" in r else "",

@@ -61,17 +61,26 @@ class Observed:
     ``points`` (T + 1, K, 3) m of material points at rest places ``rest_points`` (K, 3) m;
     ``force`` (T + 1, 3) N, the force the tissue pulls the gripper with (entry t: the mean
     over control step t; entry 0 unused). ``point_scale`` (m) and ``force_scale`` (N)
-    weigh them (see the module docstring)."""
+    weigh them (see the module docstring). ``extra``: further loss terms on the positions,
+    each ``term(x) -> (loss, residuals, x_bar)`` for ``x`` (T + 1, n, 3) m, with a ``name``
+    and ``term.rms(x)`` (its RMS residual, reported under its name): a depth camera's
+    (``heml_gym.envs.depth_loss.DepthTerm``), which the physics layer does not render."""
 
     points: np.ndarray | None = None
     rest_points: np.ndarray | None = None
     force: np.ndarray | None = None
     point_scale: float = 1e-3
     force_scale: float = 0.05
+    extra: tuple = ()
 
     def __post_init__(self):
-        if self.points is None and self.force is None:
-            raise ValueError("observed: give points (with rest_points) or force, or both")
+        self.extra = tuple(self.extra)
+        if self.points is None and self.force is None and not self.extra:
+            raise ValueError("observed: give points (with rest_points), force or an extra term")
+        for term in self.extra:
+            if not (callable(term) and hasattr(term, "name") and hasattr(term, "rms")):
+                raise ValueError(f"observed.extra: each term is called with the positions and has a name and an "
+                                 f"rms, got {term!r}")
         if (self.points is None) != (self.rest_points is None):
             raise ValueError("observed: points and rest_points go together")
         for name in ("point_scale", "force_scale"):
@@ -104,6 +113,11 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
         loss += float((r ** 2).sum() / count)
         residuals.append(r.reshape(-1))
         force_bar += 2.0 * r / (count * observed.force_scale)
+    for term in observed.extra:
+        value, r, bar = term(x)
+        loss += float(value)
+        residuals.append(np.asarray(r, dtype=np.float64).reshape(-1))
+        x_bar += bar
     return loss, np.concatenate(residuals), x_bar, force_bar
 
 
@@ -195,6 +209,8 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
         rms["points_m"] = float(np.sqrt(((predicted - observed.points) ** 2).sum(axis=-1).mean()))
     if observed.force is not None:
         rms["force_N"] = float(np.sqrt(((result.force - observed.force[1:]) ** 2).sum(axis=-1).mean()))
+    for term in observed.extra:
+        rms[term.name] = float(term.rms(result.x))
     message = best.message if isinstance(best.message, str) else best.message.decode()
     return FitResult(list(names), theta, std, float(loss), bool(best.success), message, history,
                      [{"start": s.tolist(), "theta": transform.theta(r.x).tolist(), "loss": float(r.fun),
