@@ -33,7 +33,9 @@ def physics_overrides(young_modulus=None, poisson=None, law=None) -> dict:
     return physics
 
 
-def _env_kwargs(text: str | None, argument: str = "--env-kwargs") -> dict:
+def parse_json_mapping(text: str | None, argument: str = "--env-kwargs") -> dict:
+    """The JSON object in a command-line argument (``{}`` for none), or a one-line error
+    naming ``argument``."""
     if not text:
         return {}
     try:
@@ -81,11 +83,11 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
             raise ValueError(f"{name}: must be >= 0, got {value}")
     if not str(out).endswith(".npz"):
         raise ValueError(f"--out: an observation file ends in .npz, got {out!r}")
-    env = _make(env_id, _env_kwargs(env_kwargs), physics_overrides(young_modulus, poisson, law))
+    env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(young_modulus, poisson, law))
     obs = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points,
                  point_noise=point_noise, force_noise=force_noise, env_id=env_id, depth_size=depth_size,
                  depth_noise=depth_noise)
-    obs.meta["env_kwargs"] = _env_kwargs(env_kwargs)
+    obs.meta["env_kwargs"] = parse_json_mapping(env_kwargs)
     save_observation(obs, out)
     return {"out": str(out), "steps": obs.steps, "points": 0 if obs.points is None else obs.points.shape[1],
             "depth": None if obs.depth is None else list(obs.depth.shape[1:]),
@@ -116,9 +118,9 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
     selection = None
     if law == "auto":
-        law, selection = select_law(env_id, obs, tuple(fit_names), _env_kwargs(env_kwargs), point_scale, force_scale,
+        law, selection = select_law(env_id, obs, tuple(fit_names), parse_json_mapping(env_kwargs), point_scale, force_scale,
                                     progress)
-    env = _make(env_id, _env_kwargs(env_kwargs), physics_overrides(law=law))
+    env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
                                                                  force_scale)
     first = np.array(start, dtype=np.float64)
@@ -158,7 +160,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
         "law_selection": selection,
-        "settings": {"env_id": env_id, "env_kwargs": _env_kwargs(env_kwargs), "observation": str(observation),
+        "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
                      "observed": [k for k in ("points", "force", "depth") if getattr(obs, k) is not None],
                      "steps": obs.steps, "mesh": {"vertices": int(replay.model.n_vertices),

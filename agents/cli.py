@@ -95,8 +95,20 @@ def _eval(args) -> int:
     env_id = args.env or (cfg.env.id if cfg else DEFAULT_ENV)
     obs_mode = cfg.env.obs_mode if cfg else "state"
     kwargs = cfg.env.kwargs if cfg and env_id == cfg.env.id else {}
+    if args.physics:
+        from heml_gym.envs import SpecError, check_env_kwargs
+
+        from .calibrate import parse_json_mapping
+
+        kwargs = {**kwargs, "physics": {**kwargs.get("physics", {}), **parse_json_mapping(args.physics, "--physics")}}
+        try:
+            check_env_kwargs(env_id, kwargs, "env")
+        except SpecError as exc:
+            raise ValueError(f"--physics: {exc}") from None
     result = evaluate_policy(policy, env_id, args.episodes, seed=args.seed, obs_mode=obs_mode, env_kwargs=kwargs)
     result["env"] = env_id
+    if args.physics:
+        result["physics"] = kwargs["physics"]
     print(json.dumps(result, indent=1))
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))
@@ -318,6 +330,8 @@ def main(argv=None) -> int:
     e.add_argument("--seed", type=int, default=10_000)
     e.add_argument("--env", help="environment id (default: the run's)")
     e.add_argument("--out", help="write the result as JSON here")
+    e.add_argument("--physics", help="JSON physics= changes for the evaluation episodes, over the run's: e.g. a "
+                   "held-out stiffness range '{\"young_modulus\": [8000, 16000]}', or '{\"fit\": \"fit/\"}'")
     e.add_argument("--trust-pickle", action="store_true", help=TRUST_HELP)
     e.set_defaults(func=_eval)
 

@@ -29,7 +29,7 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
                     obs_mode: str = "state", env_kwargs: dict | None = None) -> dict:
     """Success rate (with its 95 % Wilson interval), mean final exposure and max strain, and
     the tissue harm: the mean episode ``damage`` (strain x s, the summed ``info["cost"]``)
-    and how many episodes did any.
+    and how many episodes did any; the range of the episodes' Young's moduli (Pa).
 
     ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``;
     the env is ``gym.make(env_id, obs_mode=obs_mode, **env_kwargs)`` (the run's scene,
@@ -38,9 +38,10 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
     from heml_gym.envs import episode_steps
 
     env = gym.make(env_id, obs_mode=obs_mode, max_episode_steps=episode_steps(env_kwargs), **(env_kwargs or {}))
-    successes, exposures, strains, lengths, damages = 0, [], [], [], []
+    successes, exposures, strains, lengths, damages, stiffness = 0, [], [], [], [], []
     for k in range(episodes):
-        obs, _ = env.reset(seed=seed + k)
+        obs, info = env.reset(seed=seed + k)
+        stiffness.append(float(np.asarray(info["young_modulus"]).reshape(-1)[0]))
         if hasattr(policy, "reset"):
             policy.reset()
         done, steps, worst = False, 0, 0.0
@@ -59,4 +60,5 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
     return {"episodes": episodes, "success_rate": successes / episodes, "success_ci95": [lo, hi],
             "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
             "mean_episode_length": float(np.mean(lengths)),
-            "mean_damage": float(np.mean(damages)), "episodes_with_damage": int(np.sum(np.array(damages) > 0))}
+            "mean_damage": float(np.mean(damages)), "episodes_with_damage": int(np.sum(np.array(damages) > 0)),
+            "young_modulus_range": [min(stiffness), max(stiffness)]}

@@ -30,3 +30,21 @@ def test_a_pretrained_policy_does_its_task(path, capsys):
 def test_rollout_pretrained_records(tmp_path):
     assert main(["rollout", "--policy", "pretrained", "--episodes", "1", "--rrd", str(tmp_path / "r.rrd")]) == 0
     assert (tmp_path / "r.rrd").stat().st_size > 0
+
+
+def test_eval_on_a_held_out_stiffness_range(tmp_path, capsys):
+    """`heml-gym eval --physics` runs the episodes on other tissue (a train / test split of
+    stiffness): the episodes' Young's moduli, as the env reports them at reset, lie in the
+    given range and not in the task's own; a bad range is a one-line error."""
+    import json
+
+    from heml_gym.agents.cli import main
+
+    out = tmp_path / "eval.json"
+    assert main(["eval", "pretrained", "--episodes", "3", "--physics", '{"young_modulus": [12000, 16000]}',
+                 "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    lo, hi = result["young_modulus_range"]
+    assert 12000 <= lo <= hi <= 16000
+    assert main(["eval", "pretrained", "--episodes", "1", "--physics", '{"young_modulus": [-1, 2]}']) == 2
+    assert "--physics" in capsys.readouterr().err
