@@ -21,6 +21,8 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
+
 from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json
 
 #: per env: the unconstrained config and its constrained twin (same algorithm and settings)
@@ -42,6 +44,8 @@ def collect_seed(trial) -> dict:
     out = {"seed": trial.seed, "env_steps": record["env_steps"], "wall_s": record["wall_s"],
            "success_rate": final["success_rate"], "success_ci95": final["success_ci95"],
            "mean_damage": final["mean_damage"], "episodes_with_damage": final["episodes_with_damage"],
+           # the harm while learning: the evaluations' mean damage averaged over training
+           "damage_while_training": float(np.mean([e["mean_damage"] for e in history])),
            "episodes": final["episodes"],
            "evaluations": [{"env_steps": e["timesteps"], "success_rate": e["success_rate"],
                             "mean_damage": e["mean_damage"]} for e in history]}
@@ -59,9 +63,12 @@ def summarise(seeds: list[dict]) -> dict:
 
     success = [s["success_rate"] for s in seeds]
     damage = [s["mean_damage"] for s in seeds]
+    learning = [s["damage_while_training"] for s in seeds]
     return {"seeds": seeds, "seeds_at_90_percent": sum(x >= 0.9 for x in success),
             "success_iqm": iqm(success), "success_iqm_ci95": list(iqm_interval(success)),
-            "damage_iqm": iqm(damage), "damage_iqm_ci95": list(iqm_interval(damage))}
+            "damage_iqm": iqm(damage), "damage_iqm_ci95": list(iqm_interval(damage)),
+            "damage_while_training_iqm": iqm(learning),
+            "damage_while_training_iqm_ci95": list(iqm_interval(learning))}
 
 
 def table(result: dict) -> str:
@@ -77,6 +84,7 @@ def table(result: dict) -> str:
         for s in result["methods"][method]["seeds"]:
             lo, hi = s["success_ci95"]
             rows.append([method, s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['mean_damage']:.3f}",
+                         f"{s['damage_while_training']:.3f}",
                          f"{s['episodes_with_damage']} / {s['episodes']}",
                          f"{s['multiplier_final']:.2f}" if "multiplier_final" in s else "-",
                          f"{s['wall_s'] / 60:.1f}"])
@@ -85,12 +93,16 @@ def table(result: dict) -> str:
         r = result["methods"][method]
         summary_rows.append([method, f"{r['seeds_at_90_percent']} of {len(r['seeds'])}",
                              f"{r['success_iqm']:.0%} ({r['success_iqm_ci95'][0]:.0%}-{r['success_iqm_ci95'][1]:.0%})",
-                             f"{r['damage_iqm']:.3f} ({r['damage_iqm_ci95'][0]:.3f}-{r['damage_iqm_ci95'][1]:.3f})"])
+                             f"{r['damage_iqm']:.3f} ({r['damage_iqm_ci95'][0]:.3f}-{r['damage_iqm_ci95'][1]:.3f})",
+                             f"{r['damage_while_training_iqm']:.3f} ({r['damage_while_training_iqm_ci95'][0]:.3f}-"
+                             f"{r['damage_while_training_iqm_ci95'][1]:.3f})"])
     verdict = result["verdict"]
     text = (head + markdown_table(["method", "seed", "final success", "mean damage (strain x s)",
+                                   "damage while training (mean over the evaluations)",
                                    "episodes with damage", "final multiplier", "wall min"], rows)
             + "\n\nAcross seeds (IQM, 95 % bootstrap interval):\n\n"
-            + markdown_table(["method", "seeds >= 90 %", "success", "damage (strain x s)"], summary_rows)
+            + markdown_table(["method", "seeds >= 90 %", "success", "final damage (strain x s)",
+                              "damage while training"], summary_rows)
             + f"\n\n**{verdict['text']}**\n"
             + f"\n![success vs damage per seed; damage and success vs env steps](../img/{result['name']}.png)\n")
     return text
@@ -102,11 +114,15 @@ def verdict(result: dict) -> dict:
     lower = lag["damage_iqm"] < ppo["damage_iqm"]
     close = lag["success_iqm"] >= ppo["success_iqm"] - 0.10
     ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
-    text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the damage (IQM {lag['damage_iqm']:.3f} vs "
+    learning = lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]
+    text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the final damage (IQM {lag['damage_iqm']:.3f} vs "
             f"{ppo['damage_iqm']:.3f} strain x s, x{ratio:.2f}) at success {lag['success_iqm']:.0%} vs "
             f"{ppo['success_iqm']:.0%} ({'within' if close else 'not within'} 10 points): the bar is "
-            f"{'met' if lower and close else 'missed'}")
+            f"{'met' if lower and close else 'missed'}; while training it "
+            f"{'lowers' if learning else 'does not lower'} the damage (IQM {lag['damage_while_training_iqm']:.3f} vs "
+            f"{ppo['damage_while_training_iqm']:.3f})")
     return {"damage_lower": bool(lower), "success_within_10_points": bool(close), "met": bool(lower and close),
+            "damage_while_training_lower": bool(learning),
             "damage_ratio": ratio, "text": text}
 
 
