@@ -179,15 +179,20 @@ class DepthTerm:
         return r, counted, triangle
 
     def __call__(self, x: np.ndarray):
-        """``(loss, residuals, x_bar)`` of the positions ``x`` (T + 1, n, 3) m."""
+        """``(loss, residuals, x_bar)`` of the positions ``x`` (T + 1, n, 3) m; the residuals
+        (one per pixel and time, 0 where the pixel does not count) are the robust ones,
+        ``sign(r) sqrt(2 rho(r))``."""
         eye, rot, focal, cx, cy = self.camera
         x_bar = np.zeros_like(x)
         loss, residuals = 0.0, []
         for t in range(x.shape[0]):
             r, counted, triangle = self._frame(x[t], t)
             root = np.sqrt(1.0 + (r / self.huber) ** 2)
-            loss += float((self.huber ** 2 * (root - 1.0))[counted].sum())
-            residuals.append(r.reshape(-1))
+            rho = np.where(counted, self.huber ** 2 * (root - 1.0), 0.0)
+            loss += float(rho.sum())
+            # the robust residual sign(r) sqrt(2 rho): r near 0, ~sqrt(2 huber |r|) far out (the
+            # Gauss-Newton curvature and variance of the loss the fit minimises, not of outliers)
+            residuals.append((np.sign(r) * np.sqrt(2.0 * rho)).reshape(-1))
             weight = np.where(counted, r / root, 0.0) / (self.count * self.scale)  # d loss / d s
             _depth_gradient(np.ascontiguousarray(x[t]), self.faces, eye, rot, focal, cx, cy, triangle, weight,
                             x_bar[t])

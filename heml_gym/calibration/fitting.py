@@ -252,7 +252,10 @@ def _standard_errors(replay, observed, embedding, theta, residuals) -> np.ndarra
             shifted = np.array(theta, dtype=np.float64)
             shifted[j] += sign * step
             cols.append(loss_terms(replay.run(shifted), observed, embedding)[1])
-        J[:, j] = (cols[0] - cols[1]) / (2.0 * step)
+        # a residual that appears or vanishes between the two (a depth pixel crossing the
+        # model's silhouette) is a jump, not a slope: it is left out of J
+        switched = (cols[0] == 0.0) != (cols[1] == 0.0)
+        J[:, j] = np.where(switched, 0.0, (cols[0] - cols[1]) / (2.0 * step))
     replay.run(theta)  # (the model's material back to theta)
     variance = float(residuals @ residuals) / max(residuals.size - p, 1)
     try:
