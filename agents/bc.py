@@ -161,16 +161,21 @@ def _dataset(cfg, progress_bar: bool):
         os.environ["MINARI_DATASETS_PATH"] = str(Path(d.root).expanduser().resolve())
     import minari
 
+    from .config import ConfigError
+
     if d.dataset not in minari.list_local_datasets():
         from .demos import collect_demos
 
         if progress_bar:
             print(f"demos: recording {d.episodes} episodes of {d.policy} in {cfg.env.id} as {d.dataset}", flush=True)
-        collect_demos(cfg.env.id, d.policy, d.episodes, d.dataset, seed=d.seed, action_noise=d.action_noise)
+        collect_demos(cfg.env.id, d.policy, d.episodes, d.dataset, seed=d.seed, action_noise=d.action_noise,
+                      env_kwargs=cfg.env.kwargs)
     dataset = minari.load_dataset(d.dataset)
+    if dataset.total_episodes != d.episodes:  # an existing dataset: is it the one the config describes?
+        raise ConfigError(f"config key 'demos.dataset': {d.dataset} exists with {dataset.total_episodes} episodes, "
+                          f"the config's demos.episodes is {d.episodes}: name a new dataset to record, or make them "
+                          "agree")
     if dataset.spec.env_spec is not None and dataset.spec.env_spec.id != cfg.env.id:
-        from .config import ConfigError
-
         raise ConfigError(f"config key 'demos.dataset': {d.dataset} holds {dataset.spec.env_spec.id} episodes, "
                           f"not {cfg.env.id}")
     observations, actions = [], []
@@ -204,16 +209,17 @@ def train_bc(cfg, run_dir: Path, progress_bar: bool = True) -> dict:
     started = time.perf_counter()
     dataset, observations, actions = _dataset(cfg, progress_bar)
     net, mean, var, losses = fit(observations, actions, hp, seed=cfg.seed, progress_bar=progress_bar)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-    torch.save(net.state_dict(), run_dir / POLICY_FILE)
-    _write_statistics(run_dir / NORMALIZER_FILE, mean, var, len(observations))
     fitted = time.perf_counter() - started
     final = evaluate_policy(BCPolicy(net, mean, var), cfg.env.id, cfg.evaluation.episodes,
                             obs_mode=cfg.env.obs_mode, env_kwargs=cfg.env.kwargs)
     final["timesteps"] = int(len(observations))  # demonstration transitions
     final["wall_s"] = time.perf_counter() - started
+    # the run folder is written once everything has run: an interrupted run leaves none
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    torch.save(net.state_dict(), run_dir / POLICY_FILE)
+    _write_statistics(run_dir / NORMALIZER_FILE, mean, var, len(observations))
     (run_dir / "evaluations.json").write_text(json.dumps([final], indent=1))
     (run_dir / "bc.json").write_text(json.dumps({
         "dataset": cfg.demos.dataset, "episodes": int(dataset.total_episodes), "transitions": int(len(observations)),
@@ -239,15 +245,18 @@ def load_bc_network(run_dir: Path, cfg):
     try:
         weights = torch.load(Path(run_dir) / POLICY_FILE, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unreadable or unsafe file is refused the same way
-        raise ConfigError(f"{Path(run_dir) / POLICY_FILE} cannot be read as weights ({type(exc).__name__}: "
-                          f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
-    n_act = next(reversed([w for k, w in weights.items() if k.endswith("weight")])).shape[0]
-    net = BCNetwork(len(mean), n_act, hp.hidden)
-    try:
-        net.load_state_dict(weights)
-    except RuntimeError as exc:
-        raise ConfigError(f"{Path(run_dir) / POLICY_FILE} does not fit the network of its config "
-                          f"({str(exc).splitlines()[0]})") from None
+        raise ConfigError(f"{Path(run_dir) / POLICY_FILE} cannot be read as weights ({type(exc).__name__}; "
+                          "only tensors are read from it, nothing in it was run)") from None
+    net = BCNetwork(len(mean), 4, hp.hidden)
+    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    found = ({k: tuple(getattr(v, "shape", ())) for k, v in weights.items()} if isinstance(weights, dict) else None)
+    if found != expected:
+        raise ConfigError(f"{Path(run_dir) / POLICY_FILE} does not hold the weights of its config's network "
+                          f"({len(mean)} observations, hidden {hp.hidden}, 4 actions): expected tensors "
+                          f"{expected}, got {found if found is not None else type(weights).__name__}")
+    if not all(bool(torch.isfinite(v).all()) for v in weights.values()):
+        raise ConfigError(f"{Path(run_dir) / POLICY_FILE}: non-finite weights")
+    net.load_state_dict(weights)
     net.eval()
     return net, mean, var
 

@@ -153,7 +153,9 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     final = replay.run(result.theta)
     out.mkdir(parents=True, exist_ok=True)
     record = {
-        "parameters": {name: {"value": float(v), "std": float(s), "unit": FIT_PARAMETERS[name][0]}
+        # (a standard error the data do not determine is null, not JSON's non-standard Infinity)
+        "parameters": {name: {"value": float(v), "std": float(s) if math.isfinite(s) else None,
+                              "unit": FIT_PARAMETERS[name][0]}
                        for name, v, s in zip(names, result.theta, result.std)},
         "law": env.unwrapped.scene.physics.material,
         "converged": result.converged, "message": result.message, "loss": result.loss,

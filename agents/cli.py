@@ -225,7 +225,8 @@ def _calibrate(args) -> int:
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
                        force_scale=args.force_scale, progress=not args.no_progress)
     for name, p in record["parameters"].items():
-        print(f"{name}: {p['value']:.6g} ± {p['std']:.2g} {p['unit']}".rstrip())
+        std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
+        print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
     print("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in record["residual_rms"].items()))
     if record["law_selection"]:
         print(f"law: {record['law']} (held-out RMS: " + ", ".join(

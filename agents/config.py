@@ -222,8 +222,18 @@ def _check_demos(cfg: RunConfig) -> None:
     if not d.dataset or not d.dataset.strip():
         raise ConfigError("config key 'demos.dataset': name the Minari dataset to learn from (e.g. "
                           "heml-gym/tissue-retraction-scripted-100-v0; recorded first when it is not there)")
+    from .demos import check_dataset_id, check_root
+
+    try:
+        check_dataset_id(d.dataset, "config key 'demos.dataset'")
+        if d.root is not None:
+            check_root(d.root, "config key 'demos.root'")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     if d.episodes < 1:
         raise ConfigError(f"config key 'demos.episodes' must be >= 1, got {d.episodes}")
+    if d.seed < 0:
+        raise ConfigError(f"config key 'demos.seed' must be >= 0 (episode seeds), got {d.seed}")
     if not (math.isfinite(d.action_noise) and d.action_noise >= 0):
         raise ConfigError(f"config key 'demos.action_noise' must be a finite number >= 0, got {d.action_noise}")
     if cfg.env.obs_mode != "state":

@@ -19,21 +19,41 @@ is Minari's estimate from ``reference_episodes`` random episodes.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["collect_demos"]
+__all__ = ["collect_demos", "check_dataset_id"]
+
+#: A Minari dataset id with its version: ``(namespace/)name-vN`` (letters, digits, ``_``, ``-``)
+DATASET_ID = re.compile(r"(?:[A-Za-z0-9_][-\w]*/)*[A-Za-z0-9_][-\w]*-v\d+")
 
 
-def _policy(spec: str, env_id: str):
-    """``(policy, name)`` for ``--policy``."""
+def check_dataset_id(dataset_id, argument: str = "--out") -> str:
+    """``dataset_id`` if it is a Minari id ``(namespace/)name-vN``, else a one-line error
+    naming ``argument`` (before anything is recorded: Minari itself checks only when it
+    writes, and leaves a folder behind)."""
+    if not isinstance(dataset_id, str) or not DATASET_ID.fullmatch(dataset_id):
+        raise ValueError(f"{argument}: a Minari dataset id is (namespace/)name-vN (letters, digits, _ and -), "
+                         f"e.g. heml-gym/tissue-retraction/scripted-v0, got {dataset_id!r}")
+    return dataset_id
+
+
+def check_root(root, argument: str = "--root") -> Path:
+    """The Minari datasets folder ``root`` (resolved), or a one-line error if it is a file."""
+    path = Path(root).expanduser().resolve()
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{argument}: {path} is a file, not a folder of Minari datasets")
+    return path
+
+
+def _policy(spec: str, env_id: str, scene):
+    """``(policy, name)`` for ``--policy`` (``scene``: the env's, for the scripted fold)."""
     if spec == "scripted":
-        import gymnasium as gym
-
         from heml_gym.envs.scripted import scripted_policy
 
-        return scripted_policy(gym.make(env_id).unwrapped.scene), "scripted fold (heml_gym.envs.scripted)"
+        return scripted_policy(scene), "scripted fold (heml_gym.envs.scripted)"
     from .export import exported_policy
 
     policy = exported_policy(spec, env_id, env_id)
@@ -49,16 +69,22 @@ def _policy(spec: str, env_id: str):
 
 def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed: int = 0,
                   root: str | os.PathLike | None = None, reference_episodes: int = 5,
-                  action_noise: float = 0.0) -> dict:
-    """Write ``episodes`` episodes of ``policy`` in ``env_id`` as Minari dataset ``dataset_id``;
-    ``action_noise``: the standard deviation of the noise on the executed velocity commands
-    (see the module's docstring)."""
+                  action_noise: float = 0.0, env_kwargs: dict | None = None) -> dict:
+    """Write ``episodes`` episodes of ``policy`` in ``env_id`` (``gym.make(env_id,
+    **env_kwargs)``) as Minari dataset ``dataset_id``; ``action_noise``: the standard
+    deviation of the noise on the executed velocity commands (see the module's docstring)."""
+    check_dataset_id(dataset_id)
     if episodes < 1:
         raise ValueError(f"--episodes: must be >= 1, got {episodes}")
+    if seed < 0:
+        raise ValueError(f"--seed: episode seeds are integers >= 0, got {seed}")
+    if reference_episodes < 1:
+        raise ValueError(f"--reference-episodes: Minari's ref_min_score needs >= 1 random episode, "
+                         f"got {reference_episodes}")
     if not (isinstance(action_noise, (int, float)) and np.isfinite(action_noise) and action_noise >= 0):
         raise ValueError(f"--action-noise: a finite standard deviation >= 0, got {action_noise!r}")
     if root is not None:
-        os.environ["MINARI_DATASETS_PATH"] = str(Path(root).expanduser().resolve())
+        os.environ["MINARI_DATASETS_PATH"] = str(check_root(root))
     import gymnasium as gym
     import minari
 
@@ -68,8 +94,8 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
         raise ValueError(f"--out {dataset_id}: a local Minari dataset of that name exists")
     from minari.data_collector import EpisodeBuffer
 
-    act, name = _policy(policy, env_id)
-    env = gym.make(env_id)
+    env = gym.make(env_id, **(env_kwargs or {}))
+    act, name = _policy(policy, env_id, env.unwrapped.scene)
     buffers, returns, successes = [], [], 0
     noise = np.random.default_rng(seed)
     for k in range(episodes):  # (Minari's DataCollector would need jax; the buffers are written directly)

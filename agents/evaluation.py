@@ -37,6 +37,8 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
     """
     from heml_gym.envs import episode_steps
 
+    if not (isinstance(episodes, int) and episodes >= 1):
+        raise ValueError(f"--episodes: must be an integer >= 1, got {episodes!r}")
     env = gym.make(env_id, obs_mode=obs_mode, max_episode_steps=episode_steps(env_kwargs), **(env_kwargs or {}))
     successes, exposures, strains, lengths, damages, stiffness = 0, [], [], [], [], []
     for k in range(episodes):

@@ -119,6 +119,9 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
         raise ExportError(f"the policy reads {model.observation_space} observations; only the state observation "
                           f"({len(STATE_SPEC)} fields) exports")
     layers, squash = policy_layers(model)
+    if not all(np.all(np.isfinite(w)) and np.all(np.isfinite(b)) for kind, (w, b) in
+               ((k, v) for k, v in layers if k == "gemm")):
+        raise ExportError("the policy's weights are not all finite: nothing to export")
     nodes, inits = [], []
 
     def const(name, value, dtype=np.float32):

@@ -130,6 +130,25 @@ class Observation:
                 if value.shape != shape:
                     raise bad(name, f"must have shape {shape}, got {value.shape}")
                 setattr(self, name, value)
+            if np.any(self.depth <= 0.0):
+                raise bad("depth", "must be positive distances in metres along the optical axis")
+            if not np.any(self.depth < DEPTH_FAR):
+                raise bad("depth", f"nothing seen: every pixel is at {DEPTH_FAR:g} m or more (depth in metres? "
+                                   "millimetres would read as 1000 times too far)")
+            k, (height, width) = self.intrinsics, self.depth.shape[1:]
+            f = k[0, 0]
+            square = f > 0 and abs(k[1, 1] - f) <= 1e-9 * f
+            form = k[0, 1] == 0 and k[1, 0] == 0 and k[2, 0] == 0 and k[2, 1] == 0 and k[2, 2] == 1
+            if not (square and form and 0 < k[0, 2] < width and 0 < k[1, 2] < height):
+                raise bad("intrinsics", f"must be [[f, 0, cx], [0, f, cy], [0, 0, 1]] with f > 0 (square pixels) "
+                                        f"and the principal point inside the {height} x {width} image, got "
+                                        f"{np.round(k, 6).tolist()}")
+            rotation = self.camera_pose[:3, :3]
+            rigid = (np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) and np.linalg.det(rotation) > 0
+                     and np.array_equal(self.camera_pose[3], [0.0, 0.0, 0.0, 1.0]))
+            if not rigid:
+                raise bad("camera_pose", "must be a rigid camera-to-world transform: a rotation (orthonormal, "
+                                         "det +1) and the eye, bottom row [0, 0, 0, 1]")
         if self.points is None and self.force is None and self.depth is None:
             raise ObservationError(f"{where}: nothing observed: give points (with rest_points), force or depth")
         if self.adhesion_width is not None:
@@ -331,8 +350,13 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
     if obs.depth is not None:
         from .depth_loss import DepthTerm
 
-        extra = (DepthTerm(obs.depth, obs.intrinsics, obs.camera_pose, task.scene.surface_faces, scale=depth_scale,
-                           far=DEPTH_FAR),)
+        term = DepthTerm(obs.depth, obs.intrinsics, obs.camera_pose, task.scene.surface_faces, scale=depth_scale,
+                         far=DEPTH_FAR)
+        if not np.isfinite(term.residual_image(log.x0, 0)).any():
+            raise ObservationError(f"{obs.source}: field 'depth': at the start, the scene's tissue is not seen where "
+                                   "the camera saw anything (no pixel in common): check camera_pose, intrinsics and "
+                                   "that the depth is in metres")
+        extra = (term,)
     observed = Observed(points=obs.points, rest_points=obs.rest_points, force=obs.force,
                         point_scale=point_scale, force_scale=force_scale, extra=extra)
     return replay, observed, list(fit), [FIT_PARAMETERS[name][1] for name in fit], [defaults[name] for name in fit]
@@ -361,8 +385,11 @@ def physics_from_fit(path, spread: float = 2.0) -> dict:
         raise SpecError(f"physics.fit: {path} records a fit that did not converge ({record.get('message', '?')})")
     out = {"material": law}
     if "young_modulus" in parameters:
-        E, s = float(parameters["young_modulus"]["value"]), float(parameters["young_modulus"]["std"])
-        half = max(spread * s, 0.01 * E) if math.isfinite(s) else 0.01 * E
+        E, s = float(parameters["young_modulus"]["value"]), parameters["young_modulus"]["std"]
+        if s is None or not math.isfinite(float(s)):
+            raise SpecError(f"physics.fit: {path}: the fit determined no uncertainty for young_modulus (the data "
+                            "did not constrain it): nothing to draw the tissue from")
+        half = max(spread * float(s), 0.01 * E)
         out["young_modulus"] = [max(E - half, 0.5 * E), E + half]
     if "poisson_ratio" in parameters:
         out["poisson"] = float(parameters["poisson_ratio"]["value"])

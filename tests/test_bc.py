@@ -126,3 +126,21 @@ def test_the_shipped_bc_configs_load():
     for name in ("tissue_bc", "organ_bc"):
         cfg = load_config(f"configs/{name}.yaml")
         assert cfg.algorithm.name == "BC" and cfg.demos.episodes == 100
+
+
+def test_an_existing_dataset_that_is_not_the_configs_is_refused(tmp_path, capsys):
+    """The config says 3 episodes; a dataset of that name with 2 exists: a one-line error,
+    not a silent fit on other demonstrations, and no run folder."""
+    from heml_gym.agents.cli import main
+
+    cfg = _bc_config(tmp_path)
+    assert main(["demos", TISSUE_RETRACTION, "--out", cfg["demos"]["dataset"], "--episodes", "2",
+                 "--root", cfg["demos"]["root"]]) == 0
+    capsys.readouterr()
+    cfg["demos"]["episodes"] = 3
+    config = tmp_path / "bc.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    run = tmp_path / "run"
+    assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 2
+    assert "exists with 2 episodes" in capsys.readouterr().err
+    assert not run.exists()

@@ -78,3 +78,15 @@ def test_bad_action_noise_is_refused(tmp_path, capsys):
     assert main(["demos", TISSUE_RETRACTION, "--out", "heml-gym/x/y-v0", "--action-noise", "-1",
                  "--root", str(tmp_path)]) == 2
     assert "--action-noise" in capsys.readouterr().err
+
+
+def test_a_bad_dataset_id_or_root_is_refused_before_anything_is_recorded(tmp_path, capsys):
+    root = tmp_path / "minari"
+    for name in ("bad name", "heml-gym/no-version", "../escape-v0", "heml-gym/x-v-1"):
+        assert main(["demos", TISSUE_RETRACTION, "--out", name, "--episodes", "1", "--root", str(root)]) == 2
+        assert "--out" in capsys.readouterr().err
+    assert not root.exists() or not any(root.iterdir())
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["demos", TISSUE_RETRACTION, "--out", "heml-gym/a-v0", "--episodes", "1", "--root", str(afile)]) == 2
+    assert "--root" in capsys.readouterr().err

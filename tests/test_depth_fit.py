@@ -85,3 +85,32 @@ def test_bad_depth_options_are_refused(tmp_path, capsys, args, message):
     out = tmp_path / "o.npz"
     assert main(["observe", TISSUE_RETRACTION, "--out", str(out), "--steps", "2", *args]) == 2
     assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_inconsistent_depth_files_are_refused_naming_the_field(tmp_path, capsys):
+    """Depth in millimetres, non-square pixels, a pose that is not a rotation, a camera
+    turned away from the tissue, a negative depth: each a one-line error naming the field,
+    before any fit, and no output folder."""
+    base = tmp_path / "base.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(base), "--steps", "2", "--points", "0",
+                 "--depth", "32x32"]) == 0
+    capsys.readouterr()
+    data = dict(np.load(base))
+    data.pop("force")
+    fy, scaled, turned, negative = data["intrinsics"].copy(), data["camera_pose"].copy(), data["camera_pose"].copy(), \
+        data["depth"].copy()
+    fy[1, 1] *= 2
+    scaled[:3, :3] *= 2
+    turned[:3, 0] *= -1
+    turned[:3, 2] *= -1
+    negative[0, 0, 0] = -1.0
+    for name, change, field in (("mm", {"depth": data["depth"] * 1000}, "depth"), ("fy", {"intrinsics": fy}, "intrinsics"),
+                                ("scaled", {"camera_pose": scaled}, "camera_pose"),
+                                ("turned", {"camera_pose": turned}, "depth"), ("negative", {"depth": negative}, "depth")):
+        path = tmp_path / f"{name}.npz"
+        np.savez(path, **{**data, **change})
+        out = tmp_path / f"fit_{name}"
+        assert main(["calibrate", "-", str(path), "--out", str(out), "--fit", "young_modulus", "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert f"field '{field}'" in err and len(err.strip().splitlines()) == 1, (name, err)
+        assert not out.exists()
