@@ -7,7 +7,7 @@ import importlib
 
 #: Algorithm name (``algorithm.name`` in a run config) -> "module:Class".
 ALGORITHMS = {"PPO": "stable_baselines3:PPO", "SAC": "stable_baselines3:SAC",
-              "RLlibPPO": "ray.rllib.algorithms.ppo:PPO", "BC": "heml_gym.agents.bc:BehaviourCloning"}
+              "RLlibPPO": "ray.rllib.algorithms.ppo:PPO", "BC": "heml_gym.agents.bc_hyperparameters:BehaviourCloning"}
 #: Which training path runs each algorithm: Stable-Baselines3, RLlib (distributed sampling),
 #: or behaviour cloning from demonstrations (:mod:`heml_gym.agents.bc`).
 BACKENDS = {"PPO": "sb3", "SAC": "sb3", "RLlibPPO": "rllib", "BC": "bc"}

@@ -12,8 +12,8 @@ instead of interacting with the env::
     seed: 0
 
 ``demos.dataset`` is read from the local Minari datasets (``demos.root``, else
-``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``); when it is not there it is first
-recorded from ``demos.policy`` (``scripted``, ``pretrained``, a run folder or an
+``MINARI_DATASETS_PATH``, else ``~/.minari/datasets``); when it is not there, ``heml-gym
+train`` first records it (:func:`heml_gym.agents.demos.record_config_demos`) from ``demos.policy`` (``scripted``, ``pretrained``, a run folder or an
 ``.onnx``) for ``demos.episodes`` episodes seeded from ``demos.seed``, with
 ``demos.action_noise`` on the executed velocity commands: the policy then learns the
 demonstrator's own actions (``infos["expert_action"]``) in the states that noise led to,
@@ -42,44 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .bc_hyperparameters import BehaviourCloning
+
 __all__ = ["BehaviourCloning", "BCNetwork", "fit", "train_bc", "load_bc_policy", "POLICY_FILE"]
 
 POLICY_FILE = "policy.pt"
 CLIP_OBS = 10.0  # as SB3's VecNormalize clips the RL runs' normalised observations
 EPSILON = 1e-8
-
-
-class BehaviourCloning:
-    """BC's hyperparameters (``algorithm.hyperparameters`` of a run config).
-
-    hidden : sequence of int
-        Widths of the MLP's hidden ReLU layers.
-    epochs : int
-        Passes over the demonstrations.
-    batch_size : int
-        Transitions per Adam step.
-    learning_rate : float
-        Adam's step size.
-    weight_decay : float
-        Adam's L2 penalty on the weights.
-    """
-
-    def __init__(self, hidden=(256, 256), epochs: int = 200, batch_size: int = 256, learning_rate: float = 1e-3,
-                 weight_decay: float = 0.0):
-        hidden = list(hidden) if isinstance(hidden, (list, tuple)) else hidden
-        if not isinstance(hidden, list) or not hidden or not all(
-                isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in hidden):
-            raise ValueError(f"hidden: a list of layer widths >= 1, got {hidden!r}")
-        for name, value in (("epochs", epochs), ("batch_size", batch_size)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name}: an integer >= 1, got {value!r}")
-        for name, value, low in (("learning_rate", learning_rate, 0.0), ("weight_decay", weight_decay, None)):
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and (
-                value > low if low is not None else value >= 0)
-            if not ok:
-                raise ValueError(f"{name}: a finite number {'> 0' if low is not None else '>= 0'}, got {value!r}")
-        self.hidden, self.epochs, self.batch_size = hidden, epochs, batch_size
-        self.learning_rate, self.weight_decay = float(learning_rate), float(weight_decay)
 
 
 def BCNetwork(n_obs: int, n_act: int, hidden):
@@ -164,12 +133,9 @@ def _dataset(cfg, progress_bar: bool):
     from .config import ConfigError
 
     if d.dataset not in minari.list_local_datasets():
-        from .demos import collect_demos
-
-        if progress_bar:
-            print(f"demos: recording {d.episodes} episodes of {d.policy} in {cfg.env.id} as {d.dataset}", flush=True)
-        collect_demos(cfg.env.id, d.policy, d.episodes, d.dataset, seed=d.seed, action_noise=d.action_noise,
-                      env_kwargs=cfg.env.kwargs)
+        raise ConfigError(f"config key 'demos.dataset': {d.dataset} is not a local Minari dataset "
+                          f"({os.environ.get('MINARI_DATASETS_PATH', '~/.minari/datasets')}): `heml-gym train` records "
+                          "it from the demos section, or record it with `heml-gym demos`")
     dataset = minari.load_dataset(d.dataset)
     if dataset.total_episodes != d.episodes:  # an existing dataset: is it the one the config describes?
         raise ConfigError(f"config key 'demos.dataset': {d.dataset} exists with {dataset.total_episodes} episodes, "

@@ -63,6 +63,10 @@ def _train(args) -> int:
     if args.steps is not None:
         overrides.setdefault("algorithm", {})["total_timesteps"] = args.steps
     cfg = load_config(args.config, overrides)
+    if cfg.algorithm.name == "BC":  # its demonstrations first, if they are not recorded yet
+        from .demos import record_config_demos
+
+        record_config_demos(cfg, progress=not args.no_progress)
     result = train(cfg, run_dir=args.run_dir, resume=args.resume, progress_bar=not args.no_progress,
                    trust_pickle=args.trust_pickle,
                    address=args.address)
@@ -183,6 +187,11 @@ def _sweep(args) -> int:
     if not (args.cpus_per_trial > 0):
         raise ValueError(f"--cpus-per-trial must be > 0, got {args.cpus_per_trial}")
     trials = plan_sweep(args.config, seeds, parse_assignments(args.set), parse_grid(args.grid), out)
+    if trials[0].config.algorithm.name == "BC":  # its demonstrations once, before the trials read them
+        from .demos import record_config_demos
+
+        for cfg in {t.config.demos.dataset: t.config for t in trials}.values():
+            record_config_demos(cfg, progress=not args.quiet)
     summary = run_sweep(trials, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
                         verbose=not args.quiet)
     for row in summary["trials"]:

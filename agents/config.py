@@ -222,7 +222,7 @@ def _check_demos(cfg: RunConfig) -> None:
     if not d.dataset or not d.dataset.strip():
         raise ConfigError("config key 'demos.dataset': name the Minari dataset to learn from (e.g. "
                           "heml-gym/tissue-retraction-scripted-100-v0; recorded first when it is not there)")
-    from .demos import check_dataset_id, check_root
+    from .dataset_ids import check_dataset_id, check_root
 
     try:
         check_dataset_id(d.dataset, "config key 'demos.dataset'")
@@ -238,7 +238,7 @@ def _check_demos(cfg: RunConfig) -> None:
         raise ConfigError(f"config key 'demos.action_noise' must be a finite number >= 0, got {d.action_noise}")
     if cfg.env.obs_mode != "state":
         raise ConfigError(f"config key 'env.obs_mode': BC reads the state observation, got {cfg.env.obs_mode!r}")
-    from .bc import BehaviourCloning
+    from .bc_hyperparameters import BehaviourCloning
 
     try:
         BehaviourCloning(**{k: v for k, v in cfg.algorithm.hyperparameters.items()

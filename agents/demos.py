@@ -19,34 +19,13 @@ is Minari's estimate from ``reference_episodes`` random episodes.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["collect_demos", "check_dataset_id"]
+from .dataset_ids import check_dataset_id, check_root
 
-#: A Minari dataset id with its version: ``(namespace/)name-vN`` (letters, digits, ``_``, ``-``)
-DATASET_ID = re.compile(r"(?:[A-Za-z0-9_][-\w]*/)*[A-Za-z0-9_][-\w]*-v\d+")
-
-
-def check_dataset_id(dataset_id, argument: str = "--out") -> str:
-    """``dataset_id`` if it is a Minari id ``(namespace/)name-vN``, else a one-line error
-    naming ``argument`` (before anything is recorded: Minari itself checks only when it
-    writes, and leaves a folder behind)."""
-    if not isinstance(dataset_id, str) or not DATASET_ID.fullmatch(dataset_id):
-        raise ValueError(f"{argument}: a Minari dataset id is (namespace/)name-vN (letters, digits, _ and -), "
-                         f"e.g. heml-gym/tissue-retraction/scripted-v0, got {dataset_id!r}")
-    return dataset_id
-
-
-def check_root(root, argument: str = "--root") -> Path:
-    """The Minari datasets folder ``root`` (resolved), or a one-line error if it is a file."""
-    path = Path(root).expanduser().resolve()
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{argument}: {path} is a file, not a folder of Minari datasets")
-    return path
-
+__all__ = ["collect_demos", "record_config_demos"]
 
 def _policy(spec: str, env_id: str, scene):
     """``(policy, name)`` for ``--policy`` (``scene``: the env's, for the scripted fold)."""
@@ -65,6 +44,22 @@ def _policy(spec: str, env_id: str, scene):
     if cfg is not None and cfg.env.id != env_id:
         raise ValueError(f"--policy {spec}: trained on {cfg.env.id}, not {env_id}")
     return policy, f"{cfg.algorithm.name if cfg else 'SB3'} run {spec}"
+
+
+def record_config_demos(cfg, progress: bool = True) -> dict | None:
+    """Record a BC run config's demonstrations (its ``demos`` section) when its dataset is
+    not a local Minari dataset yet; None when it is."""
+    d = cfg.demos
+    if d.root is not None:
+        os.environ["MINARI_DATASETS_PATH"] = str(check_root(d.root, "config key 'demos.root'"))
+    import minari
+
+    if d.dataset in minari.list_local_datasets():
+        return None
+    if progress:
+        print(f"demos: recording {d.episodes} episodes of {d.policy} in {cfg.env.id} as {d.dataset}", flush=True)
+    return collect_demos(cfg.env.id, d.policy, d.episodes, d.dataset, seed=d.seed, action_noise=d.action_noise,
+                         env_kwargs=cfg.env.kwargs)
 
 
 def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed: int = 0,
