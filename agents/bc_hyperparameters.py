@@ -37,6 +37,12 @@ class BehaviourCloning:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and (
                 value > low if low is not None else value >= 0)
             if not ok:
-                raise ValueError(f"{name}: a finite number {'> 0' if low is not None else '>= 0'}, got {value!r}")
+                hint = ""
+                try:
+                    float(value) if isinstance(value, str) else None
+                    hint = " (YAML reads 1e-3 as text: write 1.0e-3 or 0.001)" if isinstance(value, str) else ""
+                except ValueError:
+                    pass
+                raise ValueError(f"{name}: a finite number {'> 0' if low is not None else '>= 0'}, got {value!r}{hint}")
         self.hidden, self.epochs, self.batch_size = hidden, epochs, batch_size
         self.learning_rate, self.weight_decay = float(learning_rate), float(weight_decay)

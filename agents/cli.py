@@ -63,6 +63,8 @@ def _train(args) -> int:
     if args.steps is not None:
         overrides.setdefault("algorithm", {})["total_timesteps"] = args.steps
     cfg = load_config(args.config, overrides)
+    if args.steps is not None and cfg.algorithm.name == "BC":
+        raise ValueError("--steps: a BC run takes no env steps (it learns from its demos: demos.episodes)")
     if cfg.algorithm.name == "BC":  # its demonstrations first, if they are not recorded yet
         from .demos import record_config_demos
 
@@ -128,6 +130,8 @@ def _rollout(args) -> int:
 
     if args.env:
         _known_env(args.env)
+    if not args.rrd and not args.spawn:
+        raise ValueError("nothing to record to: give --rrd FILE.rrd and/or --spawn (a viewer)")
     if args.policy == "scripted":
         from heml_gym.envs.scripted import scripted_policy
 

@@ -163,7 +163,14 @@ def _build(cls, data: Any, path: str):
         if expected is dict and value is None:
             value = {}
         if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise ConfigError(f"config key '{key}' must be {expected.__name__}, "
+            hint = ""
+            if expected is float and isinstance(value, str):
+                try:
+                    float(value)
+                    hint = " (YAML reads 1e-3 as text: write 1.0e-3 or 0.001)"
+                except ValueError:
+                    pass
+            raise ConfigError(f"config key '{key}' must be {expected.__name__}{hint}, "
                               f"got {type(value).__name__} ({value!r})")
         kwargs[name] = value
     return cls(**kwargs)
