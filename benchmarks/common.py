@@ -176,6 +176,20 @@ def write_json(name: str, data: dict, envs=None, folder: Path | None = None) -> 
     return path
 
 
+def store_and_report(name: str, data: dict | None, report, envs=None) -> dict:
+    """A study's last step: ``data`` stored as ``name.json`` (with its task versions), or,
+    when None (``--from-json``), the stored ``name.json`` read back; then ``report(data)``
+    (markdown) written to ``name.md`` and printed. Returns the data."""
+    if data is None:
+        data = json.loads((RESULTS / f"{name}.json").read_text())
+    else:
+        write_json(f"{name}.json", data, envs)
+    text = report(data).rstrip() + "\n"
+    (RESULTS / f"{name}.md").write_text(text)
+    print(text)
+    return data
+
+
 def markdown_table(header: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]

@@ -35,7 +35,7 @@ import time
 import numba
 import numpy as np
 
-from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, write_json
+from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
 TRUTH = {"young_modulus": 5500.0, "poisson_ratio": 0.43}
 STEPS = 30
@@ -178,15 +178,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored JSON")
     args = ap.parse_args(argv)
-    import json
-
-    if args.from_json:
-        data = json.loads((RESULTS / "calibration.json").read_text())
-    else:
-        data = measure()
-        write_json("calibration.json", data)
-    (RESULTS / "calibration.md").write_text(report(data) + "\n")
-    print(report(data))
+    store_and_report("calibration", None if args.from_json else measure(), report)
     return 0
 
 

@@ -20,14 +20,13 @@ Writes docs/benchmarks/law_identification.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numba
 import numpy as np
 
 from heml_gym.benchmarks.accuracy.calibration import CASES, POINT_NOISE, SEED, STEPS, TRUTH
-from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, write_json
+from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
 ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v1"}
 BOOTSTRAP = 2000
@@ -136,19 +135,15 @@ def main(argv=None) -> int:
     ap.add_argument("--name", default="law_identification", help="results: docs/benchmarks/NAME.{json,md}")
     ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored JSON")
     args = ap.parse_args(argv)
-    if args.from_json:
-        data = json.loads((RESULTS / f"{args.name}.json").read_text())
-    else:
+    data = None
+    if not args.from_json:
         names = [e for e in args.envs.split(",") if e]
         if not names or any(e not in ENVS for e in names):
             ap.error(f"--envs: give names among {', '.join(ENVS)}, got {args.envs!r}")
         if not (1.0 <= args.stretch <= 1.5):
             ap.error(f"--stretch: between 1 (the scripted fold) and 1.5 (tears soft tissue), got {args.stretch}")
         data = measure([ENVS[e] for e in names], args.stretch)
-        write_json(f"{args.name}.json", data)
-    text = report(data)
-    (RESULTS / f"{args.name}.md").write_text(text)
-    print(text)
+    store_and_report(args.name, data, report)
     return 0
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 
-from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, write_json
+from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
 ENVS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
 RANGES = {"softer (held out)": [2000.0, 4000.0], "training": [4000.0, 8000.0], "stiffer (held out)": [8000.0, 16000.0]}
@@ -54,16 +54,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored JSON")
     args = ap.parse_args(argv)
-    if args.from_json:
-        import json
-
-        data = json.loads((RESULTS / "stiffness_split.json").read_text())
-    else:
-        data = measure()
-        write_json("stiffness_split.json", data, envs=list(ENVS))
-    text = report(data)
-    (RESULTS / "stiffness_split.md").write_text(text)
-    print(text)
+    store_and_report("stiffness_split", None if args.from_json else measure(), report, envs=list(ENVS))
     return 0
 
 
