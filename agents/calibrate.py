@@ -61,7 +61,7 @@ def _make(env_id: str, kwargs: dict, physics: dict | None = None):
 
 def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
             force_noise: float = 0.0, young_modulus=None, poisson=None, law=None, env_kwargs: str | None = None,
-            depth: str | None = None, depth_noise: float = 0.0) -> dict:
+            depth: str | None = None, depth_noise: float = 0.0, force: bool = True) -> dict:
     """Record an observation file of ``env_id``'s scripted retraction (the tissue given by
     ``young_modulus`` / ``poisson`` / ``law``, else drawn as the scene draws it)."""
     from heml_gym.envs.observations import record, save_observation
@@ -70,6 +70,8 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
     for name, value in (("--steps", steps), ("--points", points)):
         if value < (1 if name == "--steps" else 0):
             raise ValueError(f"{name}: must be >= {1 if name == '--steps' else 0}, got {value}")
+    if not force and points == 0 and depth is None:
+        raise ValueError("--no-force: then observe something else (--points N or --depth HxW)")
     depth_size = None
     if depth is not None:
         try:
@@ -88,6 +90,8 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
                  point_noise=point_noise, force_noise=force_noise, env_id=env_id, depth_size=depth_size,
                  depth_noise=depth_noise)
     obs.meta["env_kwargs"] = parse_json_mapping(env_kwargs)
+    if not force:  # (what a robot without a force sensor logs)
+        obs.force = None
     save_observation(obs, out)
     return {"out": str(out), "steps": obs.steps, "points": 0 if obs.points is None else obs.points.shape[1],
             "depth": None if obs.depth is None else list(obs.depth.shape[1:]),

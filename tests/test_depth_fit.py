@@ -114,3 +114,15 @@ def test_inconsistent_depth_files_are_refused_naming_the_field(tmp_path, capsys)
         err = capsys.readouterr().err
         assert f"field '{field}'" in err and len(err.strip().splitlines()) == 1, (name, err)
         assert not out.exists()
+
+
+def test_observe_without_force_writes_a_depth_only_file(tmp_path, capsys):
+    out = tmp_path / "d.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(out), "--steps", "2", "--points", "0", "--depth", "16x24",
+                 "--no-force"]) == 0
+    files = set(np.load(out).files)
+    assert {"depth", "intrinsics", "camera_pose"} <= files and not {"force", "points"} & files
+    assert np.load(out)["depth"].shape == (3, 16, 24)
+    nothing = tmp_path / "e.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(nothing), "--points", "0", "--no-force"]) == 2
+    assert "--no-force" in capsys.readouterr().err and not nothing.exists()
