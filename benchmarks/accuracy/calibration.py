@@ -1,4 +1,4 @@
-"""Calibration: is a known tissue recovered from what a tracker or a force sensor saw?
+"""Calibration: is a known tissue recovered from what a tracker, a force sensor or a depth camera saw?
 
 For each env, a tissue the scenes do not default to (E 5.5 kPa, nu 0.43) is observed
 (``heml_gym.envs.observations.record``) along the scripted retraction and hold (30 env

@@ -1,4 +1,4 @@
-"""Behaviour cloning across seeds (issue 35, item 4): BC from 100 scripted episodes per env.
+"""Behaviour cloning across seeds: BC from 100 noisy scripted episodes per env.
 
 Records each env's demonstration dataset once (``heml-gym demos ENV --policy scripted
 --episodes 100 --action-noise 0.3``, seeds 0-99, into ``runs/minari``), then fits ``configs/<env>_bc.yaml``

@@ -1,4 +1,4 @@
-"""Cost-constrained PPO against PPO: success and tissue damage across seeds (issue 36, item 3).
+"""Cost-constrained PPO against PPO: success and tissue damage across seeds.
 
 Trains, on one env, its PPO config and the same config with a damage budget
 (PPO-Lagrangian, :mod:`heml_gym.agents.constraint`) for the same seeds and env steps on a
