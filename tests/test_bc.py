@@ -144,3 +144,22 @@ def test_an_existing_dataset_that_is_not_the_configs_is_refused(tmp_path, capsys
     assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 2
     assert "exists with 2 episodes" in capsys.readouterr().err
     assert not run.exists()
+
+
+@pytest.mark.ray
+def test_a_bc_sweep_records_its_demos_once_then_fits_every_seed(tmp_path):
+    """`heml-gym sweep` of a BC config records the demonstrations once, before the trials
+    (which would otherwise race to write them), and fits every seed from them."""
+    pytest.importorskip("ray")
+    from heml_gym.agents.cli import main
+
+    config = tmp_path / "bc.yaml"
+    config.write_text(yaml.safe_dump(_bc_config(tmp_path)))
+    out = tmp_path / "sweep"
+    assert main(["sweep", str(config), "--seeds", "0,1", "--out", str(out), "--quiet"]) == 0
+    import minari
+
+    assert minari.load_dataset("heml-gym/test-tissue-scripted-v0").total_episodes == 2
+    for seed in (0, 1):
+        record = json.loads((out / f"bc-test-seed{seed}" / "bc.json").read_text())
+        assert record["episodes"] == 2 and (out / f"bc-test-seed{seed}" / "policy.pt").is_file()
