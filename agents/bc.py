@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .bc_hyperparameters import BehaviourCloning
+from .dataset_ids import use_root
 
 __all__ = ["BehaviourCloning", "BCNetwork", "fit", "train_bc", "load_bc_policy", "POLICY_FILE"]
 
@@ -127,7 +128,7 @@ def _dataset(cfg, progress_bar: bool):
     """The config's Minari dataset (recorded first when it is not there) and its transitions."""
     d = cfg.demos
     if d.root is not None:
-        os.environ["MINARI_DATASETS_PATH"] = str(Path(d.root).expanduser().resolve())
+        use_root(d.root, "config key 'demos.root'")
     import minari
 
     from .config import ConfigError
@@ -197,9 +198,10 @@ def is_bc_run(path: Path) -> bool:
     return Path(path).is_dir() and (Path(path) / POLICY_FILE).is_file()
 
 
-def load_bc_network(run_dir: Path, cfg):
-    """``(network, mean, var)`` of a BC run folder: the weights read with
-    ``torch.load(weights_only=True)`` into the network the config describes."""
+def load_bc_run(run_dir: Path, cfg):
+    """``(network, normalizer)`` of a BC run folder, as :func:`heml_gym.agents.train.load_run`
+    gives an RL run's: the weights read with ``torch.load(weights_only=True)`` into the
+    network the config describes, the observation statistics from their JSON."""
     import torch
 
     from .config import ConfigError
@@ -207,7 +209,7 @@ def load_bc_network(run_dir: Path, cfg):
 
     hp = BehaviourCloning(**cfg.algorithm.hyperparameters)
     stats = load_normalizer(Path(run_dir) / NORMALIZER_FILE)
-    mean, var = stats.obs_rms.mean, stats.obs_rms.var
+    mean = stats.obs_rms.mean
     try:
         weights = torch.load(Path(run_dir) / POLICY_FILE, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unreadable or unsafe file is refused the same way
@@ -224,10 +226,10 @@ def load_bc_network(run_dir: Path, cfg):
         raise ConfigError(f"{Path(run_dir) / POLICY_FILE}: non-finite weights")
     net.load_state_dict(weights)
     net.eval()
-    return net, mean, var
+    return net, stats
 
 
 def load_bc_policy(run_dir: Path, cfg) -> BCPolicy:
     """The ``obs -> action`` policy of a BC run folder."""
-    net, mean, var = load_bc_network(run_dir, cfg)
-    return BCPolicy(net, mean, var)
+    net, stats = load_bc_run(run_dir, cfg)
+    return BCPolicy(net, stats.obs_rms.mean, stats.obs_rms.var)

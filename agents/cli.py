@@ -268,26 +268,21 @@ def _export(args) -> int:
         if len(values) != 6:
             raise ValueError(f"--workspace: six numbers (m), x0,y0,z0,x1,y1,z1, got {len(values)}")
         workspace = (values[:3], values[3:])
-    from .bc import is_bc_run
+    from .bc import is_bc_run, load_bc_run
 
     if is_bc_run(Path(args.run)):  # behaviour cloning: its network and statistics, read without unpickling
-        from .bc import load_bc_network
         from .config import load_config
-        from .run_files import NORMALIZER_FILE, load_normalizer
 
-        cfg = load_config(Path(args.run) / "config.yaml")
-        model = load_bc_network(Path(args.run), cfg)[0]
-        normalizer = load_normalizer(Path(args.run) / NORMALIZER_FILE)
-        export_policy(model, normalizer, out, cfg.env.id, run=str(args.run), speed_limit=args.speed_limit,
-                      workspace=workspace, max_speed=make_env(cfg).unwrapped.task.settings.max_speed)
-        print(f"written: {out}  (heml-gym rollout --policy {out} --rrd r.rrd)")
-        return 0
-    path, cfg = model_file(args.run)
-    if cfg is None:
-        raise ExportError(f"{path}: no run config beside it (export reads a run folder or a checkpoint of one)")
-    if cfg.env.obs_mode != "state":
-        raise ExportError(f"{args.run}: trained on {cfg.env.obs_mode!r} observations; only state policies export")
-    model, normalizer = load_run(path, cfg, trust_pickle=args.trust_pickle)
+        path = Path(args.run)
+        cfg = load_config(path / "config.yaml")
+        model, normalizer = load_bc_run(path, cfg)
+    else:
+        path, cfg = model_file(args.run)
+        if cfg is None:
+            raise ExportError(f"{path}: no run config beside it (export reads a run folder or a checkpoint of one)")
+        if cfg.env.obs_mode != "state":
+            raise ExportError(f"{args.run}: trained on {cfg.env.obs_mode!r} observations; only state policies export")
+        model, normalizer = load_run(path, cfg, trust_pickle=args.trust_pickle)
     max_speed = make_env(cfg).unwrapped.task.settings.max_speed
     export_policy(model, normalizer, out, cfg.env.id, run=str(path), speed_limit=args.speed_limit,
                   workspace=workspace, max_speed=max_speed)

@@ -3,10 +3,11 @@ checks an id only when it writes, and leaves a folder behind that breaks the oth
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
-__all__ = ["DATASET_ID", "check_dataset_id", "check_root"]
+__all__ = ["DATASET_ID", "check_dataset_id", "check_root", "use_root"]
 
 #: A Minari dataset id with its version: ``(namespace/)name-vN`` (letters, digits, ``_``, ``-``)
 DATASET_ID = re.compile(r"(?:[A-Za-z0-9_][-\w]*/)*[A-Za-z0-9_][-\w]*-v\d+")
@@ -27,4 +28,12 @@ def check_root(root, argument: str = "--root") -> Path:
     path = Path(root).expanduser().resolve()
     if path.exists() and not path.is_dir():
         raise ValueError(f"{argument}: {path} is a file, not a folder of Minari datasets")
+    return path
+
+
+def use_root(root, argument: str = "--root") -> Path:
+    """Make ``root`` (checked by :func:`check_root`) the Minari datasets folder of this
+    process and of those it starts (``MINARI_DATASETS_PATH``); returns it."""
+    path = check_root(root, argument)
+    os.environ["MINARI_DATASETS_PATH"] = str(path)
     return path

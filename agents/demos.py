@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset_ids import check_dataset_id, check_root
+from .dataset_ids import check_dataset_id, use_root
 
 __all__ = ["collect_demos", "record_config_demos"]
 
@@ -51,7 +51,7 @@ def record_config_demos(cfg, progress: bool = True) -> dict | None:
     not a local Minari dataset yet; None when it is."""
     d = cfg.demos
     if d.root is not None:
-        os.environ["MINARI_DATASETS_PATH"] = str(check_root(d.root, "config key 'demos.root'"))
+        use_root(d.root, "config key 'demos.root'")
     import minari
 
     if d.dataset in minari.list_local_datasets():
@@ -79,7 +79,7 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
     if not (isinstance(action_noise, (int, float)) and np.isfinite(action_noise) and action_noise >= 0):
         raise ValueError(f"--action-noise: a finite standard deviation >= 0, got {action_noise!r}")
     if root is not None:
-        os.environ["MINARI_DATASETS_PATH"] = str(check_root(root))
+        use_root(root)
     import gymnasium as gym
     import minari
 

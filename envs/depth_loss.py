@@ -174,8 +174,8 @@ class DepthTerm:
         triangle = np.empty(self.depth.shape[1:], dtype=np.int64)
         _tissue_depth(np.ascontiguousarray(x_t), self.faces, eye, rot, focal, cx, cy, depth, triangle)
         counted = self.seen[t] & (triangle >= 0)
-        r = np.where(counted, (np.where(counted, depth, 0.0) - np.where(counted, self.depth[t], 0.0)) / self.scale,
-                     0.0)
+        r = np.zeros(depth.shape)
+        r[counted] = (depth[counted] - self.depth[t][counted]) / self.scale
         return r, counted, triangle
 
     def __call__(self, x: np.ndarray):

@@ -243,8 +243,10 @@ def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_
         camera = (np.array([[view["focal"], 0.0, 0.5 * width], [0.0, view["focal"], 0.5 * height], [0.0, 0.0, 1.0]]),
                   np.block([[view["rotation"].T, view["eye"][:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
         log["depth"].append(view["depth"].astype(np.float64))
+    worst = 0.0  # the largest gauge strain of the episode
     for _ in range(steps):
         obs, _, terminated, truncated, info = env.step(policy(obs))
+        worst = max(worst, float(info["max_strain"]))
         if info.get("simulation_diverged") or not info.get("solver_converged", True):
             raise ObservationError(f"recording: the simulation failed at step {len(log['force'])}: "
                                    "diverged or unconverged (see the env's info)")
@@ -270,7 +272,7 @@ def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_
             "truth": {"law": ph.material, "young_modulus": float(task.young_modulus[0]),
                       "poisson_ratio": float(ph.poisson), "material_options": ph.material_options},
             "mesh": {"vertices": int(scene.mesh.n_vertices), "tets": int(scene.mesh.n_tets)},
-            "point_noise_m": point_noise, "force_noise_N": force_noise,
+            "max_strain": worst, "point_noise_m": point_noise, "force_noise_N": force_noise,
             **({"depth_noise_m": depth_noise} if camera is not None else {})}
     width = float(task.adhesion_width[0]) if scene.adhesion_vertices is not None else None
     return Observation(t=np.arange(T1) * task.settings.control_dt, gripper=np.array(log["gripper"]),

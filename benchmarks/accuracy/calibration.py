@@ -53,18 +53,22 @@ POINT_NOISE, FORCE_NOISE, DEPTH_NOISE = 5e-4, 0.01, 1e-3
 DEPTH_SIZE = (84, 84)
 
 
-def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float, depth_noise: float = 0.0):
+def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float, depth_noise: float = 0.0,
+            law: str | None = None, stretch: float = 1.0, depth_size=DEPTH_SIZE):
+    """The truth's tissue (of ``law``, default the scene's) observed along the scripted
+    retraction, its fold's arc ``stretch`` times the grasp's distance from the hinge."""
     import gymnasium as gym
 
     from heml_gym.envs.observations import record
     from heml_gym.envs.scripted import scripted_policy
 
     physics = {**kwargs.get("physics", {}), "young_modulus": [TRUTH["young_modulus"]] * 2,
-               "poisson": TRUTH["poisson_ratio"]}
+               "poisson": TRUTH["poisson_ratio"], **({"material": law} if law else {})}
     env = gym.make(env_id, **{**kwargs, "physics": physics})
-    return record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=STEPS, points=10,
-                  point_noise=point_noise, force_noise=force_noise, noise_seed=seed, env_id=env_id,
-                  depth_size=DEPTH_SIZE, depth_noise=depth_noise)
+    policy = scripted_policy(env.unwrapped.scene)
+    policy.radius_scale *= stretch
+    return record(env, policy, seed=seed, steps=STEPS, points=10, point_noise=point_noise, force_noise=force_noise,
+                  noise_seed=seed, env_id=env_id, depth_size=depth_size, depth_noise=depth_noise)
 
 
 def fit_case(env_id: str, obs, names, use):

@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from heml_gym.benchmarks.accuracy.calibration import CASES, POINT_NOISE, SEED, STEPS, TRUTH
+from heml_gym.benchmarks.accuracy.calibration import observe as observe_truth
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
 ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v1"}
@@ -34,30 +35,10 @@ BOOTSTRAP = 2000
 
 def observe(env_id: str, law: str, stretch: float):
     """The observation of a ``law`` tissue on the env's finer model, and its largest gauge strain."""
-    import gymnasium as gym
-
-    from heml_gym.envs.observations import record
-    from heml_gym.envs.scripted import scripted_policy
-
-    fine = CASES[env_id]["fine"]
-    physics = {**fine.get("physics", {}), "material": law, "young_modulus": [TRUTH["young_modulus"]] * 2,
-               "poisson": TRUTH["poisson_ratio"]}
-    kwargs = {**fine, "physics": physics}
-    env = gym.make(env_id, **kwargs)
-    policy = scripted_policy(env.unwrapped.scene)
-    policy.radius_scale = stretch
-    obs = record(env, policy, seed=SEED, steps=STEPS, points=10, point_noise=POINT_NOISE, noise_seed=SEED,
-                 env_id=env_id)
-    policy.reset()  # the same episode again, for its strain
-    o, _ = env.reset(seed=SEED)
-    worst = 0.0
-    for _ in range(STEPS):
-        o, _, terminated, truncated, info = env.step(policy(o))
-        worst = max(worst, float(info["max_strain"]))
-        if terminated or truncated:
-            break
+    obs = observe_truth(env_id, CASES[env_id]["fine"], SEED, POINT_NOISE, 0.0, law=law, stretch=stretch,
+                        depth_size=None)
     obs.force = None  # points only: what a tracker sees
-    return obs, worst
+    return obs, obs.meta["max_strain"]
 
 
 def paired_interval(a: list[float], b: list[float], rng) -> tuple[float, float]:

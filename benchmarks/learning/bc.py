@@ -13,11 +13,10 @@ evaluation seeds as the RL results), as ``docs/benchmarks/<env>_bc_sweep.{json,m
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
-from heml_gym.benchmarks.common import RESULTS, ROOT, markdown_table, write_json
+from heml_gym.benchmarks.common import ROOT, markdown_table, store_and_report
 
 #: env name -> its BC config
 CONFIGS = {"tissue": "configs/tissue_bc.yaml", "organ": "configs/organ_bc.yaml"}
@@ -59,30 +58,27 @@ def main(argv=None) -> int:
     if args.from_json:
         for env in envs:
             name = f"{env}_bc_sweep"
-            (RESULTS / f"{name}.md").write_text(table(json.loads((RESULTS / f"{name}.json").read_text()), name))
+            store_and_report(name, None, lambda result, name=name: table(result, name))
         return 0
     seeds = [int(s) for s in args.seeds.split(",")]
     out = Path(args.out)
-    root = (out / "minari").resolve()
-    os.environ["MINARI_DATASETS_PATH"] = str(root)  # Ray's workers inherit it
+    root = str((out / "minari").resolve())
 
     import minari
 
-    from heml_gym.agents.config import load_config
-    from heml_gym.agents.demos import collect_demos
+    from heml_gym.agents.demos import record_config_demos
     from heml_gym.agents.sweep import plan_sweep, run_sweep
     from heml_gym.benchmarks.learning.quick_sweep import collect
 
     for env in envs:
         config = ROOT / CONFIGS[env]
-        cfg = load_config(config)
-        if cfg.demos.dataset not in minari.list_local_datasets():  # once, before the trials read it in parallel
-            summary = collect_demos(cfg.env.id, cfg.demos.policy, cfg.demos.episodes, cfg.demos.dataset,
-                                    seed=cfg.demos.seed, action_noise=cfg.demos.action_noise)
+        sweep_dir = out / f"sweep-{env}_bc"
+        trials = plan_sweep(config, seeds, {"demos.root": root}, {}, sweep_dir)
+        cfg = trials[0].config
+        summary = record_config_demos(cfg)  # once, before the trials read it in parallel
+        if summary is not None:
             print(f"{cfg.demos.dataset}: {summary['episodes']} episodes, {summary['steps']} steps, demonstrator "
                   f"success {summary['success_rate']:.0%}", flush=True)
-        sweep_dir = out / f"sweep-{env}_bc"
-        trials = plan_sweep(config, seeds, {"demos.root": str(root)}, {}, sweep_dir)
         summary = run_sweep(trials, sweep_dir, verbose=False)
         name = f"{env}_bc_sweep"
         command = f"python -m heml_gym.benchmarks.learning.bc --envs {env}" + (
@@ -96,10 +92,7 @@ def main(argv=None) -> int:
                           f"{cfg.demos.policy} policy, its velocity commands executed with Gaussian noise of "
                           f"standard deviation {cfg.demos.action_noise:g} (its own actions the labels); it takes no env steps while it learns (the env steps column: "
                           "demonstration transitions).")
-        write_json(f"{name}.json", result, envs=[cfg.env.id])
-        text = table(result, name)
-        (RESULTS / f"{name}.md").write_text(text)
-        print(text)
+        store_and_report(name, result, lambda result, name=name: table(result, name), envs=[cfg.env.id])
     return 0
 
 

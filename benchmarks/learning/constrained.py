@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, write_json
+from heml_gym.benchmarks.common import IMAGES, ROOT, machine_info, markdown_table, store_and_report
 
 #: per env: the unconstrained config and its constrained twin (same algorithm and settings)
 CONFIGS = {
@@ -35,10 +35,12 @@ METHODS = ("PPO", "PPO-Lagrangian")
 
 def collect_seed(trial) -> dict:
     """One finished trial's final evaluation and histories (success, damage, multiplier)."""
-    if not (trial.run_dir / "result.json").is_file():
-        raise SystemExit(f"{trial.name} did not finish (no {trial.run_dir / 'result.json'}): see the sweep's "
+    from heml_gym.agents.sweep import RESULT_FILE
+
+    if not (trial.run_dir / RESULT_FILE).is_file():
+        raise SystemExit(f"{trial.name} did not finish (no {trial.run_dir / RESULT_FILE}): see the sweep's "
                          "output above; run the same command again to resume")
-    record = json.loads((trial.run_dir / "result.json").read_text())
+    record = json.loads((trial.run_dir / RESULT_FILE).read_text())
     history = json.loads((trial.run_dir / "evaluations.json").read_text())
     final = history[-1]
     out = {"seed": trial.seed, "env_steps": record["env_steps"], "wall_s": record["wall_s"],
@@ -200,12 +202,9 @@ def main(argv=None) -> int:
                          + (f" --steps {args.steps}" if args.steps != ap.get_default("steps") else ""),
               "methods": {m: summarise([collect_seed(t) for t in trials]) for m, trials in arms.items()}}
     result["verdict"] = verdict(result)
-    write_json(f"{name}.json", result, envs=[cfg.env.id])
-    text = table(result)
-    (RESULTS / f"{name}.md").write_text(text)
+    store_and_report(name, result, table, envs=[cfg.env.id])
     IMAGES.mkdir(parents=True, exist_ok=True)
     chart(result, IMAGES / f"{name}.png")
-    print(text)
     return 0
 
 
