@@ -104,13 +104,13 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. Returns the fit's record."""
     from heml_gym.calibration import embed_points, fit
-    from heml_gym.envs import unknown_env_message
+    from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
     from heml_gym.envs.observations import FIT_PARAMETERS, calibration_problem, load_observation
 
     import gymnasium as gym
 
     obs = load_observation(observation)
-    env_id = env_id or obs.env_id
+    env_id = env_id or SAME_STATE_TASK.get(obs.env_id, obs.env_id)  # (a retired id of the same scene: its successor)
     if env_id is None:
         raise ValueError("ENV: the observation names no env: give one")
     if env_id not in gym.registry:

@@ -95,7 +95,7 @@ def _eval(args) -> int:
         _known_env(args.env)
     policy, cfg = _exported(args.run_or_model, args.env), None
     if policy is not None:
-        args.env = policy.env_id
+        args.env = policy.runs_on
     else:
         policy, _, cfg = load_policy(args.run_or_model, trust_pickle=args.trust_pickle)
     env_id = args.env or (cfg.env.id if cfg else DEFAULT_ENV)
@@ -138,7 +138,7 @@ def _rollout(args) -> int:
         env = gym.make(args.env or DEFAULT_ENV)
         policy = scripted_policy(env.unwrapped.scene)
     elif (exported := _exported(args.policy, args.env)) is not None:
-        policy, env = exported, gym.make(exported.env_id)
+        policy, env = exported, gym.make(exported.runs_on)
     else:
         from .train import load_policy, make_env
 

@@ -205,7 +205,9 @@ def exported_policy(spec: str, env_id: str | None, default_env: str):
     """The :class:`OnnxPolicy` that ``spec`` names (``"pretrained"``: the one shipped for
     ``env_id``, else ``default_env``; or a path ending in ``.onnx``), checked to be for
     ``env_id`` when one is given; None when ``spec`` names something else (a run folder, a
-    model file, the scripted policy). What ``eval``, ``rollout`` and ``demos`` read."""
+    model file, the scripted policy). What ``eval``, ``rollout`` and ``demos`` read. A
+    policy exported for a retired version whose state task is unchanged
+    (:data:`heml_gym.envs.SAME_STATE_TASK`) runs on its successor."""
     if spec == "pretrained":
         path = pretrained_path(env_id or default_env)
     elif str(spec).endswith(".onnx"):
@@ -213,7 +215,7 @@ def exported_policy(spec: str, env_id: str | None, default_env: str):
     else:
         return None
     policy = OnnxPolicy(path)
-    if env_id and env_id != policy.env_id:
+    if env_id and env_id != policy.runs_on:
         raise ValueError(f"--env {env_id}: the policy was exported for {policy.env_id} (its observations and "
                          "actions are that env's); omit --env to use it there")
     return policy
@@ -221,7 +223,9 @@ def exported_policy(spec: str, env_id: str | None, default_env: str):
 
 class OnnxPolicy:
     """An exported policy as an ``obs -> action`` callable (onnxruntime, one thread);
-    ``metadata`` holds the file's ``env_id``, observation and action descriptions, limits."""
+    ``metadata`` holds the file's ``env_id``, observation and action descriptions, limits.
+    ``env_id``: the env it was exported for; ``runs_on``: the registered env it runs on
+    (the same, or the successor of a retired version with the same state task)."""
 
     def __init__(self, path):
         import onnxruntime as ort
@@ -239,6 +243,9 @@ class OnnxPolicy:
         if "env_id" not in self.metadata:
             raise ExportError(f"{path}: not a heml-gym policy (no env_id in its metadata)")
         self.env_id = self.metadata["env_id"]
+        from heml_gym.envs import SAME_STATE_TASK
+
+        self.runs_on = SAME_STATE_TASK.get(self.env_id, self.env_id)
 
     def __call__(self, obs) -> np.ndarray:
         batch = np.asarray(obs, dtype=np.float32)

@@ -3,7 +3,7 @@
 Importing this package registers:
 
 * ``heml_gym/TissueRetraction-v1`` (:class:`~heml_gym.envs.tissue_retraction.TissueRetractionEnv`)
-* ``heml_gym/OrganRetraction-v1`` (:class:`~heml_gym.envs.organ_retraction.OrganRetractionEnv`)
+* ``heml_gym/OrganRetraction-v2`` (:class:`~heml_gym.envs.organ_retraction.OrganRetractionEnv`)
 
 each with a batched implementation for ``gymnasium.make_vec(...,
 vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` 100 (the tasks'
@@ -21,7 +21,7 @@ from .spec import SpecError
 
 __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec", "GripperSpec",
            "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC",
-           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "ENV_IDS", "MAX_EPISODE_STEPS", "episode_steps",
+           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
            "unknown_env_message"]
 
 #: Arguments set by other means than ``env.kwargs`` (the run config's own keys, gym.make's).
@@ -60,19 +60,26 @@ def check_env_kwargs(env_id: str, kwargs: dict, path: str = "env.kwargs"):
 #: (``TaskSettings.max_steps``'s default: gym.make's TimeLimit and the env's own
 #: truncation agree).
 TISSUE_RETRACTION = "heml_gym/TissueRetraction-v1"
-ORGAN_RETRACTION = "heml_gym/OrganRetraction-v1"
+ORGAN_RETRACTION = "heml_gym/OrganRetraction-v2"
 ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION)
 MAX_EPISODE_STEPS = TaskSettings().max_steps
 
-#: Ids no longer registered, and what replaced them.
-RETIRED_IDS = {"heml_gym/TissueRetraction-v0": TISSUE_RETRACTION, "heml_gym/OrganRetraction-v0": ORGAN_RETRACTION}
+#: Ids no longer registered: what replaced them, and why.
+RETIRED_IDS = {"heml_gym/TissueRetraction-v0": (TISSUE_RETRACTION, "-v0 meant several former tasks"),
+               "heml_gym/OrganRetraction-v0": (ORGAN_RETRACTION, "-v0 meant several former tasks"),
+               "heml_gym/OrganRetraction-v1": (ORGAN_RETRACTION, "its camera images were turned 90 degrees")}
+
+#: Retired ids whose state observations, actions, dynamics and rewards equal their
+#: successor's (only images changed): a state policy made for one runs on the other.
+SAME_STATE_TASK = {"heml_gym/OrganRetraction-v1": ORGAN_RETRACTION}
 
 
 def unknown_env_message(env_id: str) -> str:
     """The one-line error for an id that is not registered: a retired version names its
     successor, anything else lists the known heml_gym ids."""
     if env_id in RETIRED_IDS:
-        return (f"{env_id} is retired (-v0 meant several former tasks): use {RETIRED_IDS[env_id]}, "
+        successor, why = RETIRED_IDS[env_id]
+        return (f"{env_id} is retired ({why}): use {successor}, "
                 "today's task (its version history is in the env's docstring)")
     return f"unknown environment {env_id!r} (known: {', '.join(ENV_IDS)})"
 

@@ -1,4 +1,4 @@
-"""OrganRetraction-v1: fold a liver lobe back about its base to expose what lies beneath it.
+"""OrganRetraction-v2: fold a liver lobe back about its base to expose what lies beneath it.
 
 ## Description
 
@@ -61,8 +61,14 @@ limit (the edge in front of it droops further on every finer mesh), a patch does
 
 ## Version History
 
-v1 (2026-11-26): the task described here, unchanged since 2026-11-25 15:38 UTC, when it
-was still registered as v0: fold the lobe back about its base (up to 1.2 rad scripted)
+v2 (2026-11-26): the task camera's ``up`` is +z (it was +y, so its images were turned 90
+degrees: the lobe's thin edge pointed sideways). Camera observations (RGB, depth,
+segmentation) show the lobe upright, its thin edge at the bottom; state and point-cloud
+observations, dynamics, rewards and success are v1's, so state-observation results
+and policies of v1 hold for v2 (stored results say "renamed").
+
+v1 (retired 2026-11-26): v2's task, its camera turned 90 degrees about its axis;
+unchanged since 2026-11-25 15:38 UTC, when it was still registered as v0: fold the lobe back about its base (up to 1.2 rad scripted)
 to a target beneath its base third; the underside stuck 0-40 mm out from the base,
 drawn per episode; jaws holding their 6 x 40 mm footprint; a 10 mm mesh refined to
 2.5 mm at the jaws, stepped by the quasi-Newton solver; difficulty 1 (hold 2 s) by
@@ -171,7 +177,7 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
         target=TargetSpec(low=TARGET_LOW, high=TARGET_HIGH, radius=0.008),
         gripper=GripperSpec(start_low=(-0.058, -0.01, 0.024), start_high=(-0.052, 0.01, 0.027),
                             workspace_low=(-0.15, -0.10, 0.0), workspace_high=(0.10, 0.10, 0.20)),
-        camera=CameraSpec(eye=(-0.17, 0.0, 0.12)),
+        camera=CameraSpec(eye=(-0.17, 0.0, 0.12), up=(0.0, 0.0, 1.0)),  # upright: the support below
         support=SupportSpec(kind="plane", normal=(0.0, 0.0, 1.0), offset=0.0),
         strain_gauge=0.015,
         adhesion=AdhesionSpec(region=RegionSpec(low=(None, None, 0.0), high=(None, None, 0.0), tolerance=1e-6),

@@ -28,9 +28,9 @@ CASES = [
     ("heml_gym/TissueRetraction-v1", {"scheme": "bdf2"}, 100),
     ("heml_gym/TissueRetraction-v1", {"integrator": "implicit"}, 100),
     ("heml_gym/TissueRetraction-v1", {"integrator": "explicit"}, 100),
-    ("heml_gym/OrganRetraction-v1", {}, 100),
-    ("heml_gym/OrganRetraction-v1", {"integrator": "implicit"}, 40),
-    ("heml_gym/OrganRetraction-v1", {"integrator": "explicit"}, 20),
+    ("heml_gym/OrganRetraction-v2", {}, 100),
+    ("heml_gym/OrganRetraction-v2", {"integrator": "implicit"}, 40),
+    ("heml_gym/OrganRetraction-v2", {"integrator": "explicit"}, 20),
     # vector envs: the scenes over threads (quasi-Newton), in SIMD lanes (explicit,
     # Neo-Hookean) and fused (explicit, any law); camera images (serial and parallel)
     ("heml_gym/TissueRetraction-v1", {}, 30, 4, "state"),
@@ -38,7 +38,7 @@ CASES = [
     ("heml_gym/TissueRetraction-v1", {"integrator": "explicit", "material": "Demiray",
                                       "material_options": {"b": 2.0}}, 20, 3, "state"),
     ("heml_gym/TissueRetraction-v1", {}, 10, 1, "rgbd"),
-    ("heml_gym/OrganRetraction-v1", {}, 10, 2, "rgbd"),
+    ("heml_gym/OrganRetraction-v2", {}, 10, 2, "rgbd"),
 ]
 
 

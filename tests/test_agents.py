@@ -112,9 +112,9 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path, capsys)
     assert result["episodes"] == 2 and len(result["success_ci95"]) == 2
     # a rollout on another env than the run's is refused, one line, nothing written
     rrd = tmp_path / "other.rrd"
-    assert main(["rollout", "--policy", str(run), "--env", "heml_gym/OrganRetraction-v1", "--rrd", str(rrd)]) == 2
+    assert main(["rollout", "--policy", str(run), "--env", "heml_gym/OrganRetraction-v2", "--rrd", str(rrd)]) == 2
     err = capsys.readouterr().err
-    assert "--env heml_gym/OrganRetraction-v1: the policy was trained on" in err and "Traceback" not in err
+    assert "--env heml_gym/OrganRetraction-v2: the policy was trained on" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and not rrd.exists()
     # observation statistics: saved with the model and with every checkpoint, learned from
     # the training observations, and applied by the loaded policy

@@ -50,14 +50,14 @@ def test_bad_difficulty_is_refused_naming_it():
     with pytest.raises(SpecError, match="difficulty: must be one of"):
         gym.make("heml_gym/TissueRetraction-v1", difficulty=3)
     with pytest.raises(SpecError, match="env.kwargs.difficulty: must be one of"):
-        check_env_kwargs("heml_gym/OrganRetraction-v1", {"difficulty": "hard"})
+        check_env_kwargs("heml_gym/OrganRetraction-v2", {"difficulty": "hard"})
     # a hold time the settings give replaces the level's; without one the level's applies
     assert TissueRetractionEnv(difficulty=1, settings={"hold_time": 0.5}).task.settings.hold_time == 0.5
     assert TissueRetractionEnv(difficulty=2, settings={"max_steps": 50}).task.settings.hold_time == 2.0
     assert TissueRetractionEnv(difficulty=0).task.settings.hold_time == 0.0
 
 
-@pytest.mark.parametrize("env_id", ["heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1"])
+@pytest.mark.parametrize("env_id", ["heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"])
 def test_level_2_hides_the_target_halfway_deeper_towards_the_hinge(env_id):
     """The target region's x moves half the way to the fold hinge (from the scene's own
     numbers), every drawn target lies in it, and the scripted fold still exposes it and

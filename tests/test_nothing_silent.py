@@ -78,14 +78,19 @@ def test_an_episode_length_the_vector_env_was_not_given_is_refused(settings, len
 
 
 def test_versions_registered_and_retired():
-    from heml_gym.envs import MAX_EPISODE_STEPS, ORGAN_RETRACTION, TISSUE_RETRACTION, episode_steps
+    from heml_gym.envs import (MAX_EPISODE_STEPS, ORGAN_RETRACTION, RETIRED_IDS, TISSUE_RETRACTION, episode_steps,
+                               unknown_env_message)
 
-    for env_id in (TISSUE_RETRACTION, ORGAN_RETRACTION):
-        assert env_id.endswith("-v1") and gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS == 100
+    for env_id, version in ((TISSUE_RETRACTION, 1), (ORGAN_RETRACTION, 2)):
+        assert env_id.endswith(f"-v{version}") and gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS == 100
         env = gym.make(env_id)
         assert env.spec.max_episode_steps == env.unwrapped.task.settings.max_steps  # TimeLimit == the task's own
-        with pytest.raises(gym.error.Error, match=env_id):  # -v0: gymnasium names the successor
-            gym.make(env_id.replace("-v1", "-v0"))
+        for old in range(version):  # every earlier version: gymnasium names the successor, and so do we
+            retired = env_id.replace(f"-v{version}", f"-v{old}")
+            assert retired not in gym.registry and retired in RETIRED_IDS
+            with pytest.raises(gym.error.Error, match=env_id):
+                gym.make(retired)
+            assert f"use {env_id}" in unknown_env_message(retired)
     assert episode_steps({"settings": {"max_steps": 20}}) == 20 and episode_steps({}) is None
     env = gym.make(TISSUE, settings={"max_steps": 150}, max_episode_steps=episode_steps({"settings": {"max_steps": 150}}))
     env.reset(seed=0)
@@ -167,7 +172,7 @@ def test_resume_refuses_another_env_obs_mode_or_algorithm_and_damaged_statistics
     assert main(["train", str(config), "--run-dir", str(run), "--no-progress"]) == 0
     checkpoint = run / "model.zip"
     data = yaml.safe_load(config.read_text())
-    for change, match in ((("env", "id", "heml_gym/OrganRetraction-v1"), "env.id"),
+    for change, match in ((("env", "id", "heml_gym/OrganRetraction-v2"), "env.id"),
                           (("env", "obs_mode", "pointcloud"), "env.obs_mode"),
                           (("algorithm", "name", "SAC"), "algorithm.name")):
         other = dict(data, **{change[0]: dict(data[change[0]], **{change[1]: change[2]})})

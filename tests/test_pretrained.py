@@ -48,3 +48,29 @@ def test_eval_on_a_held_out_stiffness_range(tmp_path, capsys):
     assert 12000 <= lo <= hi <= 16000
     assert main(["eval", "pretrained", "--episodes", "1", "--physics", '{"young_modulus": [-1, 2]}']) == 2
     assert "--physics" in capsys.readouterr().err
+
+
+def test_a_policy_for_a_retired_version_with_the_same_state_task(tmp_path, capsys):
+    """A state policy exported for OrganRetraction-v1 (v2 changed only the camera's
+    images) runs on v2 and its success there is v2's; on another task it is refused with a
+    one-line error naming both envs."""
+    import onnx
+
+    from heml_gym.agents.export import exported_policy, pretrained_path
+    from heml_gym.envs import ORGAN_RETRACTION, SAME_STATE_TASK, TISSUE_RETRACTION
+
+    retired = "heml_gym/OrganRetraction-v1"
+    assert SAME_STATE_TASK[retired] == ORGAN_RETRACTION
+    model = onnx.load(pretrained_path(ORGAN_RETRACTION))
+    for prop in model.metadata_props:
+        if prop.key == "env_id":
+            prop.value = retired
+    old = tmp_path / "old.onnx"
+    onnx.save(model, old)
+    policy = exported_policy(str(old), ORGAN_RETRACTION, TISSUE_RETRACTION)
+    assert policy.env_id == retired and policy.runs_on == ORGAN_RETRACTION
+    with pytest.raises(ValueError, match="exported for heml_gym/OrganRetraction-v1"):
+        exported_policy(str(old), TISSUE_RETRACTION, TISSUE_RETRACTION)
+    assert main(["eval", str(old), "--episodes", "3", "--seed", "5"]) == 0  # (no --env: the successor)
+    result = json.loads(capsys.readouterr().out)
+    assert result["env"] == ORGAN_RETRACTION and result["success_rate"] >= 2 / 3

@@ -16,7 +16,7 @@ from heml_gym.envs.organ_retraction import organ_scene
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, tissue_scene
 
 ROOT = Path(__file__).resolve().parents[1]
-TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1"
+TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"
 LAWS = [cls.__name__ for cls in M.ALL_MATERIALS]
 
 

@@ -44,7 +44,7 @@ CASES = {
                                               "physics": {"max_dt": 0.025}},
                                      "fine_label": "18 x 18 x 3 cells, 0.025 s steps",
                                      "model_label": "12 x 12 x 2 cells, 0.05 s steps (the default)"},
-    "heml_gym/OrganRetraction-v1": {"fine": {"mesh_size": 0.007, "physics": {"max_dt": 0.025}},
+    "heml_gym/OrganRetraction-v2": {"fine": {"mesh_size": 0.007, "physics": {"max_dt": 0.025}},
                                     "fine_label": "7 mm mesh, 0.025 s steps",
                                     "model_label": "10 mm mesh, 0.05 s steps (the default)"},
 }

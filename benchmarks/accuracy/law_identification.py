@@ -29,7 +29,7 @@ from heml_gym.benchmarks.accuracy.calibration import CASES, POINT_NOISE, SEED, S
 from heml_gym.benchmarks.accuracy.calibration import observe as observe_truth
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
-ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v1"}
+ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v2"}
 BOOTSTRAP = 2000
 
 

@@ -115,7 +115,7 @@ def main() -> int:
     peak = float(np.abs(ref).max())
     deviation = {k: float(np.abs(np.array(v) - ref).max() / peak) for k, v in reaction.items() if k != "explicit"}
     robustness = {env_id: {kind: soak(env_id, kind, n) for kind in SCHEMES}
-                  for env_id, n in (("heml_gym/TissueRetraction-v1", 1200), ("heml_gym/OrganRetraction-v1", 500))}
+                  for env_id, n in (("heml_gym/TissueRetraction-v1", 1200), ("heml_gym/OrganRetraction-v2", 500))}
     result = {"machine": machine_info(), "wall_s": time.perf_counter() - start, "steps_s": list(steps),
               "order_errors_m": order, "reaction_N": reaction, "reaction_deviation_of_peak": deviation,
               "robustness": robustness, "command": "python benchmarks/accuracy/time_schemes.py"}

@@ -27,15 +27,15 @@ from heml_gym.benchmarks.common import parse_arguments, IMAGES, RESULTS, machine
 #: (results name of the sweep, config, algorithm, env, difficulty, seeds the command runs)
 SWEEPS = [
     ("quick_sweep", "configs/quick.yaml", "PPO", "heml_gym/TissueRetraction-v1", 1, "0,1,2,3,4,5,6"),
-    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v1", 1, "0,1,2,3,4"),
+    ("organ_ppo_sweep", "configs/organ_ppo.yaml", "PPO", "heml_gym/OrganRetraction-v2", 1, "0,1,2,3,4"),
     ("tissue_sac_sweep", "configs/tissue_sac.yaml", "SAC", "heml_gym/TissueRetraction-v1", 1, "0,1,2"),
-    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v1", 1, "0,1,2"),
+    ("organ_sac_sweep", "configs/organ_sac.yaml", "SAC", "heml_gym/OrganRetraction-v2", 1, "0,1,2"),
     ("tissue_ppo_difficulty2", "configs/tissue_ppo_difficulty2.yaml", "PPO", "heml_gym/TissueRetraction-v1", 2,
      "0,1,2,3,4"),
-    ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v1", 2,
+    ("organ_ppo_difficulty2", "configs/organ_ppo_difficulty2.yaml", "PPO", "heml_gym/OrganRetraction-v2", 2,
      "0,1,2,3,4"),
     ("tissue_bc_sweep", "configs/tissue_bc.yaml", "BC", "heml_gym/TissueRetraction-v1", 1, "0,1,2,3,4"),
-    ("organ_bc_sweep", "configs/organ_bc.yaml", "BC", "heml_gym/OrganRetraction-v1", 1, "0,1,2,3,4"),
+    ("organ_bc_sweep", "configs/organ_bc.yaml", "BC", "heml_gym/OrganRetraction-v2", 1, "0,1,2,3,4"),
 ]
 #: algorithms that learn from demonstrations, without env steps (no learning curve: a line at their IQM)
 OFFLINE = ("BC",)
@@ -206,12 +206,14 @@ def markdown(results: dict) -> str:
     return md
 
 
-RENAMED = "runs trained under the ids -v0 (2026-11-25), the tasks registered as -v1 since 2026-11-26"
+RENAMED = ("runs trained under the ids -v0 (2026-11-25), the tasks registered as -v1 since 2026-11-26; "
+           "OrganRetraction: measured as -v1, renamed -v2 on 2026-11-26: v2 changed only the task camera's up "
+           "direction (its images were turned 90 degrees), not the state observations, dynamics or rewards")
 
 
 def main() -> int:
     results = collect()
-    # the runs on record were trained before the tasks' ids became -v1 (2026-11-26), on the same tasks
+    # the runs on record were trained before the tasks' ids became -v1 / -v2 (2026-11-26), on the same state tasks
     results = {"renamed": RENAMED, **results}
     write_json("agent_results.json", results)
     text = markdown(results)

@@ -18,7 +18,7 @@ import argparse
 
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
-ENVS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
+ENVS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
 RANGES = {"softer (held out)": [2000.0, 4000.0], "training": [4000.0, 8000.0], "stiffer (held out)": [8000.0, 16000.0]}
 EPISODES = 20
 

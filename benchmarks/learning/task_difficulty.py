@@ -20,7 +20,7 @@ from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, wr
 from heml_gym.envs.organ_retraction import FORMER_TASK
 from heml_gym.envs.tissue_retraction import FORMER_TASK as TISSUE_FORMER_TASK
 
-ENVS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
+ENVS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
 #: options that are not defaults, at the default level: (env, what, env kwargs: changes to the default scene)
 VARIANTS = [
     ("heml_gym/TissueRetraction-v1", "40 mm jaws: only the part of the edge between them held "
@@ -28,11 +28,11 @@ VARIANTS = [
     ("heml_gym/TissueRetraction-v1", "30 mm jaws", {"scene": {"gripper": {"jaw_length": 0.03}}}),
     ("heml_gym/TissueRetraction-v1", "the former scene (tissue_retraction.FORMER_TASK: one layer of cells, "
      "the underside free)", {"scene": TISSUE_FORMER_TASK}),
-    ("heml_gym/OrganRetraction-v1", "20 mm jaws: the middle 20 mm of the 40 mm footprint held",
+    ("heml_gym/OrganRetraction-v2", "20 mm jaws: the middle 20 mm of the 40 mm footprint held",
      {"scene": {"gripper": {"jaw_length": 0.02}}}),
-    ("heml_gym/OrganRetraction-v1", "no adhesion (scene.adhesion: null; the underside free to lift off the support)",
+    ("heml_gym/OrganRetraction-v2", "no adhesion (scene.adhesion: null; the underside free to lift off the support)",
      {"scene": {"adhesion": None}}),
-    ("heml_gym/OrganRetraction-v1", "the former task (organ_retraction.FORMER_TASK: the target behind the thin edge, "
+    ("heml_gym/OrganRetraction-v2", "the former task (organ_retraction.FORMER_TASK: the target behind the thin edge, "
      "x -35..-10 mm, exposed by a 2 cm lift; the underside free)", {"scene": FORMER_TASK}),
 ]
 

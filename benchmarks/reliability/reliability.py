@@ -35,7 +35,7 @@ Writes docs/benchmarks/reliability.{json,md} and docs/img/reliability.png.
     python benchmarks/reliability/reliability.py [--steps 2000]      # env steps per env (split over the streams)
     python benchmarks/reliability/reliability.py --steps 200000,60000 --stream-steps 2000 --targets host,haswell
                                     # the published run: over 1,000,000 env steps in all
-    python benchmarks/reliability/reliability.py --envs heml_gym/OrganRetraction-v1 --steps 50000 --merge
+    python benchmarks/reliability/reliability.py --envs heml_gym/OrganRetraction-v2 --steps 50000 --merge
                                     # re-soak one env, keeping the stored rows of the others
 """
 
@@ -55,7 +55,7 @@ import heml_gym.envs  # noqa: F401  (registers the envs)
 from heml_gym.benchmarks.common import IMAGES, RESULTS, checkout_file, codegen_target, machine_info, markdown_table, write_json
 from heml_gym.envs.scripted import scripted_policy
 
-ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
 STREAMS = ("random", "extreme", "toggling", "out_of_range", "push_release", "scripted")
 VECTOR_N = 8
 ACCEPTANCE_STREAMS = ("push_release", "random", "extreme")  # part 1b

@@ -39,7 +39,7 @@ SCENES = {
         "explicit s=0.75": {"integrator": "explicit", "safety": 0.75},
         "explicit s=1.0": {"integrator": "explicit", "safety": 1.0},
         "Newton dt=0.1": {"integrator": "implicit", "max_dt": 0.1, "newton_tol": 1e-3, "max_newton": 20}}},
-    "heml_gym/OrganRetraction-v1": {"range": (4e3, 8e3, 0.45), "integrators": {
+    "heml_gym/OrganRetraction-v2": {"range": (4e3, 8e3, 0.45), "integrators": {
         "quasi-Newton dt=0.05 (default)": {"integrator": "quasi_newton"},
         "quasi-Newton dt=0.1": {"integrator": "quasi_newton", "max_dt": 0.1},
         # explicit: on the default mesh (2.5 mm at the jaws) one setting costs about 40 min

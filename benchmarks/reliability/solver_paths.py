@@ -45,7 +45,7 @@ def run(seeds: list[int], steps: int) -> dict:
             times[path].append(elapsed)
             if terminated or truncated:
                 env.reset()
-    return {"machine": machine_info(), "env": "heml_gym/OrganRetraction-v1", "actions": "push_release",
+    return {"machine": machine_info(), "env": "heml_gym/OrganRetraction-v2", "actions": "push_release",
             "seeds": seeds, "steps_per_seed": steps, "failed_steps": failed,
             "paths": {p: {"steps": len(t), "median_ms": float(1e3 * np.median(t)) if t else None,
                           "max_ms": float(1e3 * max(t)) if t else None, "total_s": float(sum(t))}

@@ -132,7 +132,7 @@ def rllib(data: dict) -> str:
             "[scale_out.md](../scale_out.md#measured)).")
 
 
-TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1"
+TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"
 
 
 def _rates(data: dict):

@@ -15,7 +15,7 @@ from heml_gym.benchmarks.common import parse_arguments, IMAGES
 from heml_gym.envs.scripted import scripted_policy
 
 ENVS = {"heml_gym/TissueRetraction-v1": "TissueRetraction: fold the fat flap back off the tumour",
-        "heml_gym/OrganRetraction-v1": "OrganRetraction: fold the liver lobe back off the tumour"}
+        "heml_gym/OrganRetraction-v2": "OrganRetraction: fold the liver lobe back off the tumour"}
 SIZE = (300, 400)  # pixels
 
 

@@ -1,6 +1,6 @@
 """Environment throughput: env steps per second of the retraction tasks.
 
-For ``heml_gym/TissueRetraction-v1`` (and ``heml_gym/OrganRetraction-v1`` when it is
+For ``heml_gym/TissueRetraction-v1`` (and ``heml_gym/OrganRetraction-v2`` when it is
 registered), with the default ``control_dt`` = 0.1 s simulated per env step:
 
 1. Single env (the unwrapped env class, i.e. ``TissueRetractionEnv``): random actions
@@ -56,7 +56,7 @@ import heml_gym.envs  # noqa: F401  (registers the envs)
 from heml_gym.benchmarks.common import (IMAGES, RESULTS, codegen_target, machine_info, markdown_table,
                     throughput_rate, throughput_rows, write_json)
 
-ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
 VECTOR_SIZES = (1, 4, 16, 64)
 BAR_SINGLE = 400.0  # env steps/s, TissueRetraction single env, one core (issue 13; 300 before)
 # env steps/s in total, TissueRetraction vectorised on 2 cores: 1,500 on AVX-512 (issue 13), 1,000 on an
@@ -125,7 +125,7 @@ def _rates(times, steps_per_block, threads):
 
 #: Physics each env is also timed with, single env on one thread, in the same rounds as its
 #: default (the ratio of issue 13: the organ's default against its explicit path)
-ALTERNATIVE_PHYSICS = {"heml_gym/OrganRetraction-v1": {"explicit": {"integrator": "explicit"}}}
+ALTERNATIVE_PHYSICS = {"heml_gym/OrganRetraction-v2": {"explicit": {"integrator": "explicit"}}}
 
 
 def _organ_line_scene():
@@ -138,7 +138,7 @@ def _organ_line_scene():
 #: thread; vectorised on every thread at ALTERNATIVE_VECTOR_SIZES): the lobe's former
 #: default, a 40 mm line held on a 7 mm lobe, which has no converged fine-mesh reference
 #: (docs/scene_convergence.md, "Line and patch grasps"), for what the converged default costs.
-ALTERNATIVE_SCENES = {"heml_gym/OrganRetraction-v1": {"line grasp, 7 mm (the former default)":
+ALTERNATIVE_SCENES = {"heml_gym/OrganRetraction-v2": {"line grasp, 7 mm (the former default)":
                                                       _organ_line_scene}}
 ALTERNATIVE_VECTOR_SIZES = (16, 64)
 
@@ -533,7 +533,7 @@ def _organ_verdict(rows) -> str:
         lines.append(f"- best vectorised: {best['median_steps_per_s']:.0f} env steps/s at N = {best['num_envs']}, "
                      f"{best['threads']} thread(s) ({'meets' if best['median_steps_per_s'] >= BAR_ORGAN_VECTOR else 'misses'} "
                      f"the {BAR_ORGAN_VECTOR:.0f}/s bar).")
-    for name in ALTERNATIVE_SCENES.get("heml_gym/OrganRetraction-v1", {}):
+    for name in ALTERNATIVE_SCENES.get("heml_gym/OrganRetraction-v2", {}):
         single = {a: throughput_rate(rows, env=f"single, {name}", threads=1, actions=a, omp_wait_policy=MAIN_POLICY)
                   for a in ("random", "scripted")}
         alt_vec = throughput_rows(rows, env=f"vector, {name}", omp_wait_policy=MAIN_POLICY)

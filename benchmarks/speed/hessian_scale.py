@@ -21,7 +21,7 @@ import numpy as np
 from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, write_json
 
 SCALES = (1.0, 1.1, 1.25, 1.5)
-ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v1")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
 
 
 def measure(env_id: str, scale: float, steps: int, seeds: int) -> dict:
