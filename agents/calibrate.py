@@ -223,8 +223,14 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
     from heml_gym.envs.observations import calibration_problem
     from heml_gym.envs.scene import LAWS
 
+    from heml_gym.envs.observations import LAW_CONSTANTS
+
     if obs.points is None or obs.points.shape[1] < 4:
         raise ValueError("--law auto: needs at least 4 tracked points (half fit, half held out)")
+    own = [name for name in fit_names if name in LAW_CONSTANTS]
+    if own:
+        raise ValueError(f"--law auto: fits the same constants to every law, and {own[0]} is "
+                         f"{LAW_CONSTANTS[own[0]][0]}'s only (drop it, or give --law {LAW_CONSTANTS[own[0]][0]})")
     K = obs.points.shape[1]
     train, held = np.arange(0, K, 2), np.arange(1, K, 2)
     part = copy.deepcopy(obs)

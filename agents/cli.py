@@ -415,7 +415,9 @@ def main(argv=None) -> int:
     c.add_argument("env", metavar="ENV", help="environment id whose scene is fitted ('-': the observation's)")
     c.add_argument("observation", help="the .npz observation file")
     c.add_argument("--out", required=True, help="folder for fit.json and fit.png (new or empty)")
-    c.add_argument("--fit", default="young_modulus,poisson_ratio", help="constants to fit, comma-separated")
+    c.add_argument("--fit", default="young_modulus,poisson_ratio",
+                   help="constants to fit, comma-separated: young_modulus, poisson_ratio, density, damping, "
+                        "c01_fraction (MooneyRivlin), b (Demiray)")
     c.add_argument("--law", help="the law to fit (a heml_gym.materials class name; default: the scene's), or "
                                  "'auto': the one that predicts held-out tracked points best")
     c.add_argument("--env-kwargs", help="JSON gym.make keyword arguments of the fitted scene")

@@ -41,12 +41,18 @@ import numpy as np
 from heml_gym.calibration import ControlLog, Observed, Replay
 
 __all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
-           "calibration_problem", "FIT_PARAMETERS", "physics_from_fit"]
+           "calibration_problem", "FIT_PARAMETERS", "LAW_CONSTANTS", "physics_from_fit"]
 
 #: Constants a calibration can fit: name -> (unit, bounds).
 #: m: a depth image's value where the camera saw nothing
 DEPTH_FAR = 10.0
-FIT_PARAMETERS = {"young_modulus": ("Pa", (200.0, 200e3)), "poisson_ratio": ("", (0.0, 0.495))}
+#: ``c01_fraction`` (MooneyRivlin: the share of the shear modulus in ``c01``) and ``b``
+#: (Demiray: how fast the tissue stiffens) are constants of one law (:data:`LAW_CONSTANTS`).
+FIT_PARAMETERS = {"young_modulus": ("Pa", (200.0, 200e3)), "poisson_ratio": ("", (0.0, 0.495)),
+                  "density": ("kg/m^3", (100.0, 10000.0)), "damping": ("1/s", (0.0, 200.0)),
+                  "c01_fraction": ("", (0.0, 1.0)), "b": ("", (0.05, 50.0))}
+#: The fittable constants of one law only (its ``material_options``), and their defaults.
+LAW_CONSTANTS = {"c01_fraction": ("MooneyRivlin", 0.25), "b": ("Demiray", 2.0)}
 
 
 class ObservationError(ValueError):
@@ -336,18 +342,35 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
     unknown = [name for name in fit if name not in FIT_PARAMETERS]
     if unknown or not fit:
         raise ValueError(f"fit: {unknown[0] if unknown else 'nothing'}: can fit {', '.join(FIT_PARAMETERS)}")
+    if len(set(fit)) != len(fit):
+        raise ValueError(f"fit: each constant once, got {', '.join(fit)}")
     task = env.unwrapped.task
     ph = task.scene.physics
+    for name in fit:
+        if name in LAW_CONSTANTS and LAW_CONSTANTS[name][0] != ph.material:
+            raise ValueError(f"fit: {name} is a constant of {LAW_CONSTANTS[name][0]}, the scene's law is "
+                             f"{ph.material} (choose the law with --law {LAW_CONSTANTS[name][0]})")
     log = control_log(env, obs)
     E0 = float(np.mean(ph.young_modulus))
-    defaults = {"young_modulus": E0, "poisson_ratio": float(ph.poisson)}
+    defaults = {"young_modulus": E0, "poisson_ratio": float(ph.poisson), "density": float(ph.density),
+                "damping": float(ph.damping)}
+    for name, (law, default) in LAW_CONSTANTS.items():
+        if law == ph.material:
+            defaults[name] = float(ph.material_options.get(name, default))
 
     def material_of(theta):
         values = dict(defaults, **dict(zip(fit, theta)))
-        return dataclasses.replace(ph, poisson=values["poisson_ratio"]).material_for(values["young_modulus"])
+        options = dict(ph.material_options, **{k: values[k] for k in LAW_CONSTANTS if k in fit})
+        return dataclasses.replace(ph, poisson=values["poisson_ratio"],
+                                   material_options=options).material_for(values["young_modulus"])
+
+    def dynamics_of(theta):
+        values = dict(defaults, **dict(zip(fit, theta)))
+        return values["density"], values["damping"]
 
     # the replay's own one-world model: the env's, whose world 0 it re-materialises
-    replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0))
+    replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0),
+                    dynamics_of=dynamics_of if {"density", "damping"} & set(fit) else None)
     extra = ()
     if obs.depth is not None:
         from .depth_loss import DepthTerm
@@ -368,7 +391,8 @@ def physics_from_fit(path, spread: float = 2.0) -> dict:
     """``physics=`` changes that make a scene's tissue the one a calibration found
     (``heml-gym calibrate``'s ``fit.json``): its law and Poisson ratio, and Young's modulus
     drawn per episode uniformly within ``spread`` standard errors of the fitted value (the
-    fit's uncertainty as the spread; at least 1 % of the value). ``physics={"fit":
+    fit's uncertainty as the spread; at least 1 % of the value); a fitted density, damping
+    or law constant (``c01_fraction``, ``b``) as fitted. ``physics={"fit":
     "DIR/fit.json"}`` in ``gym.make`` does this."""
     from .spec import SpecError
 
@@ -395,4 +419,10 @@ def physics_from_fit(path, spread: float = 2.0) -> dict:
         out["young_modulus"] = [max(E - half, 0.5 * E), E + half]
     if "poisson_ratio" in parameters:
         out["poisson"] = float(parameters["poisson_ratio"]["value"])
+    for name, key in (("density", "density"), ("damping", "damping")):
+        if name in parameters:
+            out[key] = float(parameters[name]["value"])
+    options = {name: float(parameters[name]["value"]) for name in LAW_CONSTANTS if name in parameters}
+    if options:
+        out["material_options"] = options
     return out

@@ -66,6 +66,10 @@ def test_adjoint_gradients_equal_central_differences_on_a_slab():
         targets[t, grip] = X[grip] + np.array([-0.002, 0.0, 0.004]) * (t + 1)
     replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of)
     _random_loss_gradient_check(replay, (5e3, 0.45), (0.5, 1e-5), np.random.default_rng(0))
+    # the density (kg/m^3: masses, weight, support penalty) and the mass damping (1/s) too
+    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of,
+                    dynamics_of=lambda theta: (theta[2], theta[3]))
+    _random_loss_gradient_check(replay, (5e3, 0.45, 1100.0, 3.0), (0.5, 1e-5, 0.1, 1e-3), np.random.default_rng(0))
 
 
 def test_a_replay_started_from_the_previous_one_equals_a_cold_replay():
@@ -97,6 +101,31 @@ def test_adjoint_gradients_equal_central_differences_on_the_env_scenes(env_id, s
     _random_loss_gradient_check(replay, (5.5e3, 0.44), (0.5, 1e-5), np.random.default_rng(1))
 
 
+@pytest.mark.parametrize("env_id, law, names, theta, steps", [
+    (TISSUE_RETRACTION, None, ("young_modulus", "density", "damping"), (5.5e3, 1100.0, 4.0), (0.5, 0.1, 1e-3)),
+    (ORGAN_RETRACTION, None, ("density", "damping"), (1000.0, 6.0), (0.1, 1e-3)),
+    (TISSUE_RETRACTION, "Demiray", ("young_modulus", "b"), (5.5e3, 1.5), (0.5, 1e-4)),
+    (TISSUE_RETRACTION, "MooneyRivlin", ("young_modulus", "c01_fraction"), (5.5e3, 0.3), (0.5, 1e-5))])
+def test_adjoint_gradients_in_density_damping_and_law_constants(env_id, law, names, theta, steps):
+    """The other constants a calibration fits, on the envs' scenes: the density and the
+    mass damping (which enter the step's inertia, weight and reactions, not the elastic
+    forces) and each law's own constant (Demiray's b, Mooney-Rivlin's c01 share)."""
+    physics = {"young_modulus": [5e3, 5e3], **({"material": law} if law else {})}
+    env = gym.make(env_id, physics=physics)
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=2, steps=8, points=4)
+    replay, *_ = calibration_problem(gym.make(env_id, physics={"material": law} if law else None), obs, names)
+    _random_loss_gradient_check(replay, theta, steps, np.random.default_rng(1))
+
+
+def test_a_law_constant_needs_its_law():
+    env = gym.make(TISSUE_RETRACTION)
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=2, steps=3, points=4)
+    with pytest.raises(ValueError, match="fit: b is a constant of Demiray, the scene's law is NeoHookean"):
+        calibration_problem(env, obs, ("young_modulus", "b"))
+    with pytest.raises(ValueError, match="fit: each constant once"):
+        calibration_problem(env, obs, ("density", "density"))
+
+
 def test_a_tissue_is_recovered_from_its_own_observations():
     """Noise-free points and force of a flap with E 5,200 Pa, nu 0.43 (the scene's mean
     is 6,000 Pa, 0.45): the fit finds them, and the loss's own curvature is what the
@@ -112,6 +141,29 @@ def test_a_tissue_is_recovered_from_its_own_observations():
     assert result.theta[1] == pytest.approx(0.43, abs=0.005)
     assert np.all(result.std > 0) and result.std[0] < 50.0
     assert result.residual_rms["points_m"] < 1e-4
+
+
+def test_density_and_a_law_constant_are_recovered_too():
+    """Noise-free points and force of a heavier flap (1,300 kg/m^3: it sags more under its
+    weight, for the same force per displacement) give its E and density; a Demiray flap's
+    points and force give its b (how fast it stiffens) beside its E."""
+    env = gym.make(TISSUE_RETRACTION, physics={"young_modulus": [6000.0, 6000.0], "density": 1300.0})
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=4, steps=12, points=8)
+    replay, observed, names, bounds, start = calibration_problem(gym.make(TISSUE_RETRACTION), obs,
+                                                                 ("young_modulus", "density"))
+    assert start[1] == 950.0  # (the scene's own density: the fit starts 27 % off)
+    result = fit(replay, observed, names, [start], bounds)
+    assert result.converged
+    assert result.theta[0] == pytest.approx(6000.0, rel=0.01) and result.theta[1] == pytest.approx(1300.0, rel=0.01)
+    demiray = {"young_modulus": [6000.0, 6000.0], "material": "Demiray"}
+    env = gym.make(TISSUE_RETRACTION, physics={**demiray, "material_options": {"b": 5.0}})
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=4, steps=20, points=8)
+    replay, observed, names, bounds, start = calibration_problem(gym.make(TISSUE_RETRACTION, physics=demiray), obs,
+                                                                 ("young_modulus", "b"))
+    assert start[1] == 2.0  # (Demiray's default b)
+    result = fit(replay, observed, names, [start], bounds)
+    assert result.converged
+    assert result.theta[1] == pytest.approx(5.0, abs=max(3 * result.std[1], 0.5))
 
 
 def _observation(**change):
@@ -182,7 +234,8 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, says", [
     (["calibrate", "-", "{tmp}/none.npz", "--out", "{tmp}/fit"], "not found"),
-    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "density"], "fit: density"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "stiffness"], "fit: stiffness"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "young_modulus,b"], "fit: b is a constant of Demiray"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.txt"], "--out"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--young-modulus", "-5"], "--young-modulus"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--env-kwargs", "[1]"], "--env-kwargs"),

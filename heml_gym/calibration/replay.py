@@ -19,7 +19,11 @@ vertices' prescribed path and the reaction on them (the step-mean force the jaws
 ``df/dtheta``, the elastic forces' derivative in a material constant at a fixed
 configuration, is a central difference in the constant (exact up to rounding for laws
 linear in their constants, as Neo-Hookean, St Venant-Kirchhoff and Mooney-Rivlin are in
-``mu`` and ``lambda`` and so in ``E``; within 1e-9 relative for ``nu``).
+``mu`` and ``lambda`` and so in ``E``; within 1e-9 relative for ``nu``). Constants of the
+dynamics (``dynamics_of``: the density, which scales every lumped mass, their weight and
+the support penalty, and the mass damping ``alpha``) enter the sub-step's gradient and the
+reactions on the held vertices, not the elastic forces: their derivatives are central
+differences of those, at the sub-step's stored state.
 
 Only backward Euler (BDF2's two-step history is not differentiated). Units: m, s, N, Pa.
 """
@@ -142,6 +146,10 @@ class Replay:
         gradients need the converged step they differentiate).
     contact_stiffness : float
         The supports' penalty, as :class:`~heml_gym.solvers.QuasiNewtonSolver`'s.
+    dynamics_of : callable, optional
+        ``theta`` -> ``(density, alpha)``: the tissue's density (kg/m^3; the lumped masses
+        are ``density`` times each vertex's share of the volume) and the mass-proportional
+        damping (1/s) to replay with; default: the model's own, whatever ``theta``.
     max_iter : int
         Newton iterations per sub-step at most (a sub-step that stops above its tolerance
         is a :class:`ReplayError`).
@@ -149,7 +157,8 @@ class Replay:
 
     def __init__(self, model: Model, log: ControlLog, material_of: Callable[[Sequence[float]], Material],
                  world: int = 0, steps: Sequence[float] | None = None, tol: float = 1e-8,
-                 contact_stiffness: float = 1000.0, max_iter: int = 60):
+                 contact_stiffness: float = 1000.0, max_iter: int = 60,
+                 dynamics_of: Callable[[Sequence[float]], tuple[float, float]] | None = None):
         if not isinstance(log, ControlLog):
             raise TypeError(f"log must be a ControlLog, got {type(log).__name__}")
         if log.kinematic.shape[1] != model.n_vertices:
@@ -157,6 +166,8 @@ class Replay:
         if model.supports.kernel_args().grids.shape[0]:
             raise ReplayError("replays differentiate plane supports only (a mesh support's curvature is not)")
         self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
+        self.dynamics_of = dynamics_of
+        self._body = model.heml_body()  # the kernels' body: the model's, with the replay's masses and damping
         #: each sub-step's converged positions of the latest run: the next run's Newton may
         #: start there (a fit's successive constants are close, so are their trajectories)
         self._previous: list[np.ndarray] = []
@@ -179,7 +190,29 @@ class Replay:
         self._previous = []
 
     def _set(self, theta) -> None:
-        self.model.set_material(self.world, self.material_of(tuple(float(t) for t in theta)))
+        theta = tuple(float(t) for t in theta)
+        self.model.set_material(self.world, self.material_of(theta))
+        body = self.model.heml_body()
+        if self.dynamics_of is not None:
+            density, alpha = (float(v) for v in self.dynamics_of(theta))
+            if not (math.isfinite(density) and density > 0 and math.isfinite(alpha) and alpha >= 0):
+                raise ReplayError(f"dynamics_of: density must be > 0 kg/m^3 and alpha >= 0 1/s, got "
+                                  f"{density}, {alpha}")
+            body = body._replace(mass=density * self.model.mesh.vertex_volumes, alpha=alpha)
+        self._body = body
+
+    def _dynamic_constants(self, theta) -> list[int]:
+        """The indices of ``theta`` that change the density or the damping."""
+        if self.dynamics_of is None:
+            return []
+        base = tuple(self.dynamics_of(tuple(theta)))
+        out = []
+        for j in range(len(theta)):
+            shifted = list(theta)
+            shifted[j] = shifted[j] * (1.0 + 1e-3) + 1e-3
+            if tuple(self.dynamics_of(tuple(shifted))) != base:
+                out.append(j)
+        return out
 
     def _law(self):
         return world_law(self.model.heml_laws(), self.world)
@@ -215,7 +248,7 @@ class Replay:
         self._set(theta)
         m, log = self.model, self.log
         n = m.n_vertices
-        body, law, supports = m.heml_body(), self._law(), m.supports.kernel_args()
+        body, law, supports = self._body, self._law(), m.supports.kernel_args()
         n_supports = supports.planes.shape[0] + supports.grids.shape[0]
         h = log.dt / log.substeps
         x, v = log.x0.copy(), log.v0.copy()
@@ -310,10 +343,62 @@ class Replay:
 
     def _step_hessian(self, y, c, k_contact, held, args, project):
         """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n): the solver's own."""
-        return incremental_hessian(self.model.fields[self.world], self.model.mass, y, c, k_contact, held, args,
+        return incremental_hessian(self.model.fields[self.world], self._body.mass, y, c, k_contact, held, args,
                                    project, self._add_diagonal, self._add_blocks)
 
     # ------------------------------------------------------------------ reverse
+    def _substep_gradient(self, e) -> np.ndarray:
+        """The incremental potential's gradient (N) at the sub-step's minimiser ``e["y"]``,
+        for the constants last set (its start, targets and sub-step as recorded)."""
+        n = self.model.n_vertices
+        body, law, supports = self._body, self._law(), self.model.supports.kernel_args()
+        sub = kq.Substep(e["h"], e["fraction"], 1, e["k"] == 1, 0, self.contact_stiffness)
+        work = kq.substep_work(n, 1)
+        history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
+        x, v = e["x_n"].copy(), e["v_n"].copy()
+        c, _ = kq.begin_substep(x, v, self.log.targets[e["t"]], self.log.kinematic[e["t"]], np.zeros((n, 3)), body,
+                                law, sub, history, np.zeros((n, 3)), work)
+        g, f = np.zeros((n, 3)), np.zeros((n, 3))
+        kq.potential_and_gradient(e["y"], True, g, f, np.full(n, math.inf), np.zeros((n, 3)), body, law, supports, c,
+                                  work.x_hat, work.load, work.held.copy(), self.contact_stiffness * c)
+        return g
+
+    def _end_reaction(self, e) -> np.ndarray:
+        """``m (v - v_n)/h - f(z) - m g + alpha m v`` (N): the end reaction on every vertex
+        (the held rows are the reaction), for the constants last set."""
+        mass, alpha = self._body.mass[:, None], float(self._body.alpha)
+        v = (e["z"] - e["x_n"]) / e["h"]  # (held rows: their prescribed path)
+        return mass * (v - e["v_n"]) / e["h"] - self._forces(e["z"]) - mass * self.model.gravity + alpha * mass * v
+
+    def _start_reaction(self, e) -> np.ndarray:
+        """``-(f(x) + m g - alpha m v)`` (N) at the control step's start ``e["start"]``."""
+        mass, alpha = self._body.mass[:, None], float(self._body.alpha)
+        x, v = e["start"]
+        return -(self._forces(x) + mass * self.model.gravity - alpha * mass * v)
+
+    def _dynamic_derivatives(self, theta, j, tape, dz, dy, dstart) -> None:
+        """Column ``j`` of ``dz``, ``dy``, ``dstart`` for a constant of the dynamics: minus the
+        derivatives of the end reaction, the sub-step gradient and the start reaction."""
+        step = 1e-6 * abs(theta[j]) if theta[j] != 0 else 1e-6
+        try:
+            for sign in (1.0, -1.0):
+                shifted = np.array(theta, dtype=np.float64)
+                shifted[j] += sign * step
+                self._set(shifted)
+                scale = -sign / (2.0 * step)
+                for idx, e in enumerate(tape):
+                    if sign > 0:
+                        dz[idx][j] = 0.0
+                        dy[idx][j] = 0.0
+                        if dstart[idx] is not None:
+                            dstart[idx][j] = 0.0
+                    dz[idx][j] += scale * self._end_reaction(e)
+                    dy[idx][j] += scale * self._substep_gradient(e)
+                    if dstart[idx] is not None:
+                        dstart[idx][j] += scale * self._start_reaction(e)
+        finally:
+            self._set(theta)
+
     def gradient(self, theta, result: ReplayResult, x_bar: np.ndarray, force_bar: np.ndarray | None = None
                  ) -> np.ndarray:
         """``dL/dtheta`` for a loss ``L`` whose derivative is ``x_bar`` (T + 1, n, 3) in the
@@ -327,8 +412,6 @@ class Replay:
         if x_bar.shape != (T + 1, n, 3):
             raise ReplayError(f"x_bar: must have shape {(T + 1, n, 3)}, got {x_bar.shape}")
         force_bar = np.zeros((T, 3)) if force_bar is None else np.asarray(force_bar, dtype=np.float64)
-        mass = m.mass[:, None]
-        alpha = float(m.damping.alpha)
         tape = result.tape
         configurations = [e["z"] for e in tape] + [e["y"] for e in tape] + \
                          [e["start"][0] for e in tape if e["start"] is not None]
@@ -337,7 +420,13 @@ class Replay:
         dy = dfs[len(tape):2 * len(tape)]
         dstart = iter(dfs[2 * len(tape):])
         dstart = [next(dstart) if e["start"] is not None else None for e in tape]
+        # constants of the dynamics: the same three derivatives (minus the sub-step
+        # gradient's, minus the end and start reactions') by central differences
+        for j in self._dynamic_constants(theta):
+            self._dynamic_derivatives(theta, j, tape, dz, dy, dstart)
         self._set(theta)
+        mass = self._body.mass[:, None]
+        alpha = float(self._body.alpha)
         theta_bar = np.zeros(len(theta))
         zb = x_bar[T].copy()  # adjoint of the positions after the current sub-step
         vb = np.zeros((n, 3))  # and of the velocities
