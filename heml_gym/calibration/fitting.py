@@ -212,10 +212,45 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     for term in observed.extra:
         rms[term.name] = float(term.rms(result.x))
     message = best.message if isinstance(best.message, str) else best.message.decode()
-    return FitResult(list(names), theta, std, float(loss), bool(best.success), message, history,
+    converged = bool(best.success)
+    if not converged:
+        converged, message = _minimum_by_probes(replay, observed, embedding, transform, best.x, float(loss), names,
+                                                message)
+    return FitResult(list(names), theta, std, float(loss), converged, message, history,
                      [{"start": s.tolist(), "theta": transform.theta(r.x).tolist(), "loss": float(r.fun),
                        "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
                      rms, time.perf_counter() - t0, failures[0])
+
+
+#: A fit whose search stopped without its convergence test is checked by changing each
+#: constant by this much (search units: 1 % of a positive constant, 1 % of the bounds'
+#: span of another) both ways.
+PROBE = 0.1
+
+
+def _minimum_by_probes(replay, observed, embedding, transform, u, loss, names, message) -> tuple[bool, str]:
+    """``(converged, message)`` for a search that stopped short of its own test (L-BFGS-B's
+    line search ends at a kink of the loss: a depth pixel crossing the model's silhouette,
+    a vertex reaching the support): a minimum if no change of any one constant by
+    :data:`PROBE` (1 %) either way, within the bounds, lowers the loss."""
+    lower = []
+    for j, name in enumerate(names):
+        for sign in (1.0, -1.0):
+            probe = np.array(u, dtype=np.float64)
+            probe[j] = np.clip(probe[j] + sign * PROBE, *transform.bounds[j])
+            if probe[j] == u[j]:
+                continue
+            try:
+                value = loss_terms(replay.run(transform.theta(probe)), observed, embedding)[0]
+            except ReplayError:
+                continue
+            if value < loss:
+                lower.append(f"{name} {'+' if sign > 0 else '-'}1 % lowers the loss to {value:.6g} (from {loss:.6g})")
+    replay.run(transform.theta(u))  # (the model's material back to the fit's)
+    if lower:
+        return False, f"{message}; not a minimum: {'; '.join(lower)}"
+    return True, (f"a minimum at 1 % resolution: the search stopped at a kink of the loss ({message}), and no change "
+                  "of any constant by 1 % either way lowers it")
 
 
 class _Units:
