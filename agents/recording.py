@@ -69,7 +69,8 @@ Entities
                               labels of :data:`heml_gym.envs.camera.SEGMENT_IDS`).
 ``status``                    :class:`rerun.TextDocument` (markdown), every frame: episode,
                               step, success, exposure against its threshold, max gauge
-                              strain against the damage strain, hold timer against
+                              strain against the damage strain, the damage so far,
+                              hold timer against
                               ``settings.hold_time``, gripper, grasp force, action, reward.
 ``legend``                    static :class:`rerun.TextDocument`: what the colours mean;
                               ``legend/strain_scale``: the strain colour bar (an image,
@@ -79,7 +80,9 @@ Entities
                               over each other on ``episode_step``), see ``SERIES``:
                               ``exposure/exposure``, ``strain/max_strain``,
                               ``success/hold_time`` (s), ``success/success`` (0/1),
-                              ``grasp_force/grasp_force`` (N) on every frame;
+                              ``grasp_force/grasp_force`` (N), ``harm/damage`` (the
+                              episode's ``info["damage"]`` so far, strain x s) on every
+                              frame; ``harm/cost`` (the step's ``info["cost"]``),
                               ``action/<move_x|move_y|move_z|grip>`` (the action the
                               policy returned for the previous frame's observation, as
                               passed to ``env.step``), ``reward/total`` and
@@ -87,7 +90,9 @@ Entities
                               ``info``) on step frames only.
 ``plots/<group>/<threshold>`` constant lines, every frame: ``exposure/success_threshold``
                               (``settings.success_exposure``), ``strain/damage_threshold``
-                              (``settings.damage_strain``), ``success/hold_required``
+                              (``settings.damage_strain``), ``strain/safe_threshold``
+                              (``settings.safe_strain``: harm counts above it),
+                              ``success/hold_required``
                               (``settings.hold_time``).
 ``plots/episode_start``       a marker (value 0) at each episode's reset frame, shown in
                               every plot; ``plots/success/outcome`` one marker at each
@@ -99,8 +104,8 @@ Entities
 The blueprint (``BLUEPRINT_VIEWS`` names its views): the 3D scene from a fixed eye that
 frames the whole workspace, the task camera's colour, depth and segmentation images side by
 side below it; on the right the status text and the strain colour bar, then the plots of
-exposure, success (hold timer), strain and, in tabs, grasp force, actions, rewards and the
-episode log. Plots have no legends (their titles name the series and colours), the same
+exposure, success (hold timer), strain and, in tabs, grasp force, tissue harm, actions,
+rewards and the episode log. Plots have no legends (their titles name the series and colours), the same
 height, and linked time axes; the time panel is collapsed and plays ``sim_time`` at real
 time.
 """
@@ -139,6 +144,8 @@ SERIES = {
     "hold_time": ("plots/success/hold_time", True),
     "is_success": ("plots/success/success", True),
     "grasp_force": ("plots/grasp_force/grasp_force", True),
+    "damage": ("plots/harm/damage", True),
+    "cost": ("plots/harm/cost", False),
     **{f"action_{a}": (f"plots/action/{a}", False) for a in ACTION_NAMES},
     "reward": ("plots/reward/total", False),
     **{f"reward_{t}": (f"plots/reward/terms/{t}", False) for t in REWARD_TERMS},
@@ -148,6 +155,7 @@ SERIES = {
 THRESHOLDS = {
     "plots/exposure/success_threshold": "success_exposure",
     "plots/strain/damage_threshold": "damage_strain",
+    "plots/strain/safe_threshold": "safe_strain",
     "plots/success/hold_required": "hold_time",
 }
 #: size (height, width, pixels) of the task camera's images in the recording
@@ -165,7 +173,8 @@ SERIES_COLOURS = {
     "plots/action/move_x": (230, 80, 80), "plots/action/move_y": (80, 200, 80), "plots/action/move_z": (90, 140, 255),
     "plots/action/grip": (200, 200, 200),
     "plots/exposure/success_threshold": JAWS_CLOSED, "plots/strain/damage_threshold": (150, 150, 150),
-    "plots/success/hold_required": (150, 150, 150),
+    "plots/success/hold_required": (150, 150, 150), "plots/strain/safe_threshold": (240, 200, 80),
+    "plots/harm/damage": (255, 140, 40), "plots/harm/cost": STRAINED,
 }
 #: the blueprint's views: name -> origin
 BLUEPRINT_VIEWS = {
@@ -178,7 +187,8 @@ BLUEPRINT_VIEWS = {
     "colour legend": "legend",
     "exposure (yellow), success threshold (green)": "plots/exposure",
     "hold timer s (blue) vs needed (grey), success (green)": "plots/success",
-    "max gauge strain (red), damage strain (grey)": "plots/strain",
+    "max gauge strain (red), damage strain (grey), safe strain (amber)": "plots/strain",
+    "tissue harm: damage so far (orange), this step's cost (red), strain x s": "plots/harm",
     "grasp force (N)": "plots/grasp_force",
     "action: move x red, y green, z blue; grip grey": "plots/action",
     "reward: total (white) and terms": "plots/reward",
@@ -272,7 +282,7 @@ def _blueprint(rrb, geometry):
                 plot("plots/exposure"),
                 plot("plots/success"),
                 plot("plots/strain"),
-                rrb.Tabs(plot("plots/grasp_force"), plot("plots/action"), plot("plots/reward"),
+                rrb.Tabs(plot("plots/grasp_force"), plot("plots/harm"), plot("plots/action"), plot("plots/reward"),
                          rrb.TextLogView(origin="log", name=names["log"]),
                          rrb.TextDocumentView(origin="legend", name=names["legend"])),
                 row_shares=[4, 3, 3, 3, 3],
@@ -446,8 +456,9 @@ class _SceneLogger:
             rec.log(entity, rr.Scalars(float(getattr(st, field))))
         values = {"exposure": exposure, "max_strain": float(info["max_strain"]),
                   "hold_time": float(info["hold_time"]), "is_success": float(bool(info["is_success"])),
-                  "grasp_force": float(info["grasp_force"])}
+                  "grasp_force": float(info["grasp_force"]), "damage": float(info.get("damage", 0.0))}
         if action is not None:
+            values["cost"] = float(info.get("cost", 0.0))
             a = np.asarray(action, dtype=np.float64).reshape(-1)
             values.update({f"action_{n}": float(v) for n, v in zip(ACTION_NAMES, a)})
             values["reward"] = float(reward)
@@ -469,6 +480,8 @@ class _SceneLogger:
              f"**success: {ok(bool(info['is_success']))}**"),
             f"- exposure **{exposure:.0%}** (needs >= {st.success_exposure:.0%}: {ok(exposure >= st.success_exposure)})",
             f"- max gauge strain **{strain:.3f}** (needs < {st.damage_strain:g}: {ok(strain < st.damage_strain)})",
+            (f"- tissue harm: damage **{float(info.get('damage', 0.0)):.3f}** strain x s so far (strain above the "
+             f"safe {st.safe_strain:g}, integrated over time)"),
             f"- held **{hold:.1f} s** of {st.hold_time:g} s",
             (f"- jaws {'closed' if snap.grasping else 'open'}, holding {len(snap.held)} vertices, "
              f"force {float(info['grasp_force']):.2f} N"),

@@ -170,7 +170,7 @@ def test_blueprint_views(recording):
     for origin in ("camera/rgb", "camera/depth", "camera/segmentation"):
         assert by_origin[origin]["class"] == "2D"
     plots = [v for v in views.values() if v["class"] == "TimeSeries"]
-    assert len(plots) == 6
+    assert len(plots) == 7
     for v in plots:  # no legend over the data; time axes linked; the episode markers in every plot
         assert v["legend"] is False and v["link"] == 2  # LinkAxis.LinkToGlobal
         assert "/plots/episode_start" in v["query"]
@@ -276,13 +276,13 @@ def test_series_match_the_replay(recording, replay, data):
 
     step_values = {
         **{f"action_{a}": actions[:, i] for i, a in enumerate(ACTION_NAMES)},
-        "reward": [r for r, _ in rewards],
+        "reward": [r for r, _ in rewards], "cost": [i["cost"] for _, i in rewards],
         **{f"reward_{t}": [i[f"reward_{t}"] for _, i in rewards] for t in REWARD_TERMS},
     }
     frame_values = {"exposure": [f["exposure"] for f in frames], "max_strain": [f["max_strain"] for f in frames],
                     "hold_time": [f["hold_time"] for f in frames],
                     "is_success": [float(f["is_success"]) for f in frames],
-                    "grasp_force": [f["grasp_force"] for f in frames]}
+                    "grasp_force": [f["grasp_force"] for f in frames], "damage": [f["damage"] for f in frames]}
     assert set(step_values) | set(frame_values) == set(SERIES)
     for name, (base, every_frame) in SERIES.items():
         truth = np.asarray(frame_values[name] if every_frame else step_values[name], dtype=np.float64)
