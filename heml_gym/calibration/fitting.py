@@ -199,7 +199,13 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
                                    "ftol": ftol})
         runs.append((res, history, np.asarray(start, dtype=np.float64)))
     best, history, _ = min(runs, key=lambda r: r[0].fun)
-    theta = transform.theta(best.x)
+    u = np.asarray(best.x, dtype=np.float64)
+    message = best.message if isinstance(best.message, str) else best.message.decode()
+    converged = bool(best.success)
+    if not converged:
+        u, converged, message = _compass_search(replay, observed, embedding, transform, u, float(best.fun), names,
+                                                message, progress, history)
+    theta = transform.theta(u)
     result = replay.run(theta)
     loss, residuals, _, _ = loss_terms(result, observed, embedding)
     std = _standard_errors(replay, observed, embedding, theta, residuals)
@@ -211,46 +217,55 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
         rms["force_N"] = float(np.sqrt(((result.force - observed.force[1:]) ** 2).sum(axis=-1).mean()))
     for term in observed.extra:
         rms[term.name] = float(term.rms(result.x))
-    message = best.message if isinstance(best.message, str) else best.message.decode()
-    converged = bool(best.success)
-    if not converged:
-        converged, message = _minimum_by_probes(replay, observed, embedding, transform, best.x, float(loss), names,
-                                                message)
     return FitResult(list(names), theta, std, float(loss), converged, message, history,
                      [{"start": s.tolist(), "theta": transform.theta(r.x).tolist(), "loss": float(r.fun),
                        "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
                      rms, time.perf_counter() - t0, failures[0])
 
 
-#: A fit whose search stopped without its convergence test is checked by changing each
+#: A fit whose search stopped without its convergence test goes on by changing each
 #: constant by this much (search units: 1 % of a positive constant, 1 % of the bounds'
-#: span of another) both ways.
+#: span of another) both ways, as long as that lowers the loss, at most
+#: :data:`COMPASS_MOVES` times.
 PROBE = 0.1
+COMPASS_MOVES = 20
 
 
-def _minimum_by_probes(replay, observed, embedding, transform, u, loss, names, message) -> tuple[bool, str]:
-    """``(converged, message)`` for a search that stopped short of its own test (L-BFGS-B's
-    line search ends at a kink of the loss: a depth pixel crossing the model's silhouette,
-    a vertex reaching the support): a minimum if no change of any one constant by
-    :data:`PROBE` (1 %) either way, within the bounds, lowers the loss."""
-    lower = []
-    for j, name in enumerate(names):
-        for sign in (1.0, -1.0):
-            probe = np.array(u, dtype=np.float64)
-            probe[j] = np.clip(probe[j] + sign * PROBE, *transform.bounds[j])
-            if probe[j] == u[j]:
-                continue
-            try:
-                value = loss_terms(replay.run(transform.theta(probe)), observed, embedding)[0]
-            except ReplayError:
-                continue
-            if value < loss:
-                lower.append(f"{name} {'+' if sign > 0 else '-'}1 % lowers the loss to {value:.6g} (from {loss:.6g})")
-    replay.run(transform.theta(u))  # (the model's material back to the fit's)
-    if lower:
-        return False, f"{message}; not a minimum: {'; '.join(lower)}"
-    return True, (f"a minimum at 1 % resolution: the search stopped at a kink of the loss ({message}), and no change "
-                  "of any constant by 1 % either way lowers it")
+def _compass_search(replay, observed, embedding, transform, u, loss, names, message, progress, history):
+    """``(u, converged, message)`` for a search that stopped short of its own test
+    (L-BFGS-B's line search ends at a kink of the loss: a depth pixel crossing the model's
+    silhouette, a vertex reaching the support): a compass search at :data:`PROBE` (1 %)
+    resolution from there. Each move tries every constant up and down by 1 % (within the
+    bounds) and goes to the lowest loss; where none is lower, the fit is a minimum at that
+    resolution (converged); after :data:`COMPASS_MOVES` moves it is not. Each move's loss
+    is appended to ``history``."""
+    u = np.array(u, dtype=np.float64)
+    moves = 0
+    while True:
+        best_u, best_loss, best_name = None, loss, ""
+        for j, name in enumerate(names):
+            for sign in (1.0, -1.0):
+                probe = u.copy()
+                probe[j] = np.clip(probe[j] + sign * PROBE, *transform.bounds[j])
+                if probe[j] == u[j]:
+                    continue
+                try:
+                    value = loss_terms(replay.run(transform.theta(probe)), observed, embedding)[0]
+                except ReplayError:
+                    continue
+                if value < best_loss:
+                    best_u, best_loss, best_name = probe, value, f"{name} {'+' if sign > 0 else '-'}1 %"
+        if best_u is None:
+            how = f" after {moves} compass moves" if moves else ""
+            return u, True, (f"a minimum at 1 % resolution{how}: the search stopped at a kink of the loss ({message}), "
+                             "and no change of any constant by 1 % either way lowers it")
+        if moves == COMPASS_MOVES:
+            return u, False, (f"{message}; not a minimum after {moves} compass moves of 1 %: {best_name} still lowers "
+                              f"the loss to {best_loss:.6g} (from {loss:.6g})")
+        u, loss, moves = best_u, best_loss, moves + 1
+        history.append(loss)  # (a compass move counts as an iteration of the fit)
+        if progress is not None:
+            progress(len(history), loss)
 
 
 class _Units:
