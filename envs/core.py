@@ -51,6 +51,15 @@ def _positive(obj, name, value, allow_zero=False):
                         f"got {value!r}")
 
 
+#: Weighted jaws (``gripper.jaw_ends: weighted``) hold a vertex with share ``w`` of its row
+#: inside them by a spring of ``HOLD_SPRING_SCALE w / (1 - w)`` times the vertex's diagonal
+#: rest stiffness: in series with a tissue of that stiffness, a spring of ``w / (1 - w)``
+#: times it holds with ``w`` of it, but the diagonal overstates the stiffness a hold
+#: meets (the neighbours give way too); a quarter of it brought the flap's hold force on
+#: the default mesh closest to the finest mesh's over jaws of 24-56 mm (one seed, four
+#: scales tried; docs/benchmarks/jaw_length_weighted.md measures five seeds).
+HOLD_SPRING_SCALE = 0.25
+
 @dataclass(frozen=True)
 class RewardWeights:
     """Weights of the reward terms (each term is reported in ``info`` under its name);
@@ -144,6 +153,9 @@ class BatchedRetraction:
         self.solver = make_solver(self.model, ph.integrator, scheme=ph.scheme, safety=ph.safety,
                                   newton_tol=ph.newton_tol, max_iterations=ph.max_newton,
                                   hessian_scale=ph.hessian_scale if ph.integrator == "quasi_newton" else 1.0)
+        if s.spec.gripper.jaw_ends == "weighted" and not self.solver.takes_hold_springs:
+            raise SpecError(f"scene.gripper.jaw_ends: weighted jaws hold their end vertices by springs, which the "
+                            f"{ph.integrator} integrator does not step (use quasi_newton or implicit)")
         if ph.integrator == "explicit":
             # sub-steps fixed by the stiffest tissue the scene can draw: the same in every
             # world and batch, so a world's trajectory does not depend on its neighbours
@@ -175,6 +187,8 @@ class BatchedRetraction:
         self.gripper = np.zeros((n, 3))
         self.grasping = np.zeros(n, dtype=bool)
         self.held = np.zeros((n, s.mesh.n_vertices), dtype=bool)
+        #: each held vertex's share held by the jaws (1: whole; weighted jaws' ends: less)
+        self.held_share = np.zeros((n, s.mesh.n_vertices))
         self.adhered = np.zeros((n, s.mesh.n_vertices), dtype=bool)
         self.adhesion_width = np.zeros(n)
         self.offsets = np.zeros((n, s.mesh.n_vertices, 3))
@@ -217,6 +231,7 @@ class BatchedRetraction:
             self.gripper[i] = rng.uniform(s.gripper_low, s.gripper_high)
             self.grasping[i] = False
             self.held[i] = False
+            self.held_share[i] = 0.0
             self.steps[i] = 0
             self.grasped_once[i] = False
             self.held_steps[i] = 0
@@ -294,12 +309,13 @@ class BatchedRetraction:
             close = a[i, 3] > 0.0
             release = a[i, 3] < st.release_command  # between it and 0 the jaws stay as they are
             if close and not self.grasping[i]:
-                picked = self._jaw_vertices(i)
+                picked, share = self._jaw_vertices(i)
                 if picked.size:
                     self.grasping[i] = True
                     self.held[i, picked] = True
+                    self.held_share[i, picked] = share
                     self.offsets[i, picked] = x[i, picked] - self.gripper[i]
-                    self.control.attach(i, picked, x[i])
+                    self.control.attach(i, picked, x[i], stiffness=self._hold_springs(i, picked, share))
                     if not self.grasped_once[i]:
                         self.grasped_once[i] = True
                         grasp_bonus[i] = w.grasp
@@ -307,6 +323,7 @@ class BatchedRetraction:
                 self.grasping[i] = False
                 self.control.detach(i, np.flatnonzero(self.held[i]))  # adhered tissue stays stuck
                 self.held[i] = False
+                self.held_share[i] = 0.0
         # move the gripper, drive the held tissue
         self.gripper = np.clip(self.gripper + a[:, :3] * st.max_speed * st.control_dt,
                                self.scene.workspace_low, self.scene.workspace_high)
@@ -405,29 +422,75 @@ class BatchedRetraction:
                 "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),
                 "solver_fallback": no.copy(), **self._episode_info(worlds)}
 
-    def _jaw_vertices(self, i: int) -> np.ndarray:
-        """The tissue vertices that closing the gripper of world ``i`` holds (maybe none)."""
-        picked = self._reached_vertices(i)
-        return picked[~self.adhered[i, picked]]
+    def _jaw_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """The tissue vertices that closing the gripper of world ``i`` holds (maybe none),
+        and the share of each that the jaws hold (1: whole; below 1: weighted jaws' ends)."""
+        picked, share = self._reached_vertices(i)
+        keep = ~self.adhered[i, picked]
+        return picked[keep], share[keep]
 
-    def _reached_vertices(self, i: int) -> np.ndarray:
+    def _hold_springs(self, i: int, vertices: np.ndarray, share: np.ndarray) -> np.ndarray:
+        """The hold stiffness (N/m) of ``vertices`` of world ``i`` held with ``share``: 0 (exact)
+        for a whole share, else ``share / (1 - share)`` times :data:`HOLD_SPRING_SCALE` times
+        the tissue's own stiffness at the vertex (the mean diagonal of the world's rest
+        stiffness matrix there, N/m)."""
+        k = np.zeros(len(vertices))
+        part = share < 1.0 - 1e-9
+        if part.any():
+            X = self.scene.mesh.vertices
+            diagonal = self.model.fields[i].hessian(X, project=False).diagonal().reshape(-1, 3).mean(axis=1)
+            w = share[part]
+            k[part] = HOLD_SPRING_SCALE * diagonal[vertices[part]] * w / (1.0 - w)
+        return k
+
+    def _reached_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         st, patch = self.settings, self.scene.grasp_patch
         x = self.state.x[i]
         if patch is not None:  # within reach of the patch's surface (or of its vertices)
             nearest = min(np.linalg.norm(x[patch] - self.gripper[i], axis=1).min(),
                           nearest_triangle_distance(self.gripper[i], x, self._patch_faces))
             if nearest > st.grasp_reach:
-                return patch[:0]
-            jaw_length = self.scene.spec.gripper.jaw_length
-            if jaw_length is None:
-                return patch
+                return patch[:0], np.zeros(0)
+            gripper = self.scene.spec.gripper
+            if gripper.jaw_length is None:
+                return patch, np.ones(len(patch))
+            if gripper.jaw_ends == "weighted":
+                share = self._jaw_shares(i, gripper.jaw_length)
+                return patch[share > 0.0], share[share > 0.0]
             # the part of the patch between the jaws: within jaw_length / 2 of them along
             # the patch's long axis (at least the nearest such vertex)
             along = np.abs((x[patch] - self.gripper[i]) @ self._patch_axis)
-            return patch[(along <= jaw_length / 2) | (along == along.min())]
+            picked = patch[(along <= gripper.jaw_length / 2) | (along == along.min())]
+            return picked, np.ones(len(picked))
         d = np.linalg.norm(x[self._graspable] - self.gripper[i], axis=1)
         held = (d <= st.jaw_radius) | (d == d.min())
-        return self._graspable[held & (d <= st.grasp_reach)]
+        picked = self._graspable[held & (d <= st.grasp_reach)]
+        return picked, np.ones(len(picked))
+
+    def _jaw_shares(self, i: int, jaw_length: float) -> np.ndarray:
+        """Each grasp-patch vertex's share (0..1) inside jaws ``jaw_length`` (m) long centred
+        on world ``i``'s gripper: the overlap of its row's span along the patch's axis (from
+        midway to the previous row to midway to the next; at the patch's ends, as far out as
+        in) with the jaws, over the span. Rows: the vertices' rest places along the axis,
+        to 1e-6 m."""
+        patch = self.scene.grasp_patch
+        rest = self.scene.mesh.vertices[patch] @ self._patch_axis
+        rows, row_of = np.unique(np.round(rest, 6), return_inverse=True)
+        if len(rows) == 1:
+            return np.ones(len(patch))
+        mids = 0.5 * (rows[1:] + rows[:-1])
+        low = np.concatenate([[2 * rows[0] - mids[0]], mids])
+        high = np.concatenate([mids, [2 * rows[-1] - mids[-1]]])
+        # the jaws' centre along the axis, in the rest frame: the gripper's offset from the
+        # patch's current centre, added to the patch's rest centre
+        x = self.state.x[i, patch]
+        centre = rest.mean() + (self.gripper[i] - x.mean(axis=0)) @ self._patch_axis
+        overlap = np.clip(np.minimum(high, centre + jaw_length / 2) - np.maximum(low, centre - jaw_length / 2), 0.0,
+                          None)
+        share = (overlap / (high - low))[row_of]
+        if not (share > 0).any():  # (jaws between two rows' spans cannot be: the spans tile the axis)
+            share[np.argmin(np.abs(rest - centre))] = 1.0
+        return share
 
     # ----------------------------------------------------------- measurements
     def measure_exposure(self, worlds) -> np.ndarray:

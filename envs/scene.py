@@ -279,15 +279,24 @@ class GripperSpec:
     ``workspace_low``..``workspace_high`` (m). ``jaw_length`` (m): closed jaws hold only the
     part of the scene's grasp region within half of it of them, measured along the
     region's long axis (at least its nearest vertex), so where along the region they close
-    matters; null: all of the region within reach."""
+    matters; null: all of the region within reach. ``jaw_ends``: ``"vertex"`` holds every
+    vertex within the jaws exactly (the held length steps with the mesh's rows);
+    ``"weighted"`` holds each vertex by its share of the region inside the jaws (its row's
+    span along the axis, from midway to the previous row to midway to the next): a whole
+    share exactly, a part ``w`` by a spring of ``w / (1 - w)`` times the tissue's own
+    stiffness at the vertex (so that, in series with the tissue, it holds with ``w`` of
+    it), a vertex with no share not at all. Weighted jaws need the quasi-Newton solver."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)
     workspace_low: Vec3 = (-1.0, -1.0, -1.0)
     workspace_high: Vec3 = (1.0, 1.0, 1.0)
     jaw_length: float | None = None
+    jaw_ends: str = "vertex"
 
     def __post_init__(self):
+        if self.jaw_ends not in ("vertex", "weighted"):
+            raise invalid(self, "jaw_ends", f"must be 'vertex' or 'weighted', got {self.jaw_ends!r}")
         j = self.jaw_length
         if j is not None and (isinstance(j, bool) or not isinstance(j, (int, float)) or not math.isfinite(j)
                               or j <= 0):

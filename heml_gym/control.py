@@ -13,10 +13,17 @@ class Control:
     Attributes
     ----------
     kinematic : (N, n) bool
-        Vertices held by a gripper: they follow :attr:`targets` exactly.
+        Vertices held by a gripper: they follow :attr:`targets` exactly, or, where
+        :attr:`hold_stiffness` is positive, through a spring.
     targets : (N, n, 3) float, m
-        Where the kinematic vertices are at the end of the next step; they move there
-        along a straight line at constant speed during the step.
+        Where the kinematic vertices (or their springs' anchors) are at the end of the next
+        step; they move there along a straight line at constant speed during the step.
+    hold_stiffness : (N, n) float, N/m
+        0: a kinematic vertex is held exactly; positive: it is held by a spring of that
+        stiffness to its anchor (a vertex the jaws hold only in part). Stepped by the
+        quasi-Newton, implicit (Newton) and static solvers; the explicit one refuses it.
+    anchors : (N, n, 3) float, m
+        Where each spring's anchor is (the solver moves it towards :attr:`targets`).
     external_forces : (N, n, 3) float, N
         Applied to every vertex every step (a tip load, a probe).
     """
@@ -25,6 +32,8 @@ class Control:
         self.kinematic = np.zeros((n_worlds, n_vertices), dtype=bool)
         self.targets = np.zeros((n_worlds, n_vertices, 3))
         self.external_forces = np.zeros((n_worlds, n_vertices, 3))
+        self.hold_stiffness = np.zeros((n_worlds, n_vertices))
+        self.anchors = np.zeros((n_worlds, n_vertices, 3))
 
     @property
     def n_worlds(self) -> int:
@@ -45,14 +54,22 @@ class Control:
             raise ValueError(f"vertex indices must lie in [0, {n})")
         return idx
 
-    def attach(self, world: int, vertices, positions) -> None:
+    def attach(self, world: int, vertices, positions, stiffness=None) -> None:
         """Hold ``vertices`` of ``world`` where they are (``positions``: their current
-        positions, m, ``(k, 3)`` or the world's whole ``(n, 3)`` array)."""
+        positions, m, ``(k, 3)`` or the world's whole ``(n, 3)`` array): exactly, or, with
+        ``stiffness`` (N/m, one number or one per vertex; 0: exactly), each by a spring to
+        an anchor placed there."""
         idx = self.indices(vertices)
         positions = np.asarray(positions, dtype=np.float64)
         here = positions[idx] if positions.shape == (self.kinematic.shape[1], 3) else positions.reshape(len(idx), 3)
+        k = np.zeros(len(idx)) if stiffness is None else np.broadcast_to(np.asarray(stiffness, dtype=np.float64),
+                                                                        (len(idx),))
+        if not np.all(np.isfinite(k) & (k >= 0.0)):
+            raise ValueError("attach: stiffness must be finite and >= 0 N/m (0: held exactly)")
         self.kinematic[world, idx] = True
         self.targets[world, idx] = here
+        self.hold_stiffness[world, idx] = k
+        self.anchors[world, idx] = here
 
     def drive(self, world: int, vertices, targets) -> None:
         """Kinematic ``vertices`` of ``world`` reach ``targets`` (m, ``(k, 3)``) at the end of
@@ -70,13 +87,25 @@ class Control:
         their velocity."""
         if vertices is None:
             self.kinematic[world] = False
+            self.hold_stiffness[world] = 0.0
         else:
-            self.kinematic[world, self.indices(vertices)] = False
+            idx = self.indices(vertices)
+            self.kinematic[world, idx] = False
+            self.hold_stiffness[world, idx] = 0.0
 
     def clear(self, world: int) -> None:
         """Nothing held and no external force in ``world``."""
         self.kinematic[world] = False
+        self.hold_stiffness[world] = 0.0
         self.external_forces[world] = 0.0
+
+    def exactly_held(self) -> np.ndarray:
+        """``(N, n)`` bool: the kinematic vertices held exactly (no spring)."""
+        return self.kinematic & (self.hold_stiffness == 0.0)
+
+    def spring_held(self) -> np.ndarray:
+        """``(N, n)`` bool: the kinematic vertices held by a spring."""
+        return self.kinematic & (self.hold_stiffness > 0.0)
 
     def __repr__(self) -> str:
         return f"Control({self.n_worlds} worlds, {int(self.kinematic.sum())} held vertices)"

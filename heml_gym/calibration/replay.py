@@ -214,6 +214,11 @@ class Replay:
                 out.append(j)
         return out
 
+    def _holds(self, t: int):
+        """Control step ``t``'s holds: every held vertex exactly (a replay holds no springs)."""
+        n = self.model.n_vertices
+        return kq.Holds(self.log.kinematic[t], np.zeros(n), np.zeros((n, 3)))
+
     def _law(self):
         return world_law(self.model.heml_laws(), self.world)
 
@@ -266,11 +271,11 @@ class Replay:
                 sub = kq.Substep(h, fraction, 1, k == 1, 0, self.contact_stiffness)
                 work = kq.substep_work(n, 1)
                 x_n = x.copy()
-                c, _ = kq.begin_substep(x, v, log.targets[t], log.kinematic[t], ext, body, law, sub, history,
-                                        r_prev, work)
+                holds = self._holds(t)
+                c, _ = kq.begin_substep(x, v, log.targets[t], holds, ext, body, law, sub, history, r_prev, work)
                 held = work.held.copy()
                 k_contact = self.contact_stiffness * c
-                args = (body, law, supports, c, work.x_hat, work.load, held, k_contact)
+                args = (body, law, supports, c, work.x_hat, work.load, held, k_contact, holds)
                 g, f = np.zeros((n, 3)), work.f  # (end_substep reads the forces at x from work.f)
                 dist, normal = np.full(n, math.inf), np.zeros((n, 3))
 
@@ -312,7 +317,7 @@ class Replay:
                 inside = (dist < 0.0) & ~held if n_supports else np.zeros(n, dtype=bool)
                 x_before = x.copy()
                 kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub,
-                               history)
+                               history, holds)
                 projected = inside & np.any(x != x_before, axis=1)
                 v_pre = (x - work.x_n) / h
                 stopped = inside & (np.einsum("ij,ij->i", v_pre, normal) < 0.0)  # (end_substep's test)
@@ -356,11 +361,12 @@ class Replay:
         work = kq.substep_work(n, 1)
         history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
         x, v = e["x_n"].copy(), e["v_n"].copy()
-        c, _ = kq.begin_substep(x, v, self.log.targets[e["t"]], self.log.kinematic[e["t"]], np.zeros((n, 3)), body,
+        c, _ = kq.begin_substep(x, v, self.log.targets[e["t"]], self._holds(e["t"]), np.zeros((n, 3)), body,
                                 law, sub, history, np.zeros((n, 3)), work)
         g, f = np.zeros((n, 3)), np.zeros((n, 3))
         kq.potential_and_gradient(e["y"], True, g, f, np.full(n, math.inf), np.zeros((n, 3)), body, law, supports, c,
-                                  work.x_hat, work.load, work.held.copy(), self.contact_stiffness * c)
+                                  work.x_hat, work.load, work.held.copy(), self.contact_stiffness * c,
+                                  self._holds(e["t"]))
         return g
 
     def _end_reaction(self, e) -> np.ndarray:

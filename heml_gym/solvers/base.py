@@ -111,6 +111,9 @@ class Solver:
     """Base of the solvers: ``step(state_in, state_out, control, dt)`` advances every
     (active) world of the model by ``dt`` seconds and returns :class:`StepStats`."""
 
+    #: whether the solver steps vertices held by springs (``Control.hold_stiffness``)
+    takes_hold_springs = False
+
     def __init__(self, model: Model, max_speed: float = 1e3):
         if not isinstance(model, Model):
             raise TypeError(f"model must be a heml_gym.Model, got {type(model).__name__}")
@@ -138,6 +141,10 @@ class Solver:
             raise TypeError(f"control must be a heml_gym.Control, got {type(control).__name__}")
         if control.targets.shape != shape:
             raise ValueError(f"control holds {control.targets.shape}, the model needs {shape}")
+        if not self.takes_hold_springs and control.spring_held().any():
+            raise ValueError(f"control.hold_stiffness: {type(self).__name__} holds vertices exactly only; vertices "
+                             "held by springs (a part of the jaws' grip) need the QuasiNewtonSolver, ImplicitSolver "
+                             "or StaticSolver")
         dt = float(dt)
         if not math.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt must be a positive number of seconds, got {dt}")

@@ -41,7 +41,8 @@ class _Diverged(Exception):
 
 
 class ImplicitSolver(Solver):
-    """Backward Euler with Newton for every world of ``model``.
+    """Backward Euler with Newton for every world of ``model`` (hold springs included:
+    ``1/2 k |x - anchor|^2`` in the potential, the anchor on the held path).
 
     Parameters
     ----------
@@ -77,6 +78,8 @@ class ImplicitSolver(Solver):
         can depend on the CPU's rounding: on the lobe with Demiray's law, one of 50 random
         steps had none when compiled for plain x86-64 (SSE2), and converged re-taken in 4.
     """
+
+    takes_hold_springs = True
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_newton: int = 20,
                  linear_solver: str = "pcg", contact_stiffness: float = 100.0, stall_limit: int | None = 5,
@@ -138,12 +141,14 @@ class ImplicitSolver(Solver):
             x0, v0 = state_out.x[s].copy(), state_out.v[s].copy()
             tol = self.newton_tol * self.force_scale(s, control)
             stats.tolerance[s] = tol
+            springs = control.spring_held()[s] & ~m.fixed
+            origin = np.where(springs[:, None], control.anchors[s], x0)  # (a spring's anchor moves, not its vertex)
             try:
                 with np.errstate(all="ignore"):
                     for k in range(1, substeps + 1):
-                        # the held vertices' path over this sub-step (x0: the step's start)
-                        path = (x0 + (control.targets[s] - x0) * ((k - 1) / substeps),
-                                x0 + (control.targets[s] - x0) * (k / substeps))
+                        # the held vertices' (and anchors') path over this sub-step (from the step's start)
+                        path = (origin + (control.targets[s] - origin) * ((k - 1) / substeps),
+                                origin + (control.targets[s] - origin) * (k / substeps))
                         converged = self._retaken_substep(s, state_out, control, h, path, tol, stats)
                         if not converged:
                             stats.converged[s] = False
@@ -156,6 +161,7 @@ class ImplicitSolver(Solver):
                 stats.elements[s] = exc.elements
                 continue
             stats.reaction[s] /= substeps
+            control.anchors[s, springs] = control.targets[s, springs]
             if not stats.converged[s]:
                 stats.messages[s] = (f"Newton stopped at a force residual of {stats.residual[s]:.3g} N, above its "
                                      f"tolerance of {tol:.3g} N, after {stats.newton_iterations[s]} iterations "
@@ -200,8 +206,8 @@ class ImplicitSolver(Solver):
 
     # ----------------------------------------------------------------- helpers
     def _constrain(self, s, x, v, control, targets, h, x_prev):
-        """Hold fixed vertices where they are and put kinematic ones on their path."""
-        fixed, kin = self.model.fixed, control.kinematic[s]
+        """Hold fixed vertices where they are and put exactly held ones on their path."""
+        fixed, kin = self.model.fixed, control.exactly_held()[s]
         x[fixed] = x_prev[fixed]
         v[fixed] = 0.0
         x[kin] = targets[kin]
@@ -218,8 +224,12 @@ class ImplicitSolver(Solver):
         load = (control.external_forces[s] + m.mass[:, None] * m.gravity).reshape(-1)
         k_n = field.hessian(x_n) * (beta / h) if beta else None  # frozen: keeps this a potential
         x0 = x_n.reshape(-1)
-        diag = c * m3
-        free_v = ~(m.fixed | control.kinematic[s])
+        free_v = ~(m.fixed | control.exactly_held()[s])
+        # hold springs (N/m) pull their vertices towards their anchors (``targets`` on their rows)
+        k_hold = np.where(free_v & control.kinematic[s], control.hold_stiffness[s], 0.0)
+        k3 = np.repeat(k_hold, 3)
+        anchor = targets.reshape(-1)
+        diag = c * m3 + k3
         supports = m.supports
         k_contact = self.contact_stiffness * c * m.mass  # N/m per vertex
 
@@ -231,6 +241,9 @@ class ImplicitSolver(Solver):
         def potential(x):
             d = x.reshape(-1) - x_hat
             phi = 0.5 * c * float(m3 @ (d * d)) + field.energy(x) - float(load @ x.reshape(-1))
+            if k_hold.any():
+                e = x.reshape(-1) - anchor
+                phi += 0.5 * float(k3 @ (e * e))
             if k_n is not None:
                 dn = x.reshape(-1) - x0
                 phi += 0.5 * float(dn @ (k_n @ dn))
@@ -241,6 +254,8 @@ class ImplicitSolver(Solver):
 
         def gradient(x):
             g = c * m3 * (x.reshape(-1) - x_hat) - field.forces(x).reshape(-1) - load
+            if k_hold.any():
+                g += k3 * (x.reshape(-1) - anchor)
             if k_n is not None:
                 g += k_n @ (x.reshape(-1) - x0)
             if len(supports):
@@ -285,6 +300,8 @@ class ImplicitSolver(Solver):
         held = ~free_v
         reaction = np.zeros_like(x)
         reaction[held] = m.mass[held, None] * (v[held] - v_n[held]) / h - total[held]
+        pulled = k_hold > 0
+        reaction[pulled] = k_hold[pulled, None] * (targets[pulled] - x[pulled])  # the springs' pull
         return reaction, result
 
     def _feasible_start(self, s, field, x_n, v_n, h, control, targets, potential, hessian):
@@ -306,8 +323,8 @@ class ImplicitSolver(Solver):
                 best, best_phi = x, phi
         if best is not None:
             return best
-        kin = np.repeat(control.kinematic[s], 3)
-        free = np.repeat(~(self.model.fixed | control.kinematic[s]), 3)
+        kin = np.repeat(control.exactly_held()[s], 3)
+        free = np.repeat(~(self.model.fixed | control.exactly_held()[s]), 3)
         if kin.any():
             a = hessian(x_n, True).tocsr()
             d = (targets - x_n).reshape(-1)

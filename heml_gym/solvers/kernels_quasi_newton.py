@@ -126,6 +126,17 @@ class SubstepWork(NamedTuple):
     f: np.ndarray
 
 
+class Holds(NamedTuple):
+    """What holds vertices (leading axis: the worlds' N, or none for one world):
+    ``kinematic`` (n,) bool, the held vertices; ``stiffness`` (n,) N/m, 0 for a vertex held
+    exactly (it follows its target), else the stiffness of the spring that holds it to its
+    ``anchor`` (n, 3) m, which follows the target instead (a vertex the jaws hold in part)."""
+
+    kinematic: np.ndarray
+    stiffness: np.ndarray
+    anchor: np.ndarray
+
+
 @nb.njit(cache=True, inline="always")
 def world_hessian(hessians, s):
     """World ``s``'s current :class:`WorldHessian` of ``hessians`` (:class:`InitialHessians`)."""
@@ -239,14 +250,16 @@ def _precondition(g, z, held, hessian, b, y):
 # ------------------------------------------------------------------------ potential
 @nb.njit(cache=True)
 def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supports, c, x_hat, load, held,
-                           k_contact):
+                           k_contact, holds):
     """``Phi(x)`` (J) and, if ``want_gradient``, its gradient into ``g`` (N; zero on held
     vertices): ``body`` (:class:`~heml_gym.kernel_data.HemlBody`), ``law``
     (:class:`~heml_gym.kernel_data.WorldLaw`), ``supports``
     (:class:`~heml_gym.kernel_data.SupportArrays`), the inertia weight ``c`` (1/s^2), the
-    inertial target ``x_hat`` (m), the ``load`` (N), the ``held`` mask and the support
-    penalty ``k_contact`` (1/s^2, times a vertex's mass). ``f``, ``dist``, ``normal`` are
-    scratch (``dist``, ``normal``: the signed distances to the supports at ``x``)."""
+    inertial target ``x_hat`` (m), the ``load`` (N), the ``held`` mask, the support
+    penalty ``k_contact`` (1/s^2, times a vertex's mass) and the springs of ``holds``
+    (:class:`Holds`: ``stiffness / 2 |x - anchor|^2`` on each spring-held vertex). ``f``,
+    ``dist``, ``normal`` are scratch (``dist``, ``normal``: the signed distances to the
+    supports at ``x``)."""
     n = x.shape[0]
     tets = body.tets
     m = tets.shape[0]
@@ -282,6 +295,13 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supp
             if want_gradient:
                 g[i, d] = c * mi * e - f[i, d] - load[i, d] + kc * pen * normal[i, d]
         phi += 0.5 * kc * pen * pen
+        ks = holds.stiffness[i]
+        if ks > 0.0 and holds.kinematic[i]:  # held by a spring to its anchor
+            for d in range(3):
+                e = x[i, d] - holds.anchor[i, d]
+                phi += 0.5 * ks * e * e
+                if want_gradient:
+                    g[i, d] += ks * e
     return phi
 
 
@@ -387,13 +407,14 @@ def _positive_volumes(x, tets, inv_det, vt_ptr, vt_tets, moved):
 
 # ----------------------------------------------------------------------- one world
 @nb.njit(cache=True)
-def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev, work):
+def begin_substep(x, v, targets, holds, ext, body, law, sub, history, r_prev, work):
     """What a sub-step of length ``h`` (s) needs before its minimisation, whichever method
     minimises (L-BFGS, or Newton as the fallback): fills in ``work`` (:class:`SubstepWork`) the step's start
     ``x_n, v_n``, BDF2's state one step back ``x_m, v_m``, the inertial target ``x_hat``,
-    the ``load`` (N: external forces ``ext`` and weight), the ``held`` mask (kinematic or
-    fixed) and the held vertices' ``jump`` beyond their own predictor;
-    moves the held vertices a ``fraction`` of the way to their ``targets`` in ``x``; at
+    the ``load`` (N: external forces ``ext`` and weight), the ``held`` mask (held exactly
+    or fixed) and the held vertices' ``jump`` beyond their own predictor;
+    moves the exactly held vertices of ``holds`` (:class:`Holds`) a ``fraction`` of the way to
+    their ``targets`` in ``x``, and the anchors of the spring-held ones in ``holds.anchor``; at
     ``sub.first_substep`` puts the start's quasi-static holding force into ``r_prev``
     (``work.f``: scratch). Returns ``(c, any_jump)``: the inertia weight ``c`` (1/s^2, see
     :func:`inertia`) and whether any held vertex jumps.
@@ -408,11 +429,12 @@ def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev
     h, fraction, order = sub.h, sub.fraction, sub.order
     alpha, mass, gravity, fixed = body.alpha, body.mass, body.gravity, body.fixed
     x_n, v_n, x_m, v_m, x_hat, load, held, jump, f = work
+    kinematic, spring, anchor = holds.kinematic, holds.stiffness, holds.anchor
     c = inertia(order, h, alpha)
     x_n[:, :] = x
     v_n[:, :] = v
     for i in range(n):
-        held[i] = kinematic[i] or fixed[i]
+        held[i] = (kinematic[i] and spring[i] == 0.0) or fixed[i]
         for d in range(3):
             load[i, d] = ext[i, d] + mass[i] * gravity[d]
     if order == 2 and history.history_h[0] == h:
@@ -430,7 +452,12 @@ def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev
         held_forces(x, f, held, body, law)
         for i in range(n):
             for d in range(3):
-                r_prev[i, d] = -(f[i, d] + load[i, d] - alpha * mass[i] * v[i, d]) if held[i] else 0.0
+                if held[i]:
+                    r_prev[i, d] = -(f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
+                elif kinematic[i] and spring[i] > 0.0:  # the spring's pull on the tissue
+                    r_prev[i, d] = spring[i] * (anchor[i, d] - x[i, d])
+                else:
+                    r_prev[i, d] = 0.0
     any_jump = False
     for i in range(n):
         for d in range(3):
@@ -441,7 +468,10 @@ def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev
             else:
                 x_hat[i, d] = x_n[i, d] + h * v_n[i, d] / (1.0 + alpha * h)
             jump[i, d] = 0.0
-        if kinematic[i] and not fixed[i]:
+        if kinematic[i] and spring[i] > 0.0 and not fixed[i]:  # the spring's anchor moves
+            for d in range(3):
+                anchor[i, d] += (targets[i, d] - anchor[i, d]) * fraction
+        elif kinematic[i] and not fixed[i]:
             for d in range(3):
                 xi = x[i, d] + (targets[i, d] - x[i, d]) * fraction
                 jump[i, d] = xi - x_n[i, d] - h * v_n[i, d]
@@ -451,14 +481,15 @@ def begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev
 
 
 @nb.njit(cache=True)
-def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, body, law, sub, history):
+def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, body, law, sub, history, holds):
     """What a sub-step does after its minimisation reached ``x``, whichever method
     minimised: vertices inside a support (``dist``, ``normal``: the signed distances at
     ``x``) go onto it, unless that would turn a tet inside out (a sliver on the support),
     and lose their velocity into it; the velocities ``v`` follow from the scheme; the
     step-mean constraint force on held vertices is added into ``reaction`` (N) by the
     trapezoidal rule between ``r_prev`` (the start's) and the end's, which ``r_prev`` then
-    holds; BDF2 keeps the step's start in ``history``. ``work``: the sub-step's
+    holds (on a spring-held vertex of ``holds``, the spring's pull ``k (anchor - x)``);
+    BDF2 keeps the step's start in ``history``. ``work``: the sub-step's
     (:func:`begin_substep`); its ``f``: the elastic forces at ``x`` if ``f_at_x``, else
     scratch.
 
@@ -505,6 +536,11 @@ def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, 
                 r_end = mass[i] * (v[i, d] - v_n[i, d]) / h - (f[i, d] + load[i, d] - alpha * mass[i] * v[i, d])
                 reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
                 r_prev[i, d] = r_end
+        elif holds.kinematic[i] and holds.stiffness[i] > 0.0:
+            for d in range(3):
+                r_end = holds.stiffness[i] * (holds.anchor[i, d] - x[i, d])
+                reaction[i, d] += 0.5 * (r_prev[i, d] + r_end)
+                r_prev[i, d] = r_end
         else:
             for d in range(3):
                 r_prev[i, d] = 0.0
@@ -515,7 +551,7 @@ def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, 
 
 
 @nb.njit(cache=True)
-def _lbfgs_world(x, v, targets, kinematic, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
+def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
                  reaction, out):
     """One backward Euler (``sub.order`` 1) or BDF2 (2) sub-step of one world by L-BFGS, in
     place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best of four
@@ -524,8 +560,8 @@ def _lbfgs_world(x, v, targets, kinematic, ext, body, law, supports, hessian, me
     ``memory``: its :class:`LbfgsMemory`; ``history``: its :class:`Bdf2History`; ``tol``:
     the force residual (N) to reach.
 
-    Held (``kinematic``) vertices move a ``sub.fraction`` of the way from where they are to
-    their ``targets``; fixed ones stay. The free vertices start from the explicit
+    Held vertices (``holds``, :class:`Holds`) move a ``sub.fraction`` of the way from where
+    they are to their ``targets`` (the anchors of spring-held ones do); fixed ones stay. The free vertices start from the explicit
     predictor plus the linear response (through the initial Hessian) of the held
     vertices' jump beyond it, else from where they are. ``reaction`` (N) receives the
     step-mean constraint force on held and fixed vertices of this sub-step (see
@@ -536,7 +572,7 @@ def _lbfgs_world(x, v, targets, kinematic, ext, body, law, supports, hessian, me
     h = sub.h
     work = substep_work(n, sub.order)
     x_n, v_n, held, jump, f = work.x_n, work.v_n, work.held, work.jump, work.f
-    c, any_jump = begin_substep(x, v, targets, kinematic, ext, body, law, sub, history, r_prev, work)
+    c, any_jump = begin_substep(x, v, targets, holds, ext, body, law, sub, history, r_prev, work)
     k_contact = sub.kappa * c
     n_supports = supports.planes.shape[0] + supports.grids.shape[0]
     g = np.zeros((n, 3))
@@ -566,7 +602,7 @@ def _lbfgs_world(x, v, targets, kinematic, ext, body, law, supports, hessian, me
                     for d in range(3):
                         g[j, d] += we * jump[i, d]
         _precondition(g, response, held, hessian, b, y)
-    args = (body, law, supports, c, work.x_hat, work.load, held, k_contact)
+    args = (body, law, supports, c, work.x_hat, work.load, held, k_contact, holds)
     phi = math.inf
     for attempt in range(4):  # predictor + response, predictor, start + response, start
         for i in range(n):
@@ -649,17 +685,18 @@ def _lbfgs_world(x, v, targets, kinematic, ext, body, law, supports, hessian, me
         x[:, :] = trial
         g[:, :] = g_new
         gnorm = math.sqrt(_dot(g, g))
-    end_substep(x, v, work, dist, normal, n_supports, last_at_x, reaction, r_prev, body, law, sub, history)
+    end_substep(x, v, work, dist, normal, n_supports, last_at_x, reaction, r_prev, body, law, sub, history, holds)
     memory.memory[0] = stored
     memory.memory[1] = newest
     out[0], out[1], out[2], out[3] = float(it), gnorm, 1.0 if gnorm <= tol else 0.0, 1.0
 
 
 @nb.njit(cache=True, inline="always")
-def _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
+def _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
                 reaction, out):
     """:func:`_lbfgs_world` of world ``s`` of the stacked bundles."""
-    _lbfgs_world(x[s], v[s], targets[s], kinematic[s], ext[s], body, world_law(laws, s), supports,
+    _lbfgs_world(x[s], v[s], targets[s], Holds(holds.kinematic[s], holds.stiffness[s], holds.anchor[s]), ext[s],
+                 body, world_law(laws, s), supports,
                  world_hessian(hessians, s),
                  LbfgsMemory(memory.s_hist[s], memory.y_hist[s], memory.rho[s], memory.memory[s]), tol[s], sub,
                  Bdf2History(history.x_prev[s], history.v_prev[s], history.history_h[s:s + 1]), r_prev[s],
@@ -667,7 +704,7 @@ def _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians
 
 
 @nb.njit(cache=True, parallel=True)
-def lbfgs_steps_parallel(x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+def lbfgs_steps_parallel(x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
                          active, r_prev, reaction, out):
     """:func:`_lbfgs_world` for every ``active`` world (leading axis N of the arrays and of
     ``laws`` (:class:`~heml_gym.kernel_data.HemlLaws`), ``hessians``
@@ -676,17 +713,17 @@ def lbfgs_steps_parallel(x, v, targets, kinematic, ext, body, laws, supports, he
     current initial Hessian ``hessians.values[s, hessians.entry[s]]``."""
     for s in prange(x.shape[0]):
         if active[s]:
-            _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+            _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
                         r_prev, reaction, out)
 
 
 @nb.njit(cache=True)
-def lbfgs_steps_serial(x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+def lbfgs_steps_serial(x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
                        active, r_prev, reaction, out):
     """:func:`lbfgs_steps_parallel` world after world."""
     for s in range(x.shape[0]):
         if active[s]:
-            _world_step(s, x, v, targets, kinematic, ext, body, laws, supports, hessians, memory, tol, sub, history,
+            _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
                         r_prev, reaction, out)
 
 

@@ -57,16 +57,19 @@ from .newton import minimize
 __all__ = ["QuasiNewtonSolver", "incremental_hessian"]
 
 
-def incremental_hessian(field, mass, y, c, k_contact, held, potential_args, project, add_diagonal, add_blocks):
+def incremental_hessian(field, mass, y, c, k_contact, held, potential_args, project, add_diagonal, add_blocks,
+                        springs=None):
     """The Hessian (CSR, 3n x 3n) at ``y`` (m) of a sub-step's incremental potential: the
     ``field``'s stiffness (its per-element projection if ``project``), ``c M`` (1/s^2 times
     the lumped ``mass``) and the support penalty ``k_contact m_i n n^T`` of the free
     vertices inside a support; ``potential_args`` are :func:`~.kernels_quasi_newton.potential_and_gradient`'s
     (they locate the supports); ``add_diagonal`` / ``add_blocks``: a
     :class:`~heml_gym.linear_solvers.DiagonalAdd` and :class:`~heml_gym.linear_solvers.DiagonalBlockAdd`
-    (they cache the pattern). The Newton fallback and the calibration's replay use it."""
+    (they cache the pattern); ``springs`` (n,) N/m: the hold springs' stiffness on the
+    diagonal. The Newton fallback and the calibration's replay use it."""
     n = y.shape[0]
-    hess = add_diagonal(field.hessian(y, project=project), np.repeat(c * mass, 3))
+    diagonal = c * mass if springs is None else c * mass + springs
+    hess = add_diagonal(field.hessian(y, project=project), np.repeat(diagonal, 3))
     supports = potential_args[2]
     if supports.planes.shape[0] + supports.grids.shape[0]:
         g, f = np.zeros((n, 3)), np.zeros((n, 3))
@@ -138,6 +141,8 @@ class QuasiNewtonSolver(Solver):
         ``"backward_euler"`` (first order) or ``"bdf2"`` (second order, the same cost per
         step; see the module docstring).
     """
+
+    takes_hold_springs = True
 
     SCHEMES = {"backward_euler": 1, "bdf2": 2}
 
@@ -263,7 +268,8 @@ class QuasiNewtonSolver(Solver):
         mat = self.model.materials[world]
         return self.hessian_scale * float(mat.lame_lambda + mat.shear_modulus)
 
-    def _refresh_factors(self, worlds: np.ndarray, held: np.ndarray, x: np.ndarray, c: np.ndarray) -> None:
+    def _refresh_factors(self, worlds: np.ndarray, held: np.ndarray, x: np.ndarray, c: np.ndarray,
+                         springs: np.ndarray) -> None:
         """Make current, for each of ``worlds``, the initial Hessian of its material, held
         set and step length: the current entry, else the other one if it holds it (a grasp
         undone, a refined step over), else factorised into the other (older) entry; and
@@ -281,7 +287,7 @@ class QuasiNewtonSolver(Solver):
             normal = normal.reshape(len(worlds), n, 3)
         jobs = []
         for k, s in enumerate(worlds):
-            key = (held[s].tobytes(), stiffness[s], c[s])
+            key = (held[s].tobytes(), springs[s].tobytes(), stiffness[s], c[s])
             ent = int(self._entry[s])
             if key != self._factor_key[s][ent]:
                 ent = 1 - ent
@@ -293,10 +299,11 @@ class QuasiNewtonSolver(Solver):
                     continue
                 self._factor_contact[s, ent] = contact[k]
                 extra = (self.contact_stiffness * c[s] * m.mass * contact[k])[None, :] * normal[k].T ** 2  # (3, n)
+                extra = extra + springs[s][None, :]  # (the hold springs, on every axis)
             elif same_key:
                 continue
             else:
-                extra = np.zeros((3, n))
+                extra = np.zeros((3, n)) + springs[s][None, :]
             slots, distinct = [0, 0, 0], [extra[0]]
             for a in (1, 2):
                 for i, e in enumerate(distinct):
@@ -351,7 +358,7 @@ class QuasiNewtonSolver(Solver):
         stats = StepStats.empty(N, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
-        held = control.kinematic | m.fixed[None, :]
+        held = control.exactly_held() | m.fixed[None, :]
         tol = self.newton_tol * self.force_scales(control)
         stats.tolerance[:] = tol
         x, v = state_out.x, state_out.v
@@ -428,8 +435,10 @@ class QuasiNewtonSolver(Solver):
     def _kernel_args(self, state: State, control: Control, held: np.ndarray, tol: np.ndarray) -> dict:
         """What every call of the L-BFGS kernel in one step shares."""
         m = self.model
+        springs = np.where(control.kinematic & ~m.fixed[None, :], control.hold_stiffness, 0.0)
         return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, body=m.heml_body(),
-                    laws=m.heml_laws(), supports=m.supports.kernel_args(), stiffness=self._stiffnesses())
+                    laws=m.heml_laws(), supports=m.supports.kernel_args(), stiffness=self._stiffnesses(),
+                    springs=springs, holds=kq.Holds(control.kinematic, control.hold_stiffness, control.anchors))
 
     def _stiffnesses(self) -> np.ndarray:
         """:meth:`stiffness` of every world (Pa), kept until a world's material changes."""
@@ -451,13 +460,13 @@ class QuasiNewtonSolver(Solver):
             return out
         x, v = a["x"], a["v"]
         c = np.full(N, self.inertia(h))
-        self._refresh_factors(np.flatnonzero(run), a["held"], x, c)
+        self._refresh_factors(np.flatnonzero(run), a["held"], x, c, a["springs"])
         control = a["control"]
         hessians = kq.InitialHessians(self.layout.inverse, self.layout.first, self.layout.ptr, self._values,
                                       self._entry, self._axis_slot, self._edge_i, self._edge_j, self._edge_w,
                                       a["stiffness"])
         kernel = kq.lbfgs_steps_parallel if N > 1 and numba.get_num_threads() > 1 else kq.lbfgs_steps_serial
-        kernel(x, v, control.targets, control.kinematic, control.external_forces, a["body"], a["laws"],
+        kernel(x, v, control.targets, a["holds"], control.external_forces, a["body"], a["laws"],
                a["supports"], hessians, self._lbfgs_memory(), a["tol"], self._substep(h, fraction, first_substep),
                self._bdf2_history(), run, r_prev, contribution, out)
         return out
@@ -501,11 +510,13 @@ class QuasiNewtonSolver(Solver):
         x_n, v_n, held, f = work.x_n, work.v_n, work.held, work.f
         sub = self._substep(h, fraction, first_substep)
         history = kq.Bdf2History(self._x_prev[s], self._v_prev[s], self._history_h[s:s + 1])
-        c, _ = kq.begin_substep(x, v, control.targets[s], control.kinematic[s], control.external_forces[s], body, law,
+        holds = kq.Holds(control.kinematic[s], control.hold_stiffness[s], control.anchors[s])
+        c, _ = kq.begin_substep(x, v, control.targets[s], holds, control.external_forces[s], body, law,
                                 sub, history, r_prev, work)
         n_supports = supports.planes.shape[0] + supports.grids.shape[0]
         k_contact = self.contact_stiffness * c
-        potential_args = (body, law, supports, c, work.x_hat, work.load, held, k_contact)
+        potential_args = (body, law, supports, c, work.x_hat, work.load, held, k_contact, holds)
+        springs = a["springs"][s]
         g = np.zeros((n, 3))
         dist, normal = np.full(n, math.inf), np.zeros((n, 3))
 
@@ -518,7 +529,7 @@ class QuasiNewtonSolver(Solver):
 
         def hessian(y, project):
             return incremental_hessian(field, m.mass, y.reshape(n, 3), c, k_contact, held, potential_args, project,
-                                       self._add_diagonal, self._add_blocks)
+                                       self._add_diagonal, self._add_blocks, springs)
 
         start, best = None, math.inf
         for candidate in (x_n + h * v_n, x_n.copy()):
@@ -538,7 +549,7 @@ class QuasiNewtonSolver(Solver):
         if not result.finite:
             return float(result.iterations), math.inf, 0.0, 1.0
         kq.potential_and_gradient(x, True, g, f, dist, normal, *potential_args)  # f, dist, normal at x
-        kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub, history)
+        kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub, history, holds)
         return float(result.iterations), result.residual, float(result.converged), 1.0
 
     @staticmethod

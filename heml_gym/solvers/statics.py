@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from ..control import Control
-from ..linear_solvers import FreeSubmatrix
+from ..linear_solvers import DiagonalAdd, FreeSubmatrix
 from ..model import Model
 from ..state import State
 from .base import Solver, StepStats
@@ -17,7 +17,8 @@ __all__ = ["StaticSolver"]
 
 
 class StaticSolver(Solver):
-    """Equilibrium ``f_elastic(x) + f_ext + M g = 0`` on the free vertices of every world.
+    """Equilibrium ``f_elastic(x) + f_ext + M g = 0`` on the free vertices of every world
+    (hold springs pull their vertices towards their targets).
 
     Parameters
     ----------
@@ -35,6 +36,8 @@ class StaticSolver(Solver):
         Newton iterations per increment at most.
     """
 
+    takes_hold_springs = True
+
     def __init__(self, model: Model, load_steps: int = 1, tol: float = 1e-8, max_iter: int = 100):
         super().__init__(model)
         for f in model.fields:
@@ -50,6 +53,7 @@ class StaticSolver(Solver):
             raise ValueError(f"tol must be a positive number, got {tol}")
         self.load_steps, self.tol, self.max_iter = int(load_steps), tol, int(max_iter)
         self._submatrix = [FreeSubmatrix() for _ in range(model.n_worlds)]
+        self._add_diagonal = DiagonalAdd()
 
     def solve(self, state: State, control: Control, active=None) -> StepStats:
         """Move the free vertices of the ``active`` worlds (default: all) of ``state`` to
@@ -63,10 +67,13 @@ class StaticSolver(Solver):
         stats = StepStats.empty(m.n_worlds, m.n_vertices, self.load_steps)
         for s in np.flatnonzero(active):
             field = m.fields[s]
-            kin = control.kinematic[s]
+            kin = control.exactly_held()[s]
             x = state.x[s].copy()
             x[kin] = control.targets[s][kin]
             free_v = ~(m.fixed | kin)
+            # hold springs (N/m) pull their vertices towards their targets
+            k_hold = np.where(free_v & control.kinematic[s], control.hold_stiffness[s], 0.0)
+            k3, anchor = np.repeat(k_hold, 3), control.targets[s].reshape(-1)
             free = np.repeat(free_v, 3)
             scale = self.force_scale(s, control)
             tol = self.tol * scale
@@ -77,13 +84,15 @@ class StaticSolver(Solver):
                     load = (k / self.load_steps) * (control.external_forces[s] + m.mass[:, None] * m.gravity).reshape(-1)
 
                     def potential(y, load=load):
-                        return field.energy(y) - float(load @ y.reshape(-1))
+                        e = y.reshape(-1) - anchor
+                        return field.energy(y) - float(load @ y.reshape(-1)) + 0.5 * float(k3 @ (e * e))
 
                     def gradient(y, load=load):
-                        return -field.forces(y).reshape(-1) - load
+                        return -field.forces(y).reshape(-1) - load + k3 * (y.reshape(-1) - anchor)
 
                     def hessian(y, project):
-                        return field.hessian(y, project=project)
+                        h = field.hessian(y, project=project)
+                        return self._add_diagonal(h, k3) if k_hold.any() else h
 
                     result = minimize(x, potential, gradient, hessian, free, tol, self.max_iter, self._submatrix[s])
                     x = result.x
@@ -102,5 +111,8 @@ class StaticSolver(Solver):
             state.v[s] = 0.0
             f = field.forces(x) + control.external_forces[s] + m.mass[:, None] * m.gravity
             stats.reaction[s] = np.where(free_v[:, None], 0.0, -f)
+            pulled = k_hold > 0
+            stats.reaction[s, pulled] = k_hold[pulled, None] * (control.targets[s, pulled] - x[pulled])
+            control.anchors[s, pulled] = control.targets[s, pulled]
         return stats
 
