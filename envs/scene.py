@@ -285,7 +285,7 @@ class GripperSpec:
     span along the axis, from midway to the previous row to midway to the next): a whole
     share exactly, a part ``w`` by a spring of ``w / (1 - w)`` times the tissue's own
     stiffness at the vertex (so that, in series with the tissue, it holds with ``w`` of
-    it), a vertex with no share not at all. Weighted jaws need the quasi-Newton solver."""
+    it), a vertex with no share not at all."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)

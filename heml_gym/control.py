@@ -20,8 +20,8 @@ class Control:
         step; they move there along a straight line at constant speed during the step.
     hold_stiffness : (N, n) float, N/m
         0: a kinematic vertex is held exactly; positive: it is held by a spring of that
-        stiffness to its anchor (a vertex the jaws hold only in part). Stepped by the
-        quasi-Newton, implicit (Newton) and static solvers; the explicit one refuses it.
+        stiffness to its anchor (a vertex the jaws hold only in part). Every solver
+        steps it (the explicit one with a critical step shortened for the springs).
     anchors : (N, n, 3) float, m
         Where each spring's anchor is (the solver moves it towards :attr:`targets`).
     external_forces : (N, n, 3) float, N

@@ -143,8 +143,7 @@ class Solver:
             raise ValueError(f"control holds {control.targets.shape}, the model needs {shape}")
         if not self.takes_hold_springs and control.spring_held().any():
             raise ValueError(f"control.hold_stiffness: {type(self).__name__} holds vertices exactly only; vertices "
-                             "held by springs (a part of the jaws' grip) need the QuasiNewtonSolver, ImplicitSolver "
-                             "or StaticSolver")
+                             "held by springs (a part of the jaws' grip) need a solver that steps them")
         dt = float(dt)
         if not math.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt must be a positive number of seconds, got {dt}")

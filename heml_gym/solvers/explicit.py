@@ -53,7 +53,13 @@ class ExplicitSolver(Solver):
         critical step can be too long for strongly compressed or stretched tissue, whose
         stiffness grows (``StepStats.refinement`` says which factor a world needed). Only
         those worlds pay for it. ``()``: no second try.
+
+    Hold springs (``Control.hold_stiffness``) are stepped sub-step by sub-step, their pull
+    added to the forces, and the critical step shortened for them
+    (:meth:`spring_critical_dt`).
     """
+
+    takes_hold_springs = True
 
     def __init__(self, model: Model, safety: float = 0.5, max_speed: float = 1e3, refinements=(4, 16)):
         super().__init__(model, max_speed)
@@ -81,6 +87,9 @@ class ExplicitSolver(Solver):
         if n_sub < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
         m = self.model
+        springs = control.spring_held() & ~m.fixed[None, :] & active[:, None]
+        if springs.any():  # the hold springs shorten the critical step: more sub-steps if they need them
+            n_sub = max(n_sub, self.substeps(dt, self.spring_critical_dt(control, springs)))
         stats = StepStats.empty(m.n_worlds, m.n_vertices, n_sub)
         state = state_out
         x0, v0 = state.x.copy(), state.v.copy()
@@ -89,7 +98,9 @@ class ExplicitSolver(Solver):
         heml = all(isinstance(f, HemlForce) for f in fields) and not m.damping.beta
         one_big_mesh = m.n_worlds == 1 and fields[0].kernel_threads() > 1
         with np.errstate(all="ignore"):
-            if heml and not one_big_mesh and all(f.split for f in fields) and m.n_worlds > 1:
+            if springs.any():  # (hold springs: sub-step by sub-step, the springs' pull added)
+                bad = self._stepwise(state, control, h, n_sub, x0, active, stats.reaction)
+            elif heml and not one_big_mesh and all(f.split for f in fields) and m.n_worlds > 1:
                 bad = self._lanes(state, control, h, n_sub, x0, stats.reaction)
             elif heml and not one_big_mesh:
                 bad = self._fused(state, control, h, n_sub, x0, active, stats.reaction)
@@ -103,7 +114,7 @@ class ExplicitSolver(Solver):
                 state.x[retry], state.v[retry] = x0[retry], v0[retry]
                 stats.reaction[retry] = 0.0
                 stats.refinement[retry] = factor
-                if heml and not one_big_mesh:
+                if heml and not one_big_mesh and not springs.any():
                     again = self._fused(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction)
                 else:
                     again = self._stepwise(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction)
@@ -119,7 +130,18 @@ class ExplicitSolver(Solver):
             stats.reaction[s] = 0.0
         stats.diverged = bad >= 0
         stats.converged = ~stats.diverged
+        done = springs & ~stats.diverged[:, None]
+        control.anchors[done] = control.targets[done]  # (the anchors reached their targets)
         return stats
+
+    def spring_critical_dt(self, control: Control, springs: np.ndarray) -> float:
+        """The critical step (s) with the hold springs ``springs`` (an ``(N, n)`` mask of
+        ``control``'s): a spring ``k`` on a vertex of mass ``m`` adds at most ``k / m`` to
+        the largest eigenvalue of ``M^-1 K`` (Gershgorin), so ``2 / sqrt((2 / dt_c)^2 +
+        max k / m)`` with ``dt_c`` the model's critical step."""
+        critical = self.model.critical_dt()
+        extra = float((np.where(springs, control.hold_stiffness, 0.0) / self.model.mass[None, :]).max())
+        return 2.0 / math.sqrt((2.0 / critical) ** 2 + extra)
 
     # ------------------------------------------------------------------ paths
     def _fused(self, state, control, h, n_sub, x0, active, reaction):
@@ -171,7 +193,9 @@ class ExplicitSolver(Solver):
         return bad_lanes.reshape(-1)[:N].copy()
 
     def _stepwise(self, state, control, h, n_sub, x0, active, reaction):
-        """Sub-step by sub-step from Python: any force field, stiffness damping."""
+        """Sub-step by sub-step from Python: any force field, stiffness damping, hold
+        springs (each spring-held vertex is free, pulled by ``k (anchor - x)`` with its
+        anchor on the straight path to its target; that pull is its reaction)."""
         m = self.model
         N, n = m.n_worlds, m.n_vertices
         supports = m.supports.kernel_args()
@@ -179,19 +203,26 @@ class ExplicitSolver(Solver):
         sub_reaction = np.zeros((n, 3))
         bad = np.full(N, -1, dtype=np.int64)
         beta = m.damping.beta
+        exact = control.exactly_held()
         for s in np.flatnonzero(active):
             field = m.fields[s]
             x, v = state.x[s], state.v[s]
+            spring = np.flatnonzero(control.spring_held()[s] & ~m.fixed)
+            k_spring = control.hold_stiffness[s, spring, None]
+            a0, a1 = control.anchors[s, spring], control.targets[s, spring]
             for k in range(1, n_sub + 1):
                 field.forces(x, out=f)
                 if beta:
                     f += stiffness_damping(field, x, v, f, beta)
+                pull = k_spring * (a0 + (a1 - a0) * ((k - 1) / n_sub) - x[spring])  # (at the sub-step's start)
+                f[spring] += pull
                 b = ke.symplectic_euler_update(x, v, f, m.mass, m.gravity, control.external_forces[s],
-                                               m.damping.alpha, h, m.fixed, control.kinematic[s], x0[s],
+                                               m.damping.alpha, h, m.fixed, exact[s], x0[s],
                                                control.targets[s], k / n_sub, self.max_speed, sub_reaction,
                                                supports)
                 if b >= 0:
                     bad[s] = b
                     break
+                sub_reaction[spring] = pull
                 reaction[s] += sub_reaction / n_sub
         return bad
