@@ -110,7 +110,9 @@ def main(argv=None) -> int:
         result["note"] = args.note
     if args.loaded:
         result["machine_loaded"] = True
-    write_json(f"{args.name}.json", result)
+    from heml_gym.agents.config import load_config
+
+    write_json(f"{args.name}.json", result, envs=[load_config(config).env.id])  # (the task version it measured)
     text = table(result, args.name)
     (RESULTS / f"{args.name}.md").write_text(text)
     IMAGES.mkdir(parents=True, exist_ok=True)

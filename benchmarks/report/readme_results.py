@@ -118,7 +118,9 @@ def pixels(data: dict) -> str:
         reach = f"passed 80 % at {first // 1000} k env steps" if first is not None else "never passed 80 %"
         per_seed.append(f"seed {s['seed']} {reach}, final {s['success_rate']:.0%} at {s['env_steps'] // 1000} k "
                         f"steps in {s['wall_s'] / 60:.0f} min")
-    return (f"**From pixels.** PPO with a CNN on the task camera's images alone (`{data['config']}`): "
+    few = (f"{len(done)} seed{'s' if len(done) > 1 else ''} on record, fewer than the 3 a claim needs: "
+           if len(done) < 3 else "")
+    return (f"**From pixels.** PPO with a CNN on the task camera's images alone (`{data['config']}`), {few}"
             f"{'; '.join(per_seed)} ({where(data)}; [envs.md](../envs.md#learning-from-pixels)).")
 
 
