@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from heml_gym.benchmarks.common import IMAGES, ROOT, machine_info, markdown_table, store_and_report
+from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, machine_info, markdown_table, store_and_report
 
 #: per env: the unconstrained config and its constrained twin (same algorithm and settings)
 CONFIGS = {
@@ -85,7 +85,7 @@ def table(result: dict) -> str:
     for method in METHODS:
         for s in result["methods"][method]["seeds"]:
             lo, hi = s["success_ci95"]
-            rows.append([method, s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['mean_damage']:.3f}",
+            rows.append([method, s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['mean_damage']:.4f}",
                          f"{s['damage_while_training']:.3f}",
                          f"{s['episodes_with_damage']} / {s['episodes']}",
                          f"{s['multiplier_final']:.2f}" if "multiplier_final" in s else "-",
@@ -93,9 +93,12 @@ def table(result: dict) -> str:
     summary_rows = []
     for method in METHODS:
         r = result["methods"][method]
+        harmed = sum(s["episodes_with_damage"] for s in r["seeds"])
+        episodes = sum(s["episodes"] for s in r["seeds"])
         summary_rows.append([method, f"{r['seeds_at_90_percent']} of {len(r['seeds'])}",
                              f"{r['success_iqm']:.0%} ({r['success_iqm_ci95'][0]:.0%}-{r['success_iqm_ci95'][1]:.0%})",
-                             f"{r['damage_iqm']:.3f} ({r['damage_iqm_ci95'][0]:.3f}-{r['damage_iqm_ci95'][1]:.3f})",
+                             f"{r['damage_iqm']:.4f} ({r['damage_iqm_ci95'][0]:.4f}-{r['damage_iqm_ci95'][1]:.4f})",
+                             f"{harmed} / {episodes}",
                              f"{r['damage_while_training_iqm']:.3f} ({r['damage_while_training_iqm_ci95'][0]:.3f}-"
                              f"{r['damage_while_training_iqm_ci95'][1]:.3f})"])
     verdict = result["verdict"]
@@ -104,7 +107,7 @@ def table(result: dict) -> str:
                                    "episodes with damage", "final multiplier", "wall min"], rows)
             + "\n\nAcross seeds (IQM, 95 % bootstrap interval):\n\n"
             + markdown_table(["method", "seeds >= 90 %", "success", "final damage (strain x s)",
-                              "damage while training"], summary_rows)
+                              "final episodes with damage, all seeds", "damage while training"], summary_rows)
             + f"\n\n**{verdict['text']}**\n"
             + f"\n![success vs damage per seed; damage and success vs env steps](../img/{result['name']}.png)\n")
     return text
@@ -117,8 +120,8 @@ def verdict(result: dict) -> dict:
     close = lag["success_iqm"] >= ppo["success_iqm"] - 0.10
     ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
     learning = lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]
-    text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the final damage (IQM {lag['damage_iqm']:.3f} vs "
-            f"{ppo['damage_iqm']:.3f} strain x s, x{ratio:.2f}) at success {lag['success_iqm']:.0%} vs "
+    text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the final damage (IQM {lag['damage_iqm']:.4f} vs "
+            f"{ppo['damage_iqm']:.4f} strain x s) at success {lag['success_iqm']:.0%} vs "
             f"{ppo['success_iqm']:.0%} ({'within' if close else 'not within'} 10 points): the bar is "
             f"{'met' if lower and close else 'missed'}; while training it "
             f"{'lowers' if learning else 'does not lower'} the damage (IQM {lag['damage_while_training_iqm']:.3f} vs "
@@ -176,7 +179,16 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--steps", type=int, default=240_000, help="env steps per run (both methods)")
     ap.add_argument("--out", default=None, help="run folders (default runs/constrained-ENV)")
+    ap.add_argument("--from-json", action="store_true", help="rewrite the table and chart from the stored JSON")
     args = ap.parse_args(argv)
+    if args.from_json:
+        name = f"constrained_{args.env}"
+        result = json.loads((RESULTS / f"{name}.json").read_text())
+        result["verdict"] = verdict(result)
+        store_and_report(name, result, table, envs=[result["env_id"]])
+        IMAGES.mkdir(parents=True, exist_ok=True)
+        chart(result, IMAGES / f"{name}.png")
+        return 0
     if args.steps <= 0:
         ap.error(f"--steps: give a positive number of env steps, not {args.steps}")
 
