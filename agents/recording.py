@@ -456,9 +456,9 @@ class _SceneLogger:
             rec.log(entity, rr.Scalars(float(getattr(st, field))))
         values = {"exposure": exposure, "max_strain": float(info["max_strain"]),
                   "hold_time": float(info["hold_time"]), "is_success": float(bool(info["is_success"])),
-                  "grasp_force": float(info["grasp_force"]), "damage": float(info.get("damage", 0.0))}
+                  "grasp_force": float(info["grasp_force"]), "damage": float(info["damage"])}
         if action is not None:
-            values["cost"] = float(info.get("cost", 0.0))
+            values["cost"] = float(info["cost"])
             a = np.asarray(action, dtype=np.float64).reshape(-1)
             values.update({f"action_{n}": float(v) for n, v in zip(ACTION_NAMES, a)})
             values["reward"] = float(reward)
@@ -480,7 +480,7 @@ class _SceneLogger:
              f"**success: {ok(bool(info['is_success']))}**"),
             f"- exposure **{exposure:.0%}** (needs >= {st.success_exposure:.0%}: {ok(exposure >= st.success_exposure)})",
             f"- max gauge strain **{strain:.3f}** (needs < {st.damage_strain:g}: {ok(strain < st.damage_strain)})",
-            (f"- tissue harm: damage **{float(info.get('damage', 0.0)):.3f}** strain x s so far (strain above the "
+            (f"- tissue harm: damage **{float(info['damage']):.3f}** strain x s so far (strain above the "
              f"safe {st.safe_strain:g}, integrated over time)"),
             f"- held **{hold:.1f} s** of {st.hold_time:g} s",
             (f"- jaws {'closed' if snap.grasping else 'open'}, holding {len(snap.held)} vertices, "

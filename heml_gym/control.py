@@ -107,5 +107,10 @@ class Control:
         """``(N, n)`` bool: the kinematic vertices held by a spring."""
         return self.kinematic & (self.hold_stiffness > 0.0)
 
+    def spring_stiffness(self, fixed) -> np.ndarray:
+        """``(N, n)`` N/m: the hold spring of each spring-held vertex that ``fixed`` (the
+        model's ``(n,)`` mask) does not pin, 0 elsewhere: what a solver steps."""
+        return np.where(self.spring_held() & ~np.asarray(fixed, dtype=bool)[None, :], self.hold_stiffness, 0.0)
+
     def __repr__(self) -> str:
         return f"Control({self.n_worlds} worlds, {int(self.kinematic.sum())} held vertices)"

@@ -227,13 +227,20 @@ class Replay:
         kq.elastic_forces(x, f, self.model.heml_body(), self._law())
         return f
 
-    def _force_derivatives(self, theta, configurations: list[np.ndarray]) -> list[np.ndarray]:
-        """``df/dtheta_j`` (N per unit of the constant) at each configuration: ``(k, n, 3)``."""
+    def _difference_steps(self, theta: np.ndarray) -> np.ndarray:
+        """Each constant's central-difference step (``steps``, else 1e-6 of its value)."""
+        return self.steps if self.steps is not None else np.where(theta != 0, 1e-6 * np.abs(theta), 1e-6)
+
+    def _force_derivatives(self, theta, configurations: list[np.ndarray], skip=()) -> list[np.ndarray]:
+        """``df/dtheta_j`` (N per unit of the constant) at each configuration: ``(k, n, 3)``;
+        the constants ``skip`` (indices) are left 0."""
         theta = np.asarray(theta, dtype=np.float64)
-        steps = self.steps if self.steps is not None else np.where(theta != 0, 1e-6 * np.abs(theta), 1e-6)
+        steps = self._difference_steps(theta)
         out = [np.zeros((len(theta),) + configurations[0].shape) for _ in configurations]
         try:
             for j in range(len(theta)):
+                if j in skip:
+                    continue
                 for sign in (1.0, -1.0):
                     shifted = theta.copy()
                     shifted[j] += sign * steps[j]
@@ -361,12 +368,12 @@ class Replay:
         work = kq.substep_work(n, 1)
         history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
         x, v = e["x_n"].copy(), e["v_n"].copy()
-        c, _ = kq.begin_substep(x, v, self.log.targets[e["t"]], self._holds(e["t"]), np.zeros((n, 3)), body,
-                                law, sub, history, np.zeros((n, 3)), work)
+        holds = self._holds(e["t"])
+        c, _ = kq.begin_substep(x, v, self.log.targets[e["t"]], holds, np.zeros((n, 3)), body, law, sub, history,
+                                np.zeros((n, 3)), work)
         g, f = np.zeros((n, 3)), np.zeros((n, 3))
         kq.potential_and_gradient(e["y"], True, g, f, np.full(n, math.inf), np.zeros((n, 3)), body, law, supports, c,
-                                  work.x_hat, work.load, work.held.copy(), self.contact_stiffness * c,
-                                  self._holds(e["t"]))
+                                  work.x_hat, work.load, work.held.copy(), self.contact_stiffness * c, holds)
         return g
 
     def _end_reaction(self, e) -> np.ndarray:
@@ -383,21 +390,18 @@ class Replay:
         return -(self._forces(x) + mass * self.model.gravity - alpha * mass * v)
 
     def _dynamic_derivatives(self, theta, j, tape, dz, dy, dstart) -> None:
-        """Column ``j`` of ``dz``, ``dy``, ``dstart`` for a constant of the dynamics: minus the
-        derivatives of the end reaction, the sub-step gradient and the start reaction."""
-        step = 1e-6 * abs(theta[j]) if theta[j] != 0 else 1e-6
+        """Add into column ``j`` (left 0 by :meth:`_force_derivatives`) of ``dz``, ``dy``,
+        ``dstart``, for a constant of the dynamics: minus the derivatives of the end
+        reaction, the sub-step gradient and the start reaction."""
+        theta = np.asarray(theta, dtype=np.float64)
+        step = self._difference_steps(theta)[j]
         try:
             for sign in (1.0, -1.0):
-                shifted = np.array(theta, dtype=np.float64)
+                shifted = theta.copy()
                 shifted[j] += sign * step
                 self._set(shifted)
                 scale = -sign / (2.0 * step)
                 for idx, e in enumerate(tape):
-                    if sign > 0:
-                        dz[idx][j] = 0.0
-                        dy[idx][j] = 0.0
-                        if dstart[idx] is not None:
-                            dstart[idx][j] = 0.0
                     dz[idx][j] += scale * self._end_reaction(e)
                     dy[idx][j] += scale * self._substep_gradient(e)
                     if dstart[idx] is not None:
@@ -421,14 +425,15 @@ class Replay:
         tape = result.tape
         configurations = [e["z"] for e in tape] + [e["y"] for e in tape] + \
                          [e["start"][0] for e in tape if e["start"] is not None]
-        dfs = self._force_derivatives(theta, configurations)
+        dynamic = self._dynamic_constants(theta)
+        dfs = self._force_derivatives(theta, configurations, skip=dynamic)
         dz = dfs[:len(tape)]
         dy = dfs[len(tape):2 * len(tape)]
         dstart = iter(dfs[2 * len(tape):])
         dstart = [next(dstart) if e["start"] is not None else None for e in tape]
         # constants of the dynamics: the same three derivatives (minus the sub-step
         # gradient's, minus the end and start reactions') by central differences
-        for j in self._dynamic_constants(theta):
+        for j in dynamic:
             self._dynamic_derivatives(theta, j, tape, dz, dy, dstart)
         self._set(theta)
         mass = self._body.mass[:, None]

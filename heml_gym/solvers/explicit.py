@@ -87,7 +87,7 @@ class ExplicitSolver(Solver):
         if n_sub < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
         m = self.model
-        springs = control.spring_held() & ~m.fixed[None, :] & active[:, None]
+        springs = (control.spring_stiffness(m.fixed) > 0.0) & active[:, None]
         if springs.any():  # the hold springs shorten the critical step: more sub-steps if they need them
             n_sub = max(n_sub, self.substeps(dt, self.spring_critical_dt(control, springs)))
         stats = StepStats.empty(m.n_worlds, m.n_vertices, n_sub)
@@ -207,7 +207,7 @@ class ExplicitSolver(Solver):
         for s in np.flatnonzero(active):
             field = m.fields[s]
             x, v = state.x[s], state.v[s]
-            spring = np.flatnonzero(control.spring_held()[s] & ~m.fixed)
+            spring = np.flatnonzero(control.spring_stiffness(m.fixed)[s] > 0.0)
             k_spring = control.hold_stiffness[s, spring, None]
             a0, a1 = control.anchors[s, spring], control.targets[s, spring]
             for k in range(1, n_sub + 1):

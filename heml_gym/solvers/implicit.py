@@ -141,7 +141,7 @@ class ImplicitSolver(Solver):
             x0, v0 = state_out.x[s].copy(), state_out.v[s].copy()
             tol = self.newton_tol * self.force_scale(s, control)
             stats.tolerance[s] = tol
-            springs = control.spring_held()[s] & ~m.fixed
+            springs = control.spring_stiffness(m.fixed)[s] > 0.0
             origin = np.where(springs[:, None], control.anchors[s], x0)  # (a spring's anchor moves, not its vertex)
             try:
                 with np.errstate(all="ignore"):
@@ -226,7 +226,7 @@ class ImplicitSolver(Solver):
         x0 = x_n.reshape(-1)
         free_v = ~(m.fixed | control.exactly_held()[s])
         # hold springs (N/m) pull their vertices towards their anchors (``targets`` on their rows)
-        k_hold = np.where(free_v & control.kinematic[s], control.hold_stiffness[s], 0.0)
+        k_hold = control.spring_stiffness(m.fixed)[s]
         k3 = np.repeat(k_hold, 3)
         anchor = targets.reshape(-1)
         diag = c * m3 + k3

@@ -435,7 +435,7 @@ class QuasiNewtonSolver(Solver):
     def _kernel_args(self, state: State, control: Control, held: np.ndarray, tol: np.ndarray) -> dict:
         """What every call of the L-BFGS kernel in one step shares."""
         m = self.model
-        springs = np.where(control.kinematic & ~m.fixed[None, :], control.hold_stiffness, 0.0)
+        springs = control.spring_stiffness(m.fixed)
         return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, body=m.heml_body(),
                     laws=m.heml_laws(), supports=m.supports.kernel_args(), stiffness=self._stiffnesses(),
                     springs=springs, holds=kq.Holds(control.kinematic, control.hold_stiffness, control.anchors))

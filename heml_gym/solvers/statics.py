@@ -72,7 +72,7 @@ class StaticSolver(Solver):
             x[kin] = control.targets[s][kin]
             free_v = ~(m.fixed | kin)
             # hold springs (N/m) pull their vertices towards their targets
-            k_hold = np.where(free_v & control.kinematic[s], control.hold_stiffness[s], 0.0)
+            k_hold = control.spring_stiffness(m.fixed)[s]
             k3, anchor = np.repeat(k_hold, 3), control.targets[s].reshape(-1)
             free = np.repeat(free_v, 3)
             scale = self.force_scale(s, control)
