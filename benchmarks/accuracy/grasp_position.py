@@ -204,16 +204,20 @@ def chart(stored: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     scenes = list(stored)
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6.2 * len(scenes), 4.2), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
+    fig, axes = plt.subplots(2, len(scenes), figsize=(6.2 * len(scenes), 7.6), squeeze=False)
+    for col, scene in enumerate(scenes):
         for lab, by in stored[scene]["results"].items():
             mm = [1e3 * float(k) for k in by]
-            ax.plot(mm, [np.median(c["hold_force_N"]) for c in by.values()], marker="o", ms=3, label=lab)
-        ax.set_xlabel("jaws' centre off the grasp region's middle (mm); last: the jaws' end at the region's end")
-        ax.set_ylabel("hold force (N), median over seeds")
-        ax.set_title(f"{scene}: {1e3 * SCENES[scene]['jaw_length']:g} mm weighted jaws", fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+            axes[0, col].plot(mm, [np.median(c["hold_force_N"]) for c in by.values()], marker="o", ms=3, label=lab)
+            axes[1, col].plot(mm, [np.median(c["exposure"]) for c in by.values()], marker="o", ms=3, label=lab)
+        axes[0, col].set_title(f"{scene}: {1e3 * SCENES[scene]['jaw_length']:g} mm weighted jaws", fontsize=9)
+        axes[0, col].set_ylabel("hold force (N), median over seeds")
+        axes[1, col].set_ylabel("exposure while held, median over seeds")
+        axes[1, col].set_ylim(-0.05, 1.05)
+        for ax in axes[:, col]:
+            ax.set_xlabel("jaws' centre from the region's middle (mm; last: at its end)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -246,7 +250,7 @@ def main(argv=None):
     if unknown:
         ap.error(f"scenes: {', '.join(SCENE_ARGS)}, got {', '.join(map(repr, unknown))}")
     path = RESULTS / "grasp_position.json"
-    stored = json.loads(path.read_text()) if path.exists() else {}
+    stored = json.loads(path.read_text())["scenes"] if path.exists() else {}
     if not args.from_json:
         try:
             seeds = [int(s) for s in args.seeds.split(",")]
@@ -261,11 +265,10 @@ def main(argv=None):
                              "jaw_length_m": SCENES[scene]["jaw_length"], "jaw_ends": "weighted",
                              "hold_steps": HOLD_STEPS, "steps": SCENES[scene]["steps"], "results": results,
                              "summary": summarise(results)}
-            write_json("grasp_position.json", stored)
+            write_json("grasp_position.json", {"scenes": stored}, envs=list(stored))
     elif not stored:
         ap.error(f"--from-json: nothing stored at {path}")
     write_docs(stored)
-
 
 if __name__ == "__main__":
     main()
