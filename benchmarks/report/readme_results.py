@@ -130,7 +130,7 @@ def pixels(data: dict) -> str:
         claim = (f"{passed} of {len(done)} seeds passed 80 % within {max(s['env_steps'] for s in done) // 1000} k env "
                  f"steps, final success IQM {data['iqm']:.0%} (95 % CI {low:.0%}-{high:.0%}): ")
     return (f"**From pixels{f' ({env})' if env else ''}.** PPO with a CNN on the task camera's images alone "
-            f"(`{data['config']}`), {claim}{'; '.join(per_seed)} ({where(data)}; "
+            f"(`{data['config']}`), {claim}{'; '.join(per_seed)} ({where(data)}{beside_other_work(data)}; "
             f"[envs.md](../envs.md#learning-from-pixels)).")
 
 
