@@ -71,7 +71,9 @@ def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_nois
                   noise_seed=seed, env_id=env_id, depth_size=depth_size, depth_noise=depth_noise)
 
 
-def fit_case(env_id: str, obs, names, use):
+def fit_case(env_id: str, obs, names, use, model: dict | None = None):
+    """Fit ``names`` to the ``use`` part of ``obs`` (the rest dropped) on the env's default
+    model, or on ``model`` (the env's keyword arguments: a finer mesh, another step)."""
     import gymnasium as gym
 
     from heml_gym.calibration import fit
@@ -83,7 +85,7 @@ def fit_case(env_id: str, obs, names, use):
         obs.points = obs.rest_points = None
     if use != "depth":
         obs.depth = obs.intrinsics = obs.camera_pose = None
-    replay, observed, names, bounds, start = calibration_problem(gym.make(env_id), obs, names)
+    replay, observed, names, bounds, start = calibration_problem(gym.make(env_id, **(model or {})), obs, names)
     warm_up = replay.run(start)
     replay.gradient(start, warm_up, np.zeros_like(warm_up.x))  # compiles the kernels
     replay.forget()  # (the fit's first replay starts cold, as a user's does)
