@@ -94,6 +94,20 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None):
     return replay, result, time.perf_counter() - t0
 
 
+def fitted_constants(result, names) -> dict:
+    """Each fitted constant of ``result`` (a :func:`heml_gym.calibration.fit` result of
+    ``names``), its standard error (``NAME_std``) and its error against :data:`TRUTH`
+    (E relative, nu absolute)."""
+    row = {}
+    for j, name in enumerate(names):
+        row[name] = float(result.theta[j])
+        row[f"{name}_std"] = float(result.std[j])
+    row["young_modulus_error"] = row["young_modulus"] / TRUTH["young_modulus"] - 1.0
+    if "poisson_ratio" in names:
+        row["poisson_ratio_error"] = row["poisson_ratio"] - TRUTH["poisson_ratio"]
+    return row
+
+
 def measure() -> dict:
     import copy
 
@@ -113,12 +127,7 @@ def measure() -> dict:
                    "fit": list(names), "converged": result.converged, "message": result.message,
                    "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms,
                    "failed_trials": result.failed_trials}
-            for j, name in enumerate(names):
-                row[name] = float(result.theta[j])
-                row[f"{name}_std"] = float(result.std[j])
-            row["young_modulus_error"] = row["young_modulus"] / TRUTH["young_modulus"] - 1.0
-            if "poisson_ratio" in names:
-                row["poisson_ratio_error"] = row["poisson_ratio"] - TRUTH["poisson_ratio"]
+            row.update(fitted_constants(result, names))
             if use == "points":  # prediction of another retraction of the same tissue
                 other = observe(env_id, case["fine"], PREDICT_SEED, 0.0, 0.0)
                 other.force = None

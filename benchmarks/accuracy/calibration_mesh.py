@@ -21,7 +21,8 @@ import copy
 
 import numba
 
-from heml_gym.benchmarks.accuracy.calibration import FORCE_NOISE, POINT_NOISE, SEED, TRUTH, fit_case, observe
+from heml_gym.benchmarks.accuracy.calibration import (FORCE_NOISE, POINT_NOISE, SEED, TRUTH, fit_case,
+                                                      fitted_constants, observe)
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
 ENV = "heml_gym/TissueRetraction-v1"
@@ -45,13 +46,7 @@ def measure() -> dict:
             names = FITS[use]
             _, result, wall = fit_case(ENV, copy.deepcopy(obs), names, use, kwargs)
             row = {"fitted_model": label, "observed": use, "converged": result.converged, "wall_s": wall,
-                   "iterations": len(result.history)}
-            for j, name in enumerate(names):
-                row[name] = float(result.theta[j])
-                row[f"{name}_std"] = float(result.std[j])
-            row["young_modulus_error"] = row["young_modulus"] / TRUTH["young_modulus"] - 1.0
-            if "poisson_ratio" in names:
-                row["poisson_ratio_error"] = row["poisson_ratio"] - TRUTH["poisson_ratio"]
+                   "iterations": len(result.history), **fitted_constants(result, names)}
             rows.append(row)
             print(f"{label}, {use}: E {row['young_modulus']:.0f} ({100 * row['young_modulus_error']:+.1f} %), "
                   f"{wall:.0f} s", flush=True)
