@@ -151,7 +151,7 @@ def main(argv=None):
     machine = machine_info()
     write_json(f"{name}.json", {"machine": machine, "wall_s": wall, "seeds": seeds, "jaw_ends": args.jaw_ends,
                                 "recorded_jaw_length_m": RECORDED_LENGTH, "hold_steps": [21, 30],
-                                "results": results})
+                                "results": results}, envs=[SCENE])
     write_docs(results, seeds, wall, machine, name, args.jaw_ends)
 
 
