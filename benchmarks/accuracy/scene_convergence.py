@@ -210,11 +210,12 @@ def variation_name(scene: str, variation: str) -> str:
     return f"scene_convergence_{variation}" if scene == "TissueRetraction" else f"scene_convergence_organ_{variation}"
 
 
-def record(scene: str, model: Model, seed: int, steps: int, changes: dict | None = None) -> tuple[np.ndarray, int]:
-    """The scripted baseline's actions on ``model`` (its scene with ``changes``) from
-    ``reset(seed)``, and its episode length."""
+def record(scene: str, model: Model, seed: int, steps: int, changes: dict | None = None,
+           policy_for=scripted.scripted_policy) -> tuple[np.ndarray, int]:
+    """The actions of ``policy_for(scene)`` (default: the scripted baseline) on ``model``
+    (its scene with ``changes``) from ``reset(seed)``, and its episode length."""
     env = model.env(scene, changes)
-    policy = scripted.scripted_policy(env.scene)
+    policy = policy_for(env.scene)
     obs, _ = env.reset(seed=seed)
     policy.reset()
     actions, episode = [], None

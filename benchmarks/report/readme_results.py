@@ -2,8 +2,8 @@
 
 Reads docs/benchmarks/{quick_sweep,env_throughput,force_throughput,simulation_speed,
 scene_convergence,agent_results,rllib_learning,pixel_learning,organ_pixel_learning}.json
-and writes docs/benchmarks/readme_results.md, one sentence per result with the CPU and date it was measured on (a result that is missing is
-left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
+and writes docs/benchmarks/readme_results.md, one sentence per result with the CPU and
+date it was measured on (a result that is missing is left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
 gives across seeds). ``python benchmarks/report/update_docs.py`` then copies them into README.md.
 
     python benchmarks/report/readme_results.py
