@@ -19,7 +19,7 @@ tolerate_stale_indexes()  # before any kernel is compiled or loaded (see heml_gy
 from . import kinematics, materials, organs  # noqa: E402
 from .contact import MeshSupport, PlaneSupport
 from .control import Control
-from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
+from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce, QuadraticFemForce, QuadraticTetMesh
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
 from .model import FORCE_FIELDS, Damping, Model
 from .simulation import NotConverged, NotConvergedWarning, Simulation
@@ -46,6 +46,7 @@ __all__ = [
     "MeshSupport",
     "FORCE_FIELDS",
     "TetMesh",
+    "QuadraticTetMesh",
     "box_mesh",
     "load_mesh",
     "save_mesh",
@@ -57,4 +58,5 @@ __all__ = [
     "FemForce",
     "MassTensorForce",
     "MassSpringForce",
+    "QuadraticFemForce",
 ]

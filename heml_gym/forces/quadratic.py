@@ -12,10 +12,11 @@ the energy, forces and Hessian of any law of :mod:`heml_gym.materials` on it, wi
 arrays and units of the linear fields (positions ``(n, 3)`` in metres, energies in
 joules, forces in newtons, stiffness in N/m).
 
-What is not there yet: a :class:`~heml_gym.Model` does not take this field (its masses,
-supports, contact and the env scenes assume 4-node tets), so it is stepped with
-:func:`heml_gym.solvers.newton.minimize` directly (statics: see
-``benchmarks/accuracy/element_bending.py``).
+A :class:`~heml_gym.Model` takes the field (``Model(field=QuadraticFemForce(mesh,
+material))``): its masses are the lumped node masses, and geometry (surface, contact,
+inversion checks) reads the mesh's linear view, 8 tets per element. The solvers that
+take any force field step it (``implicit``, ``explicit``, statics); the default
+quasi-Newton solver is HEML's own, and the env scenes are built on linear tets.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ import scipy.sparse as sp
 from ..materials import Material
 from ..mesh import EDGE_PAIRS, TetMesh
 from . import kernels_quadratic as kq
+from .base import ForceField
 
-__all__ = ["QuadraticTetMesh", "QuadraticFemForce", "QUADRATURE_POINTS"]
+__all__ = ["QuadraticTetMesh", "QuadraticFemForce", "QUADRATURE_POINTS", "SUB_TETS"]
 
 #: Barycentric coordinates of the 4-point quadrature rule (degree 2, weight 1/4 each).
 QUADRATURE_POINTS = np.array([[0.5854101966249685, 0.1381966011250105, 0.1381966011250105, 0.1381966011250105],
@@ -63,26 +65,38 @@ def shape_gradients_barycentric(bary: np.ndarray) -> np.ndarray:
     return d
 
 
-class QuadraticTetMesh:
-    """The 10-node tets of a linear :class:`~heml_gym.TetMesh`: its vertices first (the
-    corner nodes keep their indices), then one node at the middle of each of its
-    :attr:`~heml_gym.TetMesh.edges`, in that order.
+#: The 8 linear tets a 10-node element splits into (local node numbers): one at each
+#: corner, then the inner octahedron cut along its diagonal from edge node 4 (edge 0-1)
+#: to edge node 9 (edge 2-3). Oriented as the element.
+SUB_TETS = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3),
+                     (4, 9, 7, 5), (4, 9, 8, 7), (4, 9, 6, 8), (4, 9, 5, 6)], dtype=np.int64)
+
+
+class QuadraticTetMesh(TetMesh):
+    """The 10-node tets of a linear :class:`~heml_gym.TetMesh`.
+
+    Its nodes are the linear mesh's vertices (same indices) followed by one node at the
+    middle of each of the linear mesh's :attr:`~heml_gym.TetMesh.edges`, in that order.
+    As a :class:`~heml_gym.TetMesh` it is the linear view of those nodes (``tets``: each
+    element split into 8 tets, :data:`SUB_TETS`), which is what geometry reads (surface,
+    contact, rendering, inversion checks, strain measures), while the force field reads
+    :attr:`elements`. :attr:`vertex_volumes` are the elements' lumped node volumes.
+    Build it with :meth:`from_linear`.
 
     Attributes
     ----------
     linear : TetMesh
         The 4-node mesh it was built from.
-    vertices : (n, 3) float64
-        Rest positions of every node (m).
     elements : (m, 10) int64
         Each element's nodes: its 4 corners, then its 6 edge nodes in
         :data:`~heml_gym.mesh.EDGE_PAIRS` order.
     """
 
-    def __init__(self, linear: TetMesh):
+    @classmethod
+    def from_linear(cls, linear: TetMesh) -> "QuadraticTetMesh":
+        """Straight-sided quadratic tets on the cells of ``linear``."""
         if not isinstance(linear, TetMesh):
             raise TypeError(f"linear must be a heml_gym.TetMesh, got {type(linear).__name__}")
-        self.linear = linear
         nv = linear.n_vertices
         edges = linear.edges
         keys = edges[:, 0] * nv + edges[:, 1]
@@ -91,23 +105,20 @@ class QuadraticTetMesh:
         elements = np.concatenate([linear.tets, nv + edge_id], axis=1).astype(np.int64)
         vertices = np.concatenate([linear.vertices, 0.5 * (linear.vertices[edges[:, 0]]
                                                            + linear.vertices[edges[:, 1]])])
-        vertices.setflags(write=False)
+        mesh = cls(vertices, elements[:, SUB_TETS].reshape(-1, 4))
         elements.setflags(write=False)
-        self.vertices = vertices
-        self.elements = elements
-
-    @property
-    def n_vertices(self) -> int:
-        """Number of nodes (corners and edge nodes)."""
-        return len(self.vertices)
+        object.__setattr__(mesh, "linear", linear)
+        object.__setattr__(mesh, "elements", elements)
+        return mesh
 
     @property
     def n_elements(self) -> int:
+        """Number of 10-node elements."""
         return len(self.elements)
 
     @property
-    def volumes(self) -> np.ndarray:
-        """Rest volume of each element (m^3)."""
+    def element_volumes(self) -> np.ndarray:
+        """Rest volume of each 10-node element (m^3)."""
         return self.linear.volumes
 
     @cached_property
@@ -123,19 +134,20 @@ class QuadraticTetMesh:
     @cached_property
     def quadrature_weights(self) -> np.ndarray:
         """Quadrature weight times rest volume (m^3), ``(m, 4)``."""
-        out = np.ascontiguousarray(np.repeat(self.volumes[:, None] / 4.0, 4, axis=1))
+        out = np.ascontiguousarray(np.repeat(self.element_volumes[:, None] / 4.0, 4, axis=1))
         out.setflags(write=False)
         return out
 
     def _per_node(self, corner_share: float, edge_share: float) -> np.ndarray:
         out = np.zeros(self.n_vertices)
-        np.add.at(out, self.elements[:, :4].ravel(), np.repeat(corner_share * self.volumes, 4))
-        np.add.at(out, self.elements[:, 4:].ravel(), np.repeat(edge_share * self.volumes, 6))
+        np.add.at(out, self.elements[:, :4].ravel(), np.repeat(corner_share * self.element_volumes, 4))
+        np.add.at(out, self.elements[:, 4:].ravel(), np.repeat(edge_share * self.element_volumes, 6))
         return out
 
     @cached_property
-    def node_volumes(self) -> np.ndarray:
-        """Lumped volume of each node (m^3, all positive; the mass is density times it)."""
+    def vertex_volumes(self) -> np.ndarray:
+        """Lumped volume of each node (m^3, all positive; the mass is density times it):
+        the diagonal of the elements' consistent mass, rescaled to their volume."""
         return self._per_node(CORNER_MASS_SHARE, EDGE_MASS_SHARE)
 
     @cached_property
@@ -145,10 +157,10 @@ class QuadraticTetMesh:
         return self._per_node(CORNER_LOAD_SHARE, EDGE_LOAD_SHARE)
 
     def __repr__(self) -> str:
-        return f"QuadraticTetMesh({self.n_vertices} nodes, {self.n_elements} elements)"
+        return f"QuadraticTetMesh(n_vertices={self.n_vertices}, n_elements={self.n_elements})"
 
 
-class QuadraticFemForce:
+class QuadraticFemForce(ForceField):
     """Hyperelastic force field of a :class:`QuadraticTetMesh`, for any law.
 
     Stresses come from each law's textbook formula in ``F`` (as
@@ -161,11 +173,8 @@ class QuadraticFemForce:
 
     def __init__(self, mesh: QuadraticTetMesh, material: Material):
         if not isinstance(mesh, QuadraticTetMesh):
-            raise TypeError(f"mesh must be a QuadraticTetMesh, got {type(mesh).__name__}")
-        if not isinstance(material, Material):
-            raise TypeError(f"material must be a heml_gym.materials.Material, got {type(material).__name__}")
-        self.mesh = mesh
-        self.material = material
+            raise TypeError(f"mesh must be a QuadraticTetMesh (QuadraticTetMesh.from_linear), got {type(mesh).__name__}")
+        super().__init__(mesh, material)
         self.law_id = np.int64(material.law_id)
         self.params = np.ascontiguousarray(material.params, dtype=np.float64)
         self._pattern = None
@@ -177,36 +186,21 @@ class QuadraticFemForce:
         return other
 
     @property
-    def n_vertices(self) -> int:
-        return self.mesh.n_vertices
+    def n_elements(self) -> int:
+        return self.mesh.n_elements
 
-    def check_positions(self, x) -> np.ndarray:
-        """``x`` as a C-contiguous float64 ``(n, 3)`` array; ``ValueError`` if the shape is wrong."""
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        if x.shape != (self.mesh.n_vertices, 3):
-            raise ValueError(f"positions must have shape ({self.mesh.n_vertices}, 3), got {x.shape}")
-        return x
+    def kernel_threads(self) -> int:
+        return 1  # serial kernels only
 
     def _args(self):
         m = self.mesh
         return m.elements, m.quadrature_gradients, m.quadrature_weights, self.law_id, self.params
 
-    def energy(self, x) -> float:
-        """Elastic energy in joules at node positions ``x`` (m)."""
-        return float(kq.quadratic_energy(self.check_positions(x), *self._args()))
+    def _energy_serial(self, x):
+        return kq.quadratic_energy(x, *self._args())
 
-    def forces(self, x, out: np.ndarray | None = None) -> np.ndarray:
-        """Elastic forces ``-dW/dx`` (N) on every node, shape ``(n, 3)``."""
-        x = self.check_positions(x)
-        if out is None:
-            out = np.zeros_like(x)
-        else:
-            if out.shape != x.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
-                raise ValueError(f"out must be a C-contiguous float64 array of shape {x.shape}")
-            out.fill(0.0)
-        kq.quadratic_add_forces(x, *self._args(), out)
-        return out
-
+    def _add_forces_serial(self, x, f):
+        kq.quadratic_add_forces(x, *self._args(), f)
     def element_hessians(self, x, project: bool = False) -> np.ndarray:
         """Each element's 30x30 ``d2 W_t/dx2`` (J/m^2), ``(m, 30, 30)``."""
         x = self.check_positions(x)
