@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from heml_gym import box_mesh, load_mesh, materials, organs
+from heml_gym import QuadraticTetMesh, box_mesh, load_mesh, materials, organs
 from heml_gym.contact import MeshSupport, PlaneSupport
 from heml_gym.mesh import TetMesh
 from heml_gym.model import FORCE_FIELDS
@@ -99,7 +99,10 @@ class PhysicsSpec:
     from ``E`` drawn uniformly in ``young_modulus`` (Pa), ``poisson`` and
     ``material_options`` (e.g. ``{"b": 2.0}`` for Demiray); ``density`` (kg/m^3),
     ``damping`` (mass-proportional, 1/s), ``gravity`` (m/s^2); ``field``: ``"heml"``,
-    ``"fem"``, ``"mass_tensor"`` (StVK only) or ``"mass_spring"``; ``integrator``:
+    ``"fem"``, ``"mass_tensor"`` (StVK only), ``"mass_spring"`` or ``"quadratic"`` (10-node
+    tets on the tissue's cells, :class:`heml_gym.QuadraticTetMesh`: they bend on a coarse
+    mesh; a node at the middle of every edge, which the scene's regions select as well;
+    ``"implicit"`` or ``"explicit"`` integrator); ``integrator``:
     ``"explicit"`` (sub-steps at ``safety`` times the critical step of the stiffest
     tissue the scene can draw), ``"implicit"`` (backward Euler steps of at most
     ``max_dt`` s, Newton to ``newton_tol`` of the weight in at most ``max_newton``
@@ -435,7 +438,7 @@ class BuiltScene:
         self.spec = spec
         self.name = spec.name
         self.physics = spec.physics
-        self.mesh = _tissue_mesh(spec.tissue)
+        self.mesh = _tissue_mesh(spec.tissue, quadratic=spec.physics.field == "quadratic")
         mesh = self.mesh
         self.fixed = spec.attachment.select(mesh)
         if self.fixed.size == 0:
@@ -483,9 +486,15 @@ _MESHES: dict[str, TetMesh] = {}
 _SUPPORTS: dict[str, object] = {}
 
 
-def _tissue_mesh(spec: TissueSpec) -> TetMesh:
-    """The mesh of a tissue source (cached: gmsh organs take a second or more)."""
+def _tissue_mesh(spec: TissueSpec, quadratic: bool = False) -> TetMesh:
+    """The mesh of a tissue source (cached: gmsh organs take a second or more); with
+    ``quadratic``, its 10-node tets (:class:`heml_gym.QuadraticTetMesh`: a node at the
+    middle of every edge, so the scene's regions select those nodes too)."""
     key = spec.key()
+    if quadratic:
+        if key + "|quadratic" not in _MESHES:
+            _MESHES[key + "|quadratic"] = QuadraticTetMesh.from_linear(_tissue_mesh(spec))
+        return _MESHES[key + "|quadratic"]
     if key not in _MESHES:
         if spec.kind == "box":
             mesh = box_mesh(spec.size, spec.cells, origin=spec.origin, mirrored=spec.mirrored)

@@ -32,7 +32,7 @@ import scipy.sparse.linalg as spla
 
 from .contact import Support, Supports
 from .control import Control
-from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce
+from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce, QuadraticFemForce
 from .kernel_data import HemlBody, HemlLaws
 from .materials import Material
 from .mesh import TetMesh
@@ -41,8 +41,9 @@ from .state import State
 __all__ = ["Model", "Damping", "FORCE_FIELDS"]
 
 #: Force fields by name (``Model(field=...)``, the envs' ``physics={"field": ...}``).
+#: ``"quadratic"`` needs a :class:`~heml_gym.QuadraticTetMesh` (10-node tets).
 FORCE_FIELDS = {"heml": HemlForce, "fem": FemForce, "mass_tensor": MassTensorForce,
-                "mass_spring": MassSpringForce}
+                "mass_spring": MassSpringForce, "quadratic": QuadraticFemForce}
 
 
 @dataclass(frozen=True)
