@@ -11,8 +11,9 @@ docs/scene_convergence.md, which the default jaws must meet at every place they 
 Protocol, per scene and seed: the scripted baseline (``heml_gym.envs.scripted``), told to
 close the jaws ``offset`` from the region's middle along its long axis (from the middle
 to where the jaws' end meets the region's end), is recorded on the default mesh; the same
-actions (the same gripper path) are replayed on every mesh, all by the default
-quasi-Newton integrator, ignoring termination. A seed fixes E, the target and the
+actions (the same gripper path) are replayed on every mesh, by the default
+quasi-Newton integrator (the flap's quadratic-tet models, ``physics.field
+"quadratic"``, by Newton's backward Euler in 0.025 s steps), ignoring termination. A seed fixes E, the target and the
 gripper's start on every mesh. Per run: the hold force, the mean grasp force (N) over
 the last ``HOLD_STEPS`` env steps (the tissue held still), and the mean exposure there.
 
@@ -38,8 +39,8 @@ import numba
 import numpy as np
 from tqdm import tqdm
 from heml_gym.benchmarks.common import IMAGES, RESULTS, machine_info, markdown_table, write_json
-from heml_gym.benchmarks.accuracy.scene_convergence import (QN, SCENE_ARGS, TOLERANCE, J, organ, record, replay,
-                                                             tissue)
+from heml_gym.benchmarks.accuracy.scene_convergence import (P2, QN, SCENE_ARGS, TOLERANCE, J, organ, record,
+                                                             replay, tissue)
 from heml_gym.envs import scripted
 
 #: the last env steps of each run over which the hold force and exposure are averaged
@@ -52,6 +53,8 @@ SCENES = {
     "TissueRetraction": dict(
         jaw_length=0.04, offsets=[0.0, 0.01, 0.02, 0.03, 0.04],
         models=[tissue((12, 12, 2), **QN), tissue((16, 16, 2), **QN), tissue((24, 24, 3), **QN),
+                # quadratic tets: 6 x 6 x 1 has the default's nodes, 8 x 8 x 1 those of 16 x 16 x 2
+                tissue((6, 6, 1), **P2, max_dt=0.025), tissue((8, 8, 1), **P2, max_dt=0.025),
                 tissue((32, 32, 4), **QN)],
         steps=55),
     "OrganRetraction": dict(

@@ -93,6 +93,8 @@ class Model:
 def _tag(physics) -> str:
     p = dict(physics)
     parts = []
+    if p.get("field", "heml") != "heml":
+        parts.append(p["field"])
     if "material" in p:
         parts.append({"StVenantKirchhoff": "StVK", "StableNeoHookean": "SNH"}.get(p["material"], p["material"]))
     if p.get("integrator", "explicit") != "explicit":
@@ -135,6 +137,8 @@ J = DEFAULT_JAW_SIZE
 #: both scenes' default physics (configs/scenes/*.yaml)
 QN = dict(integrator="quasi_newton", max_dt=0.05, newton_tol=3e-3, max_newton=100)
 ORGAN_QN = QN
+#: quadratic tets (physics field "quadratic"), stepped by Newton's backward Euler
+P2 = dict(field="quadratic", integrator="implicit")
 
 
 #: per scene: default, models (cheapest first), reference, check (finer than the reference)
@@ -154,7 +158,10 @@ SCENES = {
                 tissue((12, 12, 2), integrator="implicit", max_dt=0.05),
                 # the other laws on the default mesh and integrator
                 tissue((12, 12, 2), **QN, material="StVenantKirchhoff"),
-                tissue((12, 12, 2), **QN, material="StableNeoHookean")],
+                tissue((12, 12, 2), **QN, material="StableNeoHookean"),
+                # quadratic (10-node) tets by Newton's backward Euler: 6 x 6 x 1 has the default's nodes
+                tissue((6, 6, 1), **P2, max_dt=0.05), tissue((6, 6, 1), **P2, max_dt=0.025),
+                tissue((8, 8, 1), **P2, max_dt=0.025)],
         reference=tissue((32, 32, 4), 0.5), check=(tissue((40, 40, 5), 0.5), (1, 2)),
         seeds=(0, 1, 2, 3, 4), steps=50),
     "OrganRetraction": dict(
