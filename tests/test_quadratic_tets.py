@@ -223,3 +223,15 @@ def test_model_steps_quadratic_tets_to_the_static_equilibrium(integrator):
         assert stats.converged.all()
     sag = np.mean(state.x[0, tip, 2] - mesh.vertices[tip, 2])
     assert sag == pytest.approx(np.mean(static.x[0, tip, 2] - mesh.vertices[tip, 2]), rel=0.01)
+
+
+def test_an_inverted_quadrature_point_gives_nan_not_an_error():
+    """ln J laws are undefined past J = 0: energy +inf, and a Hessian (projected or not)
+    holding NaN where the solvers look for a usable step matrix, instead of raising."""
+    mesh = small_mesh()
+    field = QuadraticFemForce(mesh, NeoHookean(E=5e3, nu=0.45))
+    x = mesh.vertices.copy()
+    x[mesh.elements[0, 4]] = mesh.vertices[mesh.elements[0, 9]] + 0.02  # an edge node thrown through the element
+    assert field.energy(x) == np.inf
+    for project in (False, True):
+        assert not np.all(np.isfinite(field.hessian(x, project=project).data))

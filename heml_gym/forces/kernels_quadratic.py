@@ -129,7 +129,13 @@ def stress_tangent(law, p, F, A):
 @nb.njit(cache=True)
 def clamp_negative_modes(A):
     """Replace the symmetric 9x9 ``A`` by its positive semi-definite part (eigenvalues
-    below zero set to zero); returns how many were clamped."""
+    below zero set to zero); returns how many were clamped. A non-finite ``A`` (an
+    inverted quadrature point of a ln J law) is left as it is: the Hessian then holds NaN,
+    which the solvers read as no step matrix there."""
+    for i in range(9):
+        for j in range(9):
+            if not np.isfinite(A[i, j]):
+                return 0
     S = 0.5 * (A + A.T)
     lam, V = np.linalg.eigh(S)
     clamped = 0
