@@ -34,6 +34,25 @@ def test_mesh_nodes_are_edge_middles_shared_between_elements():
     assert len(np.unique(mesh.elements[:, 4:])) == len(lin.edges)
 
 
+def test_the_linear_view_splits_every_element_into_8_positive_tets():
+    """On an unstructured mesh: each element's 8 tets are positively oriented, fill it
+    (volumes sum to its volume) and cut its inner octahedron along the shortest diagonal."""
+    from heml_gym.forces.quadratic import OCTAHEDRON_DIAGONALS
+    from heml_gym.mesh import signed_volumes
+
+    lin = hg.organs.irregular_cube_mesh()
+    mesh = QuadraticTetMesh.from_linear(lin)
+    sub = signed_volumes(mesh.vertices, mesh.tets).reshape(-1, 8)
+    assert np.all(sub > 0)
+    assert np.allclose(sub.sum(axis=1), lin.volumes, rtol=1e-12)
+    inner = mesh.tets.reshape(-1, 8, 4)[:, 4:]  # the octahedron's 4 tets share its diagonal
+    for element, tets in zip(mesh.elements, inner):
+        a, b = np.intersect1d(np.intersect1d(tets[0], tets[1]), np.intersect1d(tets[2], tets[3]))
+        length = np.linalg.norm(mesh.vertices[a] - mesh.vertices[b])
+        candidates = mesh.vertices[element[OCTAHEDRON_DIAGONALS]]  # (3, 2, 3)
+        assert length <= np.linalg.norm(candidates[:, 1] - candidates[:, 0], axis=1).min() * (1 + 1e-12)
+
+
 @pytest.mark.parametrize("law", ALL_MATERIALS, ids=lambda c: c.__name__)
 def test_forces_and_hessian_are_the_energy_derivatives(law):
     mesh = small_mesh()

@@ -31,7 +31,7 @@ from ..mesh import EDGE_PAIRS, TetMesh
 from . import kernels_quadratic as kq
 from .base import ForceField
 
-__all__ = ["QuadraticTetMesh", "QuadraticFemForce", "QUADRATURE_POINTS", "SUB_TETS"]
+__all__ = ["QuadraticTetMesh", "QuadraticFemForce", "QUADRATURE_POINTS", "CORNER_TETS", "OCTAHEDRON_SPLITS"]
 
 #: Barycentric coordinates of the 4-point quadrature rule (degree 2, weight 1/4 each).
 QUADRATURE_POINTS = np.array([[0.5854101966249685, 0.1381966011250105, 0.1381966011250105, 0.1381966011250105],
@@ -65,11 +65,19 @@ def shape_gradients_barycentric(bary: np.ndarray) -> np.ndarray:
     return d
 
 
-#: The 8 linear tets a 10-node element splits into (local node numbers): one at each
-#: corner, then the inner octahedron cut along its diagonal from edge node 4 (edge 0-1)
-#: to edge node 9 (edge 2-3). Oriented as the element.
-SUB_TETS = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3),
-                     (4, 9, 7, 5), (4, 9, 8, 7), (4, 9, 6, 8), (4, 9, 5, 6)], dtype=np.int64)
+#: The 4 corner tets of a 10-node element's split into 8 (local node numbers), oriented
+#: as the element; the other 4 fill the inner octahedron of its edge nodes
+#: (:data:`OCTAHEDRON_SPLITS`).
+CORNER_TETS = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3)], dtype=np.int64)
+#: The inner octahedron cut along each of its three diagonals (edge nodes on opposite
+#: edges of the element: 0-1 and 2-3, 0-2 and 1-3, 0-3 and 1-2): 4 tets around the
+#: diagonal, oriented as the element. :meth:`QuadraticTetMesh.from_linear` takes the
+#: shortest diagonal, the split whose tets are best shaped.
+OCTAHEDRON_SPLITS = np.array([[(4, 9, 7, 5), (4, 9, 8, 7), (4, 9, 6, 8), (4, 9, 5, 6)],
+                              [(5, 8, 6, 4), (5, 8, 4, 7), (5, 8, 7, 9), (5, 8, 9, 6)],
+                              [(6, 7, 4, 5), (6, 7, 5, 9), (6, 7, 9, 8), (6, 7, 8, 4)]], dtype=np.int64)
+#: (the pair of local edge nodes that is each split's diagonal)
+OCTAHEDRON_DIAGONALS = np.array([(4, 9), (5, 8), (6, 7)], dtype=np.int64)
 
 
 class QuadraticTetMesh(TetMesh):
@@ -78,7 +86,8 @@ class QuadraticTetMesh(TetMesh):
     Its nodes are the linear mesh's vertices (same indices) followed by one node at the
     middle of each of the linear mesh's :attr:`~heml_gym.TetMesh.edges`, in that order.
     As a :class:`~heml_gym.TetMesh` it is the linear view of those nodes (``tets``: each
-    element split into 8 tets, :data:`SUB_TETS`), which is what geometry reads (surface,
+    element split into 8 tets: :data:`CORNER_TETS` and the inner octahedron cut along its
+    shortest diagonal, :data:`OCTAHEDRON_SPLITS`), which is what geometry reads (surface,
     contact, rendering, inversion checks, strain measures), while the force field reads
     :attr:`elements`. :attr:`vertex_volumes` are the elements' lumped node volumes.
     Build it with :meth:`from_linear`.
@@ -105,7 +114,11 @@ class QuadraticTetMesh(TetMesh):
         elements = np.concatenate([linear.tets, nv + edge_id], axis=1).astype(np.int64)
         vertices = np.concatenate([linear.vertices, 0.5 * (linear.vertices[edges[:, 0]]
                                                            + linear.vertices[edges[:, 1]])])
-        mesh = cls(vertices, elements[:, SUB_TETS].reshape(-1, 4))
+        diagonal = vertices[elements[:, OCTAHEDRON_DIAGONALS[:, 1]]] - vertices[elements[:, OCTAHEDRON_DIAGONALS[:, 0]]]
+        split = np.argmin(np.einsum("mdk,mdk->md", diagonal, diagonal), axis=1)  # (m,) the shortest
+        local = np.concatenate([np.broadcast_to(CORNER_TETS, (len(elements), 4, 4)), OCTAHEDRON_SPLITS[split]], axis=1)
+        sub_tets = np.take_along_axis(elements[:, None, :], local.reshape(len(elements), 32)[:, None, :], axis=2)
+        mesh = cls(vertices, sub_tets.reshape(-1, 4))
         elements.setflags(write=False)
         object.__setattr__(mesh, "linear", linear)
         object.__setattr__(mesh, "elements", elements)
