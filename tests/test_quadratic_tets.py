@@ -193,6 +193,9 @@ def test_bad_arguments_are_named():
         QuadraticTetMesh.from_linear(np.zeros((4, 3)))
     with pytest.raises(TypeError, match="mesh must be a QuadraticTetMesh"):
         QuadraticFemForce(hg.box_mesh(), NeoHookean(E=1e3, nu=0.3))
+    bare = QuadraticTetMesh(small_mesh().vertices, small_mesh().tets)  # not from_linear: no elements
+    with pytest.raises(TypeError, match="built by QuadraticTetMesh.from_linear"):
+        QuadraticFemForce(bare, NeoHookean(E=1e3, nu=0.3))
     field = QuadraticFemForce(small_mesh(), NeoHookean(E=1e3, nu=0.3))
     with pytest.raises(ValueError, match="positions must have shape"):
         field.forces(np.zeros((3, 3)))

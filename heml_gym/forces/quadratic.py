@@ -185,8 +185,9 @@ class QuadraticFemForce(ForceField):
     has_hessian = True
 
     def __init__(self, mesh: QuadraticTetMesh, material: Material):
-        if not isinstance(mesh, QuadraticTetMesh):
-            raise TypeError(f"mesh must be a QuadraticTetMesh (QuadraticTetMesh.from_linear), got {type(mesh).__name__}")
+        if not isinstance(mesh, QuadraticTetMesh) or not hasattr(mesh, "elements"):
+            raise TypeError(f"mesh must be a QuadraticTetMesh built by QuadraticTetMesh.from_linear, got "
+                            f"{type(mesh).__name__}")
         super().__init__(mesh, material)
         self.law_id = np.int64(material.law_id)
         self.params = np.ascontiguousarray(material.params, dtype=np.float64)
