@@ -165,6 +165,15 @@ def test_a_law_constant_needs_its_law():
         calibration_problem(env, obs, ("density", "density"))
 
 
+def test_a_model_on_quadratic_tets_is_refused_naming_its_field():
+    """The replay's adjoint is written in HEML's kernels: another force field is a
+    one-line error, not a wrong gradient."""
+    obs = record(gym.make(TISSUE_RETRACTION), scripted_policy("TissueRetraction"), seed=2, steps=3, points=4)
+    env = gym.make(TISSUE_RETRACTION, cells=(6, 6, 1), physics={"field": "quadratic", "integrator": "implicit"})
+    with pytest.raises(ValueError, match="replays differentiate HEML models only .*QuadraticFemForce"):
+        calibration_problem(env, obs, ("young_modulus",))
+
+
 def test_a_tissue_is_recovered_from_its_own_observations():
     """Noise-free points and force of a flap with E 5,200 Pa, nu 0.43 (the scene's mean
     is 6,000 Pa, 0.45): the fit finds them, and the loss's own curvature is what the

@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.sparse.linalg as spla
 
+from ..forces import HemlForce
 from ..kernel_data import world_law
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeCholesky, FreeSubmatrix, LaggedFactorPCG
 from ..materials import Material
@@ -165,6 +166,9 @@ class Replay:
             raise ReplayError(f"log: {log.kinematic.shape[1]} vertices, the model has {model.n_vertices}")
         if model.supports.kernel_args().grids.shape[0]:
             raise ReplayError("replays differentiate plane supports only (a mesh support's curvature is not)")
+        if not all(isinstance(f, HemlForce) for f in model.fields):
+            raise ReplayError(f"replays differentiate HEML models only (physics field 'heml'), the model's field is "
+                              f"{type(model.field).__name__}")
         self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
         self.dynamics_of = dynamics_of
         self._body = model.heml_body()  # the kernels' body: the model's, with the replay's masses and damping
