@@ -19,7 +19,8 @@ tolerate_stale_indexes()  # before any kernel is compiled or loaded (see heml_gy
 from . import kinematics, materials, organs  # noqa: E402
 from .contact import MeshSupport, PlaneSupport
 from .control import Control
-from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce, QuadraticFemForce, QuadraticTetMesh
+from .forces import (FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce, QuadraticFemForce,
+                     QuadraticTetMesh)
 from .mesh import TetMesh, box_mesh, load_mesh, save_mesh
 from .model import FORCE_FIELDS, Damping, Model
 from .simulation import NotConverged, NotConvergedWarning, Simulation

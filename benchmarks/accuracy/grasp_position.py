@@ -13,8 +13,8 @@ close the jaws ``offset`` from the region's middle along its long axis (from the
 to where the jaws' end meets the region's end), is recorded on the default mesh; the same
 actions (the same gripper path) are replayed on every mesh, by the default
 quasi-Newton integrator (the flap's quadratic-tet models, ``physics.field
-"quadratic"``, by Newton's backward Euler in 0.025 s steps), ignoring termination. A seed fixes E, the target and the
-gripper's start on every mesh. Per run: the hold force, the mean grasp force (N) over
+"quadratic"``, by Newton's backward Euler in 0.025 s steps), ignoring termination. A
+seed fixes E, the target and the gripper's start on every mesh. Per run: the hold force, the mean grasp force (N) over
 the last ``HOLD_STEPS`` env steps (the tissue held still), and the mean exposure there.
 
 Reported per scene and offset: each mesh's median hold force over the seeds, the worst

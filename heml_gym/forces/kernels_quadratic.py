@@ -72,15 +72,16 @@ def stress_tangent(law, p, F, A):
 
     ``P = 2 Psi_1 F + 2 Psi_2 (I1 F - F C) + Psi_J cof F`` differentiated along each unit
     direction ``D``; ``cof`` is quadratic in ``F``, so its derivative along ``D`` is
-    exactly ``cof(F + D) - cof(F) - cof(D)``. NaN where the law is undefined.
+    exactly ``cof(F + D) - cof(F) - cof(D)``, and ``cof(D) = 0`` for a unit ``D`` (rank
+    one). NaN where the law is undefined.
     """
     K = np.empty((3, 3))
     C = np.empty((3, 3))
-    KD = np.empty((3, 3))
     KFD = np.empty((3, 3))
     D = np.zeros((3, 3))
     FD = np.empty((3, 3))
     FC = np.empty((3, 3))
+    dC = np.empty((3, 3))
     jac = cofactor(F, K)
     right_cauchy_green(F, C)
     i1 = C[0, 0] + C[1, 1] + C[2, 2]
@@ -109,17 +110,15 @@ def stress_tangent(law, p, F, A):
                 for j in range(3):
                     FD[i, j] = F[i, j] + D[i, j]
             cofactor(FD, KFD)
-            cofactor(D, KD)
+            for s in range(3):  # dC = D^T F + F^T D
+                for j in range(3):
+                    dC[s, j] = (D[0, s] * F[0, j] + D[1, s] * F[1, j] + D[2, s] * F[2, j]
+                                + F[0, s] * D[0, j] + F[1, s] * D[1, j] + F[2, s] * D[2, j])
             for i in range(3):
                 for j in range(3):
-                    # dC = D^T F + F^T D; (F dC)_ij = sum_s F_is (D_ks F_kj... ) written out
-                    fdc = 0.0
-                    for s in range(3):
-                        dc_sj = D[0, s] * F[0, j] + D[1, s] * F[1, j] + D[2, s] * F[2, j] \
-                            + F[0, s] * D[0, j] + F[1, s] * D[1, j] + F[2, s] * D[2, j]
-                        fdc += F[i, s] * dc_sj
+                    fdc = F[i, 0] * dC[0, j] + F[i, 1] * dC[1, j] + F[i, 2] * dC[2, j]  # (F dC)_ij
                     dc_d = D[i, 0] * C[0, j] + D[i, 1] * C[1, j] + D[i, 2] * C[2, j]
-                    dk = KFD[i, j] - K[i, j] - KD[i, j]
+                    dk = KFD[i, j] - K[i, j]
                     A[3 * i + j, 3 * k + m] = (2.0 * d1 * F[i, j] + 2.0 * ps1 * D[i, j]
                                                + 2.0 * d2 * (i1 * F[i, j] - FC[i, j])
                                                + 2.0 * ps2 * (di1 * F[i, j] + i1 * D[i, j] - dc_d - fdc)

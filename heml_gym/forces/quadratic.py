@@ -169,6 +169,19 @@ class QuadraticTetMesh(TetMesh):
         ``b * load_volumes`` on the nodes (the corners' share is negative)."""
         return self._per_node(CORNER_LOAD_SHARE, EDGE_LOAD_SHARE)
 
+    @cached_property
+    def hessian_pattern(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The CSR pattern of a ``3n x 3n`` matrix coupling every pair of nodes of an
+        element: ``(indptr, indices, position)``, ``position`` the place in the CSR data of
+        each entry of the elements' 30 x 30 matrices, flattened (entries that meet add up).
+        Derived from the elements alone, so every material's field shares it."""
+        dof = (3 * self.elements[:, :, None] + np.arange(3)).reshape(-1, 30)  # (m, 30)
+        n = 3 * self.n_vertices
+        unique, position = np.unique((dof[:, :, None] * n + dof[:, None, :]).ravel(), return_inverse=True)
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(unique // n, minlength=n), out=indptr[1:])
+        return indptr, (unique % n).astype(np.int64), position.ravel()
+
     def __repr__(self) -> str:
         return f"QuadraticTetMesh(n_vertices={self.n_vertices}, n_elements={self.n_elements})"
 
@@ -191,13 +204,6 @@ class QuadraticFemForce(ForceField):
         super().__init__(mesh, material)
         self.law_id = np.int64(material.law_id)
         self.params = np.ascontiguousarray(material.params, dtype=np.float64)
-        self._pattern = None
-
-    def with_material(self, material: Material) -> "QuadraticFemForce":
-        """The same mesh with another ``material`` (sharing the Hessian pattern)."""
-        other = type(self)(self.mesh, material)
-        other._pattern = self._pattern
-        return other
 
     @property
     def n_elements(self) -> int:
@@ -228,18 +234,8 @@ class QuadraticFemForce(ForceField):
         ``project=True`` clamps the negative modes of ``dP/dF`` at every quadrature point
         (positive semi-definite); ``project=False`` gives the exact Hessian.
         """
-        ke = self.element_hessians(x, project)
-        if self._pattern is None:
-            dof = (3 * self.mesh.elements[:, :, None] + np.arange(3)).reshape(-1, 30)  # (m, 30)
-            n = 3 * self.mesh.n_vertices
-            keys = (dof[:, :, None] * n + dof[:, None, :]).ravel()
-            unique, inverse = np.unique(keys, return_inverse=True)
-            rows, cols = unique // n, unique % n
-            indptr = np.zeros(n + 1, dtype=np.int64)
-            np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
-            self._pattern = (indptr, cols.astype(np.int64), inverse.ravel(), len(unique))
-        indptr, cols, inverse, nnz = self._pattern
-        data = np.bincount(inverse, weights=ke.ravel(), minlength=nnz)
+        indptr, cols, position = self.mesh.hessian_pattern
+        data = np.bincount(position, weights=self.element_hessians(x, project).ravel(), minlength=len(cols))
         n = 3 * self.mesh.n_vertices
         return sp.csr_matrix((data, cols, indptr), shape=(n, n))
 
