@@ -165,13 +165,40 @@ def test_a_law_constant_needs_its_law():
         calibration_problem(env, obs, ("density", "density"))
 
 
-def test_a_model_on_quadratic_tets_is_refused_naming_its_field():
-    """The replay's adjoint is written in HEML's kernels: another force field is a
-    one-line error, not a wrong gradient."""
-    obs = record(gym.make(TISSUE_RETRACTION), scripted_policy("TissueRetraction"), seed=2, steps=3, points=4)
-    env = gym.make(TISSUE_RETRACTION, cells=(6, 6, 1), physics={"field": "quadratic", "integrator": "implicit"})
-    with pytest.raises(ValueError, match="replays differentiate HEML models only .*QuadraticFemForce"):
-        calibration_problem(env, obs, ("young_modulus",))
+def test_adjoint_gradients_equal_central_differences_on_quadratic_tets():
+    """The slab of the first test on 10-node tets (the NumPy sub-step over the field's own
+    forces and Hessian, heml_gym.solvers.substep.FieldSubstep): d/dE, d/dnu, d/density and
+    d/damping of a loss on every position and the jaws' force."""
+    mesh = hg.QuadraticTetMesh.from_linear(hg.box_mesh((0.06, 0.06, 0.008), (3, 3, 1)))
+    X = mesh.vertices
+
+    def material_of(theta):
+        return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
+
+    model = hg.Model(mesh, material_of((5e3, 0.45)), n_worlds=1, density=950.0, fixed=X[:, 0] < 1e-9,
+                     damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)], field="quadratic")
+    T = 5
+    grip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
+    kinematic = np.zeros((T, mesh.n_vertices), bool)
+    kinematic[:, grip] = True
+    targets = np.zeros((T, mesh.n_vertices, 3))
+    for t in range(T):
+        targets[t, grip] = X[grip] + np.array([-0.002, 0.0, 0.004]) * (t + 1)
+    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of,
+                    dynamics_of=lambda theta: (theta[2], theta[3]))
+    _random_loss_gradient_check(replay, (5e3, 0.45, 1100.0, 3.0), (0.5, 1e-5, 0.1, 1e-3), np.random.default_rng(0))
+
+
+def test_adjoint_gradients_on_the_flap_on_quadratic_tets():
+    """The flap's scene on quadratic tets (its default's nodes), replaying the scripted
+    retraction recorded on it: d/dE and d/dnu of a loss on positions and jaw force."""
+    kwargs = dict(cells=(6, 6, 1), physics={"field": "quadratic", "integrator": "implicit",
+                                            "young_modulus": [5e3, 5e3]})
+    env = gym.make(TISSUE_RETRACTION, **kwargs)
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=2, steps=8, points=4)
+    assert obs.grasp.any()
+    replay, *_ = calibration_problem(gym.make(TISSUE_RETRACTION, **kwargs), obs)
+    _random_loss_gradient_check(replay, (5.5e3, 0.44), (0.5, 1e-5), np.random.default_rng(1))
 
 
 def test_a_tissue_is_recovered_from_its_own_observations():

@@ -44,7 +44,7 @@ from ..materials import Material
 from ..model import Model
 from ..solvers import kernels_quasi_newton as kq
 from ..solvers.newton import minimize
-from ..solvers.quasi_newton import incremental_hessian
+from ..solvers.substep import FieldSubstep, HemlSubstep
 
 __all__ = ["ControlLog", "Replay", "ReplayResult", "ReplayError"]
 
@@ -166,12 +166,15 @@ class Replay:
             raise ReplayError(f"log: {log.kinematic.shape[1]} vertices, the model has {model.n_vertices}")
         if model.supports.kernel_args().grids.shape[0]:
             raise ReplayError("replays differentiate plane supports only (a mesh support's curvature is not)")
-        if not all(isinstance(f, HemlForce) for f in model.fields):
-            raise ReplayError(f"replays differentiate HEML models only (physics field 'heml'), the model's field is "
-                              f"{type(model.field).__name__}")
+        if not model.field.has_hessian:
+            raise ReplayError(f"replays differentiate force fields with a Hessian, the model's field "
+                              f"{type(model.field).__name__} has none")
         self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
         self.dynamics_of = dynamics_of
-        self._body = model.heml_body()  # the kernels' body: the model's, with the replay's masses and damping
+        #: HEML's sub-steps run on the quasi-Newton solver's kernels, any other field's in NumPy
+        self._heml = isinstance(model.field, HemlForce)
+        self._mass, self._alpha = model.mass, float(model.damping.alpha)  # the replay's (see dynamics_of)
+        self._body = model.heml_body() if self._heml else None  # the kernels' body, with the replay's mass, alpha
         #: each sub-step's converged positions of the latest run: the next run's Newton may
         #: start there (a fit's successive constants are close, so are their trajectories)
         self._previous: list[np.ndarray] = []
@@ -196,14 +199,15 @@ class Replay:
     def _set(self, theta) -> None:
         theta = tuple(float(t) for t in theta)
         self.model.set_material(self.world, self.material_of(theta))
-        body = self.model.heml_body()
+        self._mass, self._alpha = self.model.mass, float(self.model.damping.alpha)
         if self.dynamics_of is not None:
             density, alpha = (float(v) for v in self.dynamics_of(theta))
             if not (math.isfinite(density) and density > 0 and math.isfinite(alpha) and alpha >= 0):
                 raise ReplayError(f"dynamics_of: density must be > 0 kg/m^3 and alpha >= 0 1/s, got "
                                   f"{density}, {alpha}")
-            body = body._replace(mass=density * self.model.mesh.vertex_volumes, alpha=alpha)
-        self._body = body
+            self._mass, self._alpha = density * self.model.mesh.vertex_volumes, alpha
+        if self._heml:
+            self._body = self.model.heml_body()._replace(mass=self._mass, alpha=self._alpha)
 
     def _dynamic_constants(self, theta) -> list[int]:
         """The indices of ``theta`` that change the density or the damping."""
@@ -218,15 +222,26 @@ class Replay:
                 out.append(j)
         return out
 
-    def _holds(self, t: int):
-        """Control step ``t``'s holds: every held vertex exactly (a replay holds no springs)."""
-        n = self.model.n_vertices
-        return kq.Holds(self.log.kinematic[t], np.zeros(n), np.zeros((n, 3)))
+    def _substep(self, t: int, h: float, fraction: float):
+        """A sub-step of control step ``t`` (every held vertex held exactly: a replay holds
+        no springs), for the constants last set: a :class:`~heml_gym.solvers.substep.HemlSubstep`
+        on a HEML model, else a :class:`~heml_gym.solvers.substep.FieldSubstep`."""
+        m, log = self.model, self.log
+        field = m.fields[self.world]
+        if self._heml:
+            return HemlSubstep(field, self._body, self._law(), m.supports.kernel_args(), self.contact_stiffness, h,
+                               log.kinematic[t], log.targets[t], fraction, self._add_diagonal, self._add_blocks)
+        return FieldSubstep(field, self._mass, self._alpha, m.gravity, m.fixed, m.supports, self.contact_stiffness,
+                            m.mesh.tets, h, log.kinematic[t], log.targets[t], fraction, self._add_diagonal,
+                            self._add_blocks)
 
     def _law(self):
         return world_law(self.model.heml_laws(), self.world)
 
     def _forces(self, x: np.ndarray) -> np.ndarray:
+        """The elastic forces (N) at ``x`` for the constants last set."""
+        if not self._heml:
+            return self.model.fields[self.world].forces(x)
         f = np.zeros_like(x)
         kq.elastic_forces(x, f, self.model.heml_body(), self._law())
         return f
@@ -264,44 +279,33 @@ class Replay:
         self._set(theta)
         m, log = self.model, self.log
         n = m.n_vertices
-        body, law, supports = self._body, self._law(), m.supports.kernel_args()
-        n_supports = supports.planes.shape[0] + supports.grids.shape[0]
         h = log.dt / log.substeps
         x, v = log.x0.copy(), log.v0.copy()
         xs, forces = [x.copy()], []
         tape, iterations, worst = [], 0, 0.0
         previous, self._previous = self._previous, []
-        ext = np.zeros((n, 3))
-        history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
         for t in range(log.steps):
             r_prev = np.zeros((n, 3))
             reaction = np.zeros((n, 3))
             start = x.copy(), v.copy()
             for k in range(1, log.substeps + 1):
                 fraction = 1.0 / (log.substeps - k + 1)
-                sub = kq.Substep(h, fraction, 1, k == 1, 0, self.contact_stiffness)
-                work = kq.substep_work(n, 1)
+                step = self._substep(t, h, fraction)
                 x_n = x.copy()
-                holds = self._holds(t)
-                c, _ = kq.begin_substep(x, v, log.targets[t], holds, ext, body, law, sub, history, r_prev, work)
-                held = work.held.copy()
-                k_contact = self.contact_stiffness * c
-                args = (body, law, supports, c, work.x_hat, work.load, held, k_contact, holds)
-                g, f = np.zeros((n, 3)), work.f  # (end_substep reads the forces at x from work.f)
-                dist, normal = np.full(n, math.inf), np.zeros((n, 3))
+                step.begin(x, v, r_prev if k == 1 else None)
+                held = step.held
 
-                def potential(y, args=args, g=g, f=f, dist=dist, normal=normal):
-                    return kq.potential_and_gradient(y.reshape(n, 3), False, g, f, dist, normal, *args)
+                def potential(y, step=step):
+                    return step.potential(y)
 
-                def gradient(y, args=args, g=g, f=f, dist=dist, normal=normal):
-                    kq.potential_and_gradient(y.reshape(n, 3), True, g, f, dist, normal, *args)
-                    return g.reshape(-1).copy()
+                def gradient(y, step=step):
+                    return step.gradient(y).reshape(-1)
 
-                def hessian(y, project, c=c, k_contact=k_contact, held=held, args=args):
-                    return self._step_hessian(y.reshape(n, 3), c, k_contact, held, args, project)
+                def hessian(y, project, step=step):
+                    return step.hessian(y, project)
 
                 y0, best, warm = x.copy(), math.inf, False
-                starts = [work.x_n + h * work.v_n, work.x_n.copy()]
+                starts = [step.x_n + h * step.v_n, step.x_n.copy()]
                 if len(previous) > len(self._previous):  # where the previous run's Newton ended
                     starts.append(previous[len(self._previous)].copy())
                 for i, candidate in enumerate(starts):  # the lowest-potential start
@@ -324,18 +328,10 @@ class Replay:
                 y = result.x.reshape(n, 3)
                 self._previous.append(y.copy())
                 x[:] = y
-                kq.potential_and_gradient(x, True, g, f, dist, normal, *args)
-                inside = (dist < 0.0) & ~held if n_supports else np.zeros(n, dtype=bool)
-                x_before = x.copy()
-                kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub,
-                               history, holds)
-                projected = inside & np.any(x != x_before, axis=1)
-                v_pre = (x - work.x_n) / h
-                stopped = inside & (np.einsum("ij,ij->i", v_pre, normal) < 0.0)  # (end_substep's test)
-                tape.append(dict(t=t, k=k, h=h, c=c, fraction=fraction, x_n=x_n, v_n=work.v_n.copy(),
-                                 x_hat=work.x_hat.copy(), y=y.copy(), z=x.copy(), held=held,
-                                 normal=normal.copy(), inside=inside, projected=projected, stopped=stopped,
-                                 k_contact=k_contact, args=args, start=start if k == 1 else None))
+                ends = step.finish(x, v, reaction, r_prev)
+                tape.append(dict(t=t, k=k, h=h, c=step.c, fraction=fraction, x_n=x_n, v_n=step.v_n.copy(),
+                                 x_hat=step.x_hat.copy(), y=y.copy(), z=x.copy(), held=held, step=step,
+                                 start=start if k == 1 else None, **ends))
             reaction /= log.substeps
             forces.append(-reaction[log.gripped[t]].sum(axis=0))
             xs.append(x.copy())
@@ -357,39 +353,24 @@ class Replay:
         self._cholesky = None
         return spla.spsolve(a.tocsc(), b)
 
-    def _step_hessian(self, y, c, k_contact, held, args, project):
-        """The incremental potential's Hessian at ``y`` (CSR, 3n x 3n): the solver's own."""
-        return incremental_hessian(self.model.fields[self.world], self._body.mass, y, c, k_contact, held, args,
-                                   project, self._add_diagonal, self._add_blocks)
-
     # ------------------------------------------------------------------ reverse
     def _substep_gradient(self, e) -> np.ndarray:
         """The incremental potential's gradient (N) at the sub-step's minimiser ``e["y"]``,
         for the constants last set (its start, targets and sub-step as recorded)."""
-        n = self.model.n_vertices
-        body, law, supports = self._body, self._law(), self.model.supports.kernel_args()
-        sub = kq.Substep(e["h"], e["fraction"], 1, e["k"] == 1, 0, self.contact_stiffness)
-        work = kq.substep_work(n, 1)
-        history = kq.Bdf2History(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1))
-        x, v = e["x_n"].copy(), e["v_n"].copy()
-        holds = self._holds(e["t"])
-        c, _ = kq.begin_substep(x, v, self.log.targets[e["t"]], holds, np.zeros((n, 3)), body, law, sub, history,
-                                np.zeros((n, 3)), work)
-        g, f = np.zeros((n, 3)), np.zeros((n, 3))
-        kq.potential_and_gradient(e["y"], True, g, f, np.full(n, math.inf), np.zeros((n, 3)), body, law, supports, c,
-                                  work.x_hat, work.load, work.held.copy(), self.contact_stiffness * c, holds)
-        return g
+        step = self._substep(e["t"], e["h"], e["fraction"])
+        step.begin(e["x_n"].copy(), e["v_n"].copy())
+        return step.gradient(e["y"])
 
     def _end_reaction(self, e) -> np.ndarray:
         """``m (v - v_n)/h - f(z) - m g + alpha m v`` (N): the end reaction on every vertex
         (the held rows are the reaction), for the constants last set."""
-        mass, alpha = self._body.mass[:, None], float(self._body.alpha)
+        mass, alpha = self._mass[:, None], self._alpha
         v = (e["z"] - e["x_n"]) / e["h"]  # (held rows: their prescribed path)
         return mass * (v - e["v_n"]) / e["h"] - self._forces(e["z"]) - mass * self.model.gravity + alpha * mass * v
 
     def _start_reaction(self, e) -> np.ndarray:
         """``-(f(x) + m g - alpha m v)`` (N) at the control step's start ``e["start"]``."""
-        mass, alpha = self._body.mass[:, None], float(self._body.alpha)
+        mass, alpha = self._mass[:, None], self._alpha
         x, v = e["start"]
         return -(self._forces(x) + mass * self.model.gravity - alpha * mass * v)
 
@@ -440,8 +421,8 @@ class Replay:
         for j in dynamic:
             self._dynamic_derivatives(theta, j, tape, dz, dy, dstart)
         self._set(theta)
-        mass = self._body.mass[:, None]
-        alpha = float(self._body.alpha)
+        mass = self._mass[:, None]
+        alpha = self._alpha
         theta_bar = np.zeros(len(theta))
         zb = x_bar[T].copy()  # adjoint of the positions after the current sub-step
         vb = np.zeros((n, 3))  # and of the velocities
@@ -484,7 +465,7 @@ class Replay:
             # ---- the minimisation: H w = y_bar on the free rows
             free = np.repeat(~held, 3)
             if free.any() and yb.any():
-                hess = self._step_hessian(e["y"], c, e["k_contact"], held, e["args"], False)
+                hess = e["step"].hessian(e["y"], False)
                 w_free = self._solve(self._submatrix(hess, free), yb.reshape(-1)[free])
                 if not np.all(np.isfinite(w_free)):
                     raise ReplayError(f"control step {t}, sub-step {k}: the step's Hessian is singular")
