@@ -4,9 +4,10 @@ A :class:`ControlLog` is what drove a scene: for each control step, which vertic
 held (the jaws' grip, an attachment) and where they were driven. :class:`Replay` steps
 the scene through it by backward Euler, each sub-step minimised by Newton's method with
 the field's exact Hessian to a tight tolerance (the same incremental potential, supports
-and sub-step bookkeeping as :class:`~heml_gym.solvers.QuasiNewtonSolver`, whose
-:func:`~heml_gym.solvers.kernels_quasi_newton.begin_substep` and ``end_substep`` it calls),
-and records what the reverse pass needs.
+and sub-step bookkeeping as :class:`~heml_gym.solvers.QuasiNewtonSolver`: on a HEML
+model its kernels, through :class:`~heml_gym.solvers.substep.HemlSubstep`; on any other
+field with a Hessian, such as quadratic tets, the same sub-step in NumPy,
+:class:`~heml_gym.solvers.substep.FieldSubstep`), and records what the reverse pass needs.
 
 Gradients. A converged sub-step satisfies ``grad Phi(y; x_hat, p, theta) = 0`` on the
 free vertices, so by the implicit function theorem ``dy = H^-1 (c M dx_hat - H_fp dp +
@@ -133,7 +134,7 @@ class Replay:
     Parameters
     ----------
     model : Model
-        A HEML model (any law); its world ``world``'s material is replaced by
+        A model on any force field with a Hessian (any law); its world ``world``'s material is replaced by
         ``material_of(theta)`` for each replay.
     log : ControlLog
     material_of : callable
@@ -295,14 +296,10 @@ class Replay:
                 step.begin(x, v, r_prev if k == 1 else None)
                 held = step.held
 
-                def potential(y, step=step):
-                    return step.potential(y)
+                potential, hessian = step.potential, step.hessian
 
                 def gradient(y, step=step):
                     return step.gradient(y).reshape(-1)
-
-                def hessian(y, project, step=step):
-                    return step.hessian(y, project)
 
                 y0, best, warm = x.copy(), math.inf, False
                 starts = [step.x_n + h * step.v_n, step.x_n.copy()]
