@@ -67,12 +67,22 @@ QUADRATIC_MODELS = [
 
 
 def fit_models(obs, models) -> list[dict]:
-    """Fit each of ``models`` (label, env keyword arguments, what it is fitted from) to ``obs``."""
+    """Fit each of ``models`` (label, env keyword arguments, what it is fitted from) to
+    ``obs``; a model that cannot follow the observed control (its own steps diverge, its
+    replay does not converge) is a row with the ``error``."""
+    from heml_gym.calibration import ReplayError
+    from heml_gym.envs.observations import ObservationError
+
     rows = []
     for label, kwargs, uses in models:
         for use in uses:
             names = FITS[use]
-            _, result, wall = fit_case(ENV, copy.deepcopy(obs), names, use, kwargs)
+            try:
+                _, result, wall = fit_case(ENV, copy.deepcopy(obs), names, use, kwargs)
+            except (ObservationError, ReplayError) as exc:
+                rows.append({"fitted_model": label, "observed": use, "error": str(exc)})
+                print(f"{label}, {use}: {exc}", flush=True)
+                break
             row = {"fitted_model": label, "observed": use, "converged": result.converged, "wall_s": wall,
                    "iterations": len(result.history), **fitted_constants(result, names)}
             rows.append(row)
@@ -149,6 +159,9 @@ def measure(parts) -> dict:
 def _table(study: dict) -> str:
     rows = []
     for r in study["results"]:
+        if "error" in r:
+            rows.append([r["fitted_model"], r["observed"], f"failed: {r['error']}", "", "", ""])
+            continue
         nu = (f"{r['poisson_ratio']:.3f} ({r['poisson_ratio_error']:+.3f})" if "poisson_ratio" in r else "not fitted")
         rows.append([r["fitted_model"], r["observed"],
                      f"{r['young_modulus']:,.0f} ± {r['young_modulus_std']:,.0f} ({100 * r['young_modulus_error']:+.1f} %)",
