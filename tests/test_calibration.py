@@ -46,29 +46,33 @@ def _random_loss_gradient_check(replay, theta, steps, rng):
         assert grad[j] == pytest.approx(fd, rel=1e-5), f"constant {j}: adjoint {grad[j]}, central difference {fd}"
 
 
-def test_adjoint_gradients_equal_central_differences_on_a_slab():
-    """A clamped slab on a support plane, pulled up and back by its free edge: damping, two
-    sub-steps per control step, the support's projection and the jaws' force all in the loss."""
-    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
+def _pulled_slab(mesh, field: str, steps: int):
+    """``(model, log, material_of)``: a slab clamped at x = 0 on a support plane, its free
+    edge pulled up and back over ``steps`` control steps of 0.1 s (two sub-steps each)."""
     X = mesh.vertices
 
     def material_of(theta):
         return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
 
     model = hg.Model(mesh, material_of((5e3, 0.45)), n_worlds=1, density=950.0, fixed=X[:, 0] < 1e-9,
-                     damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)])
-    T = 6
+                     damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)], field=field)
     grip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
-    kinematic = np.zeros((T, mesh.n_vertices), bool)
+    kinematic = np.zeros((steps, mesh.n_vertices), bool)
     kinematic[:, grip] = True
-    targets = np.zeros((T, mesh.n_vertices, 3))
-    for t in range(T):
+    targets = np.zeros((steps, mesh.n_vertices, 3))
+    for t in range(steps):
         targets[t, grip] = X[grip] + np.array([-0.002, 0.0, 0.004]) * (t + 1)
-    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of)
+    return model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of
+
+
+def test_adjoint_gradients_equal_central_differences_on_a_slab():
+    """A clamped slab on a support plane, pulled up and back by its free edge: damping, two
+    sub-steps per control step, the support's projection and the jaws' force all in the loss."""
+    model, log, material_of = _pulled_slab(hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1)), "heml", steps=6)
+    replay = Replay(model, log, material_of)
     _random_loss_gradient_check(replay, (5e3, 0.45), (0.5, 1e-5), np.random.default_rng(0))
     # the density (kg/m^3: masses, weight, support penalty) and the mass damping (1/s) too
-    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of,
-                    dynamics_of=lambda theta: (theta[2], theta[3]))
+    replay = Replay(model, log, material_of, dynamics_of=lambda theta: (theta[2], theta[3]))
     _random_loss_gradient_check(replay, (5e3, 0.45, 1100.0, 3.0), (0.5, 1e-5, 0.1, 1e-3), np.random.default_rng(0))
 
 
@@ -170,22 +174,8 @@ def test_adjoint_gradients_equal_central_differences_on_quadratic_tets():
     forces and Hessian, heml_gym.solvers.substep.FieldSubstep): d/dE, d/dnu, d/density and
     d/damping of a loss on every position and the jaws' force."""
     mesh = hg.QuadraticTetMesh.from_linear(hg.box_mesh((0.06, 0.06, 0.008), (3, 3, 1)))
-    X = mesh.vertices
-
-    def material_of(theta):
-        return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
-
-    model = hg.Model(mesh, material_of((5e3, 0.45)), n_worlds=1, density=950.0, fixed=X[:, 0] < 1e-9,
-                     damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)], field="quadratic")
-    T = 5
-    grip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
-    kinematic = np.zeros((T, mesh.n_vertices), bool)
-    kinematic[:, grip] = True
-    targets = np.zeros((T, mesh.n_vertices, 3))
-    for t in range(T):
-        targets[t, grip] = X[grip] + np.array([-0.002, 0.0, 0.004]) * (t + 1)
-    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of,
-                    dynamics_of=lambda theta: (theta[2], theta[3]))
+    model, log, material_of = _pulled_slab(mesh, "quadratic", steps=5)
+    replay = Replay(model, log, material_of, dynamics_of=lambda theta: (theta[2], theta[3]))
     _random_loss_gradient_check(replay, (5e3, 0.45, 1100.0, 3.0), (0.5, 1e-5, 0.1, 1e-3), np.random.default_rng(0))
 
 
