@@ -182,8 +182,8 @@ def report(data: dict) -> str:
         checks = "; ".join(f"{c['finer']}: {1e3 * c['points_max_m']:.2f} mm and {c['force_max_N']:.3f} N"
                            for c in study.get("converged_check", []))
         out += (f"Observed on {study['observed_on']} ({m['cpu']}, {m['vector_isa']}, one thread, {m['date']}"
-                + (f"; the same tissue observed in finer models moves its noise-free tracked points and jaws' "
-                   f"force at most by ({checks}; the force peaks at "
+                + (f"; observed in finer models, the same tissue's noise-free tracked points and jaws' force "
+                   f"move by at most {checks} (the force peaks at "
                    f"{study['converged_check'][0]['force_peak_N']:.2f} N)" if checks else "") + "):\n\n")
         out += _table(study) + "\n"
     return out
