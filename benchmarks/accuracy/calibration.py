@@ -53,19 +53,26 @@ POINT_NOISE, FORCE_NOISE, DEPTH_NOISE = 5e-4, 0.01, 1e-3
 DEPTH_SIZE = (84, 84)
 
 
-def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float, depth_noise: float = 0.0,
-            law: str | None = None, stretch: float = 1.0, depth_size=DEPTH_SIZE):
-    """The truth's tissue (of ``law``, default the scene's) observed along the scripted
-    retraction, its fold's arc ``stretch`` times the grasp's distance from the hinge."""
+def truth_env(env_id: str, kwargs: dict, law: str | None = None):
+    """``(env, policy)``: the env ``env_id`` (keyword arguments ``kwargs``) with the truth's
+    tissue (of ``law``, default the scene's), and the scripted retraction for its scene."""
     import gymnasium as gym
 
-    from heml_gym.envs.observations import record
     from heml_gym.envs.scripted import scripted_policy
 
     physics = {**kwargs.get("physics", {}), "young_modulus": [TRUTH["young_modulus"]] * 2,
                "poisson": TRUTH["poisson_ratio"], **({"material": law} if law else {})}
     env = gym.make(env_id, **{**kwargs, "physics": physics})
-    policy = scripted_policy(env.unwrapped.scene)
+    return env, scripted_policy(env.unwrapped.scene)
+
+
+def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_noise: float, depth_noise: float = 0.0,
+            law: str | None = None, stretch: float = 1.0, depth_size=DEPTH_SIZE):
+    """The truth's tissue (of ``law``, default the scene's) observed along the scripted
+    retraction, its fold's arc ``stretch`` times the grasp's distance from the hinge."""
+    from heml_gym.envs.observations import record
+
+    env, policy = truth_env(env_id, kwargs, law)
     policy.radius_scale *= stretch
     return record(env, policy, seed=seed, steps=STEPS, points=10, point_noise=point_noise, force_noise=force_noise,
                   noise_seed=seed, env_id=env_id, depth_size=depth_size, depth_noise=depth_noise)

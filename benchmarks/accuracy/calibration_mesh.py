@@ -35,7 +35,7 @@ import numba
 import numpy as np
 
 from heml_gym.benchmarks.accuracy.calibration import (FORCE_NOISE, POINT_NOISE, SEED, STEPS, TRUTH, fit_case,
-                                                      fitted_constants, observe)
+                                                      fitted_constants, observe, truth_env)
 from heml_gym.benchmarks.common import RESULTS, machine_info, markdown_table, store_and_report
 
 ENV = "heml_gym/TissueRetraction-v1"
@@ -102,16 +102,10 @@ def tracked(kwargs: dict, rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarr
     noise-free: the positions (m) of the material points at ``rest_points`` (interpolated
     in the model's tets, so models of different meshes compare the same points) and the
     jaws' force (N), at every control step."""
-    import gymnasium as gym
-
     from heml_gym.calibration import embed_points
-    from heml_gym.envs.scripted import scripted_policy
 
-    physics = {**kwargs.get("physics", {}), "young_modulus": [TRUTH["young_modulus"]] * 2,
-               "poisson": TRUTH["poisson_ratio"]}
-    env = gym.make(ENV, **{**kwargs, "physics": physics})
+    env, policy = truth_env(ENV, kwargs)
     task = env.unwrapped.task
-    policy = scripted_policy(env.unwrapped.scene)
     B = embed_points(task.scene.mesh, rest_points)
     obs, _ = env.reset(seed=SEED)
     points, force = [B @ task.x[0]], [np.zeros(3)]
@@ -147,9 +141,6 @@ def measure_quadratic() -> dict:
 def measure(parts) -> dict:
     """The chosen ``parts`` measured, the others read from the stored JSON."""
     stored = json.loads((RESULTS / "calibration_mesh.json").read_text()) if len(parts) < 2 else {}
-    if "results" in stored:  # (the layout before the quadratic study)
-        stored["linear"] = {"machine": stored["machine"], "observed_on": stored["observed_on"],
-                            "results": stored["results"]}
     data = {"env": ENV, "truth": TRUTH, "seed": SEED, "point_noise_m": POINT_NOISE, "force_noise_N": FORCE_NOISE}
     for part, run in (("linear", measure_linear), ("quadratic", measure_quadratic)):
         data[part] = run() if part in parts else stored[part]

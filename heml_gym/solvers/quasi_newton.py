@@ -54,33 +54,43 @@ from . import kernels_quasi_newton as kq
 from .base import Solver, StepStats
 from .newton import minimize
 
-__all__ = ["QuasiNewtonSolver", "incremental_hessian"]
+__all__ = ["QuasiNewtonSolver", "incremental_hessian", "penalised_hessian"]
+
+
+def penalised_hessian(field, mass, y, c, project, add_diagonal, add_blocks, touching, normal, k_contact,
+                      springs=None):
+    """The Hessian (CSR, 3n x 3n) at ``y`` (m) of a sub-step's incremental potential, the
+    vertices in contact given: the ``field``'s stiffness (its per-element projection if
+    ``project``), ``c M`` (1/s^2 times the lumped ``mass``), the hold ``springs`` (n,) N/m
+    if any on the diagonal, and the support penalty ``k_contact m_i n n^T`` of the
+    ``touching`` vertices (indices; ``normal`` (n, 3) the supports' normals);
+    ``add_diagonal`` / ``add_blocks``: a :class:`~heml_gym.linear_solvers.DiagonalAdd` and
+    :class:`~heml_gym.linear_solvers.DiagonalBlockAdd` (they cache the pattern)."""
+    diagonal = c * mass if springs is None else c * mass + springs
+    hess = add_diagonal(field.hessian(y, project=project), np.repeat(diagonal, 3))
+    if len(touching):
+        nrm = normal[touching]
+        blocks = (k_contact * mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+        hess = add_blocks(hess, touching, blocks)
+    return hess
 
 
 def incremental_hessian(field, mass, y, c, k_contact, held, potential_args, project, add_diagonal, add_blocks,
                         springs=None):
-    """The Hessian (CSR, 3n x 3n) at ``y`` (m) of a sub-step's incremental potential: the
-    ``field``'s stiffness (its per-element projection if ``project``), ``c M`` (1/s^2 times
-    the lumped ``mass``) and the support penalty ``k_contact m_i n n^T`` of the free
-    vertices inside a support; ``potential_args`` are :func:`~.kernels_quasi_newton.potential_and_gradient`'s
-    (they locate the supports); ``add_diagonal`` / ``add_blocks``: a
-    :class:`~heml_gym.linear_solvers.DiagonalAdd` and :class:`~heml_gym.linear_solvers.DiagonalBlockAdd`
-    (they cache the pattern); ``springs`` (n,) N/m: the hold springs' stiffness on the
-    diagonal. The Newton fallback and the calibration's replay use it."""
+    """:func:`penalised_hessian` with the free vertices inside a support located by the
+    HEML kernels: ``potential_args`` are :func:`~.kernels_quasi_newton.potential_and_gradient`'s.
+    The Newton fallback and the calibration's replay of HEML models use it."""
     n = y.shape[0]
-    diagonal = c * mass if springs is None else c * mass + springs
-    hess = add_diagonal(field.hessian(y, project=project), np.repeat(diagonal, 3))
+    touching = np.zeros(0, dtype=np.int64)
+    normal = None
     supports = potential_args[2]
     if supports.planes.shape[0] + supports.grids.shape[0]:
         g, f = np.zeros((n, 3)), np.zeros((n, 3))
         dist, normal = np.full(n, math.inf), np.zeros((n, 3))
         kq.potential_and_gradient(y, False, g, f, dist, normal, *potential_args)
         touching = np.flatnonzero((dist < 0.0) & ~held)
-        if touching.size:
-            nrm = normal[touching]
-            blocks = (k_contact * mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
-            hess = add_blocks(hess, touching, blocks)
-    return hess
+    return penalised_hessian(field, mass, y, c, project, add_diagonal, add_blocks, touching, normal, k_contact,
+                             springs)
 
 
 class QuasiNewtonSolver(Solver):

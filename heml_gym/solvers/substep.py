@@ -28,7 +28,7 @@ from ..forces.base import ForceField
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd
 from ..mesh import signed_volumes
 from . import kernels_quasi_newton as kq
-from .quasi_newton import incremental_hessian
+from .quasi_newton import incremental_hessian, penalised_hessian
 
 __all__ = ["FieldSubstep", "HemlSubstep"]
 
@@ -121,15 +121,9 @@ class FieldSubstep:
         positive semi-definite if ``project``), ``c M``, and the support penalty
         ``k_contact m_i n n^T`` of the free vertices inside a support."""
         y = y.reshape(-1, 3)
-        hess = self._add_diagonal(self.field.hessian(y, project=project), np.repeat(self.c * self.mass, 3))
-        if len(self.supports):
-            pen, normal = self._penetration(y)
-            touching = np.flatnonzero(pen < 0.0)
-            if touching.size:
-                nrm = normal[touching]
-                blocks = (self.k_contact * self.mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
-                hess = self._add_blocks(hess, touching, blocks)
-        return hess
+        pen, normal = self._penetration(y)
+        return penalised_hessian(self.field, self.mass, y, self.c, project, self._add_diagonal, self._add_blocks,
+                                 np.flatnonzero(pen < 0.0), normal, self.k_contact)
 
     # ------------------------------------------------------------------- end
     def finish(self, x: np.ndarray, v: np.ndarray, reaction: np.ndarray, r_prev: np.ndarray) -> dict:
