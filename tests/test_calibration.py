@@ -11,12 +11,13 @@ import pytest
 
 import heml_gym as hg
 from heml_gym.agents.cli import main
-from heml_gym.calibration import ControlLog, Observed, Replay, fit, loss_terms
+from heml_gym.calibration import ControlLog, Observed, Replay, ReplayError, fit, loss_terms
 from heml_gym.contact import PlaneSupport
 from heml_gym.envs import ORGAN_RETRACTION, TISSUE_RETRACTION
 from heml_gym.envs.observations import (Observation, ObservationError, calibration_problem, load_observation, record,
                                         save_observation)
 from heml_gym.envs.scripted import scripted_policy
+from heml_gym.mesh import signed_volumes
 
 
 def _random_loss_gradient_check(replay, theta, steps, rng):
@@ -158,6 +159,45 @@ def test_a_search_stopped_at_a_kink_is_a_minimum_only_if_no_probe_is_lower():
     assert result.converged and result.theta[0] == pytest.approx(6000.0, rel=1e-3)
     short = fit(replay, Observed(extra=(Kink(),)), ["young_modulus"], [(3000.0,)], [(200.0, 2e5)], max_iter=1)
     assert not short.converged and "still lowers the loss" in short.message
+
+
+def _edge_pulled_slab(move, steps: int = 4, max_iter: int = 60):
+    """A replay of a clamped slab (5 mm cells) whose free edge moves by ``move`` (m) per
+    0.1 s control step (two sub-steps)."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (12, 12, 2))
+    X = mesh.vertices
+    clamped, gripped = X[:, 0] < 1e-9, X[:, 0] > 0.06 - 1e-9
+    model = hg.Model(mesh, hg.materials.NeoHookean(E=5e3, nu=0.45), n_worlds=1, density=950.0, fixed=clamped,
+                     supports=[PlaneSupport((0, 0, 1.0), 0.0)])
+    kinematic = np.repeat(gripped[None], steps, axis=0)
+    targets = np.stack([np.where(gripped[:, None], X + np.asarray(move) * (t + 1), 0.0) for t in range(steps)])
+    return Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)),
+                  lambda theta: hg.materials.NeoHookean(E=theta[0], nu=0.45), max_iter=max_iter)
+
+
+def test_a_held_edge_moved_past_its_neighbours_turns_no_tet_inside_out():
+    """The held edge moves 5 mm back and 10 mm up per sub-step, past its 5 mm neighbours:
+    every start of the first sub-step turns tets inside out. HEML's energy is finite there
+    (Newton from such a start used to converge with 144 tets inside out, and a NaN Hessian
+    for the adjoint); the replay starts from the free vertices' linear response instead:
+    no tet is inside out at any step, and the adjoint still equals central differences."""
+    replay = _edge_pulled_slab([-0.01, 0.0, 0.02])
+    result = replay.run((5000.0,))
+    tets = replay.model.mesh.tets
+    assert all((signed_volumes(x, tets) > 0).all() for x in result.x)
+    _random_loss_gradient_check(replay, (5000.0,), [5.0], np.random.default_rng(3))
+
+
+def test_a_fit_whose_replay_fails_at_its_start_is_an_error():
+    """A replay that cannot follow its log at the start (Newton limited to one iteration)
+    gives no fit: a ReplayError naming the start and why, not a fit 'converged' where it
+    began (L-BFGS sees a zero gradient there)."""
+    replay = _edge_pulled_slab([-0.002, 0.0, 0.004], steps=2, max_iter=1)
+    height = np.zeros((3, replay.model.n_vertices, 3))
+    with pytest.raises(ReplayError, match=r"the fit cannot start: replaying the log with \{'young_modulus': 4000.0\}"
+                                          r" fails \(control step 0, sub-step 1: Newton stopped"):
+        fit(replay, Observed(points=height[:, :2], rest_points=replay.model.mesh.vertices[:2]), ["young_modulus"],
+            [(4000.0,)], [(200.0, 2e5)])
 
 
 def test_a_law_constant_needs_its_law():

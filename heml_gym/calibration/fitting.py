@@ -151,7 +151,8 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     ``ftol`` (absolute below a loss of 1, else relative): the loss has kinks where a vertex
     enters or leaves contact with the support, next to which L-BFGS would otherwise
     bounce between both sides. ``progress(i, loss)`` is called after each iteration (a
-    progress bar)."""
+    progress bar). Raises :class:`ReplayError` when no start's replay can be followed
+    (a fit that starts but stops short says so in its ``converged`` and ``message``)."""
     t0 = time.perf_counter()
     embedding = None
     if observed.points is not None:
@@ -162,6 +163,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     unit_bounds = transform.bounds
     runs = []
     failures = [0]
+    failed = {}  # search point (bytes of u) -> why its replay failed
 
     cache = {}
 
@@ -179,8 +181,9 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
             result = replay.run(theta)
             loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
             grad = replay.gradient(theta, result, x_bar, force_bar) * transform.dtheta_du(u)
-        except ReplayError:
+        except ReplayError as exc:
             failures[0] += 1
+            failed[np.asarray(u, dtype=np.float64).tobytes()] = str(exc)
             return 1e6, np.zeros_like(u)  # a material the log cannot be followed with: far off (the line search backs off)
         return loss, grad
 
@@ -198,7 +201,12 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
                           options={"maxiter": max_iter, "maxfun": 4 * max_iter, "maxls": 10, "gtol": gtol,
                                    "ftol": ftol})
         runs.append((res, history, np.asarray(start, dtype=np.float64)))
-    best, history, _ = min(runs, key=lambda r: r[0].fun)
+    replayed = [r for r in runs if np.asarray(r[0].x, dtype=np.float64).tobytes() not in failed]
+    if not replayed:  # (L-BFGS stops at once where the replay fails: zero gradient)
+        res, _, start = runs[0]
+        raise ReplayError(f"the fit cannot start: replaying the log with {dict(zip(names, start.tolist()))} fails "
+                          f"({failed[np.asarray(res.x, dtype=np.float64).tobytes()]})")
+    best, history, _ = min(replayed, key=lambda r: r[0].fun)
     u = np.asarray(best.x, dtype=np.float64)
     message = best.message if isinstance(best.message, str) else best.message.decode()
     converged = bool(best.success)

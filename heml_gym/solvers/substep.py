@@ -198,7 +198,11 @@ class HemlSubstep:
                      self.k_contact, self.holds)
 
     def potential(self, y: np.ndarray) -> float:
-        """As :meth:`FieldSubstep.potential`."""
+        """As :meth:`FieldSubstep.potential`: ``inf`` where a tet is turned inside out
+        (HEML's energy stays finite there, but its exact Hessian does not, and Newton's
+        larger steps than the envs' L-BFGS can otherwise end in such a minimum)."""
+        if not np.all(signed_volumes(y.reshape(-1, 3), self.field.mesh.tets) > 0.0):
+            return math.inf
         return kq.potential_and_gradient(y.reshape(-1, 3), False, self._g, self.work.f, self._dist, self._normal,
                                          *self.args)
 
