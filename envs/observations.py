@@ -329,7 +329,9 @@ def control_log(env, obs: Observation, young_modulus: float | None = None) -> Co
                                    f"held tissue below its rest (observed {obs.gripper[k].round(5).tolist()}, the "
                                    f"scene allows {task.gripper[0].round(5).tolist()})")
         if (terminated or truncated) and k < obs.t.shape[0] - 1 and info.get("simulation_diverged"):
-            raise ObservationError(f"{obs.source}: the replay diverged at step {k}")
+            raise ObservationError(f"{obs.source}: the env's own solver diverged at step {k} of the observed "
+                                   "control (its info's simulation_diverged), before any fitting: this model "
+                                   "cannot follow it (a shorter max_dt or another integrator may)")
     return ControlLog(np.array(kinematic), np.array(targets), st.control_dt, task.substeps, x0, np.zeros((n, 3)),
                       gripped=np.array(gripped))
 

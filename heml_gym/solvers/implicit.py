@@ -31,6 +31,7 @@ from ..model import Model
 from ..state import State
 from .base import Solver, StepStats, stiffness_damping
 from .newton import minimize
+from .quasi_newton import penalised_hessian
 
 __all__ = ["ImplicitSolver"]
 
@@ -229,7 +230,6 @@ class ImplicitSolver(Solver):
         k_hold = control.spring_stiffness(m.fixed)[s]
         k3 = np.repeat(k_hold, 3)
         anchor = targets.reshape(-1)
-        diag = c * m3 + k3
         supports = m.supports
         k_contact = self.contact_stiffness * c * m.mass  # N/m per vertex
 
@@ -264,16 +264,13 @@ class ImplicitSolver(Solver):
             return g
 
         def hessian(x, project):
-            a = self._add_diagonal(field.hessian(x, project=project), diag)
-            if k_n is not None:
-                a = a + k_n
+            touching, normal = np.zeros(0, dtype=np.int64), None
             if len(supports):
                 pen, normal = contact(x)
                 touching = np.flatnonzero(pen < 0)
-                if touching.size:
-                    nrm = normal[touching]
-                    a = self._add_blocks(a, touching, k_contact[touching, None, None] * nrm[:, :, None] * nrm[:, None, :])
-            return a
+            a = penalised_hessian(field, m.mass, x, c, project, self._add_diagonal, self._add_blocks, touching,
+                                  normal, self.contact_stiffness * c, k_hold)
+            return a if k_n is None else a + k_n
 
         x = self._feasible_start(s, field, x_n, v_n, h, control, targets, potential, hessian)
         free = np.repeat(free_v, 3)
