@@ -18,10 +18,16 @@ quadratic tets on 6 x 6 x 1 cells (the default's 507 nodes; in 0.05 and 0.025 s 
 8 x 1 cells and the observed mesh itself in 0.05 s steps (the time step's share of the error
 alone), and, for comparison, on the default linear model.
 
+The flap's held line has no fine-mesh limit (benchmarks/accuracy/flap_grasp_line.py), so
+neither study's observer is converged next to the jaws. The lobe study (``--part lobe``)
+does the same on OrganRetraction, whose jaws hold a 6 x 40 mm patch (which has a limit):
+observed on a 5 mm lobe in 0.025 s steps (checked against 0.0125 s steps and a 4 mm
+lobe), fitted on the default 10 mm lobe, 8 mm and 7 mm, in 0.05 s steps.
+
 Writes docs/benchmarks/calibration_mesh.{json,md}.
 
-    python benchmarks/accuracy/calibration_mesh.py                  # both parts, ~30 min on one core
-    python benchmarks/accuracy/calibration_mesh.py --part quadratic  # one part; the other's stored rows kept
+    python benchmarks/accuracy/calibration_mesh.py                  # every part, ~75 min on one core
+    python benchmarks/accuracy/calibration_mesh.py --part lobe       # one part; the others' stored rows kept
 """
 
 from __future__ import annotations
@@ -66,10 +72,22 @@ QUADRATIC_MODELS = [
      ("points",))]
 
 
-def fit_models(obs, models) -> list[dict]:
+LOBE = "heml_gym/OrganRetraction-v2"
+#: the lobe study's observer (a 5 mm lobe, its jaws' 2.5 mm elements as the default's),
+#: the finer ones that check it, and the fitted models
+LOBE_OBSERVED = {"mesh_size": 0.005, "physics": {"max_dt": 0.025}}
+LOBE_OBSERVED_LABEL = "a 5 mm lobe, 0.025 s steps"
+LOBE_CHECKS = [("0.0125 s steps", {"mesh_size": 0.005, "physics": {"max_dt": 0.0125}}),
+               ("a 4 mm lobe", {"mesh_size": 0.004, "physics": {"max_dt": 0.025}})]
+LOBE_MODELS = [("10 mm, 0.05 s steps (the default)", {}, ("points", "force")),
+               ("8 mm, 0.05 s steps", {"mesh_size": 0.008}, ("points", "force")),
+               ("7 mm, 0.05 s steps", {"mesh_size": 0.007}, ("points", "force"))]
+
+
+def fit_models(obs, models, env_id: str = ENV) -> list[dict]:
     """Fit each of ``models`` (label, env keyword arguments, what it is fitted from) to
-    ``obs``; a model that cannot follow the observed control (its own steps diverge, its
-    replay does not converge) is a row with the ``error``."""
+    ``obs`` of ``env_id``; a model that cannot follow the observed control (its own steps
+    diverge, its replay does not converge) is a row with the ``error``."""
     from heml_gym.calibration import ReplayError
     from heml_gym.envs.observations import ObservationError
 
@@ -78,7 +96,7 @@ def fit_models(obs, models) -> list[dict]:
         for use in uses:
             names = FITS[use]
             try:
-                _, result, wall = fit_case(ENV, copy.deepcopy(obs), names, use, kwargs)
+                _, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use, kwargs)
             except (ObservationError, ReplayError) as exc:
                 rows.append({"fitted_model": label, "observed": use, "error": str(exc)})
                 print(f"{label}, {use}: {exc}", flush=True)
@@ -97,14 +115,14 @@ def measure_linear() -> dict:
     return {"machine": machine_info(), "observed_on": OBSERVED_LABEL, "results": fit_models(obs, MODELS)}
 
 
-def tracked(kwargs: dict, rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The truth's tissue on the model ``kwargs`` along :func:`observe`'s retraction,
+def tracked(kwargs: dict, rest_points: np.ndarray, env_id: str = ENV) -> tuple[np.ndarray, np.ndarray]:
+    """The truth's tissue on the model ``kwargs`` of ``env_id`` along :func:`observe`'s retraction,
     noise-free: the positions (m) of the material points at ``rest_points`` (interpolated
     in the model's tets, so models of different meshes compare the same points) and the
     jaws' force (N), at every control step."""
     from heml_gym.calibration import embed_points
 
-    env, policy = truth_env(ENV, kwargs)
+    env, policy = truth_env(env_id, kwargs)
     task = env.unwrapped.task
     B = embed_points(task.scene.mesh, rest_points)
     obs, _ = env.reset(seed=SEED)
@@ -119,14 +137,25 @@ def tracked(kwargs: dict, rest_points: np.ndarray) -> tuple[np.ndarray, np.ndarr
 def measure_quadratic() -> dict:
     """The quadratic study: its observer checked against a finer one (noise-free points and
     force), then the fits."""
+    return _checked_study(ENV, QUADRATIC_OBSERVED, QUADRATIC_OBSERVED_LABEL, QUADRATIC_CHECKS, QUADRATIC_MODELS)
+
+
+def measure_lobe() -> dict:
+    """The lobe study: observed on a 5 mm lobe, fitted on the default 10 mm one and finer."""
+    return _checked_study(LOBE, LOBE_OBSERVED, LOBE_OBSERVED_LABEL, LOBE_CHECKS, LOBE_MODELS)
+
+
+def _checked_study(env_id, observed, observed_label, checks_on, models) -> dict:
+    """Observe ``env_id`` on ``observed``, check its noise-free tracked points and force
+    against the finer ``checks_on``, and fit ``models``."""
     numba.set_num_threads(1)
     t0 = time.perf_counter()
-    obs = observe(ENV, QUADRATIC_OBSERVED, SEED, POINT_NOISE, FORCE_NOISE)
+    obs = observe(env_id, observed, SEED, POINT_NOISE, FORCE_NOISE)
     observe_s = time.perf_counter() - t0
-    points, force = tracked(QUADRATIC_OBSERVED, obs.rest_points)
+    points, force = tracked(observed, obs.rest_points, env_id)
     checks = []
-    for label, kwargs in QUADRATIC_CHECKS:
-        finer_points, finer_force = tracked(kwargs, obs.rest_points)
+    for label, kwargs in checks_on:
+        finer_points, finer_force = tracked(kwargs, obs.rest_points, env_id)
         gap = np.linalg.norm(points - finer_points, axis=-1)
         checks.append({"finer": label, "points_max_m": float(gap.max()),
                        "points_rms_m": float(np.sqrt((gap ** 2).mean())),
@@ -134,15 +163,18 @@ def measure_quadratic() -> dict:
                        "force_peak_N": float(np.linalg.norm(finer_force, axis=1).max())})
         print(f"observer vs {label}: points {1e3 * checks[-1]['points_max_m']:.3f} mm at most, force "
               f"{checks[-1]['force_max_N']:.4f} N of {checks[-1]['force_peak_N']:.3f} N", flush=True)
-    return {"machine": machine_info(), "observed_on": QUADRATIC_OBSERVED_LABEL, "observe_s": observe_s,
-            "converged_check": checks, "results": fit_models(obs, QUADRATIC_MODELS)}
+    return {"machine": machine_info(), "env": env_id, "observed_on": observed_label, "observe_s": observe_s,
+            "converged_check": checks, "results": fit_models(obs, models, env_id)}
+
+
+PARTS = ("linear", "quadratic", "lobe")
 
 
 def measure(parts) -> dict:
     """The chosen ``parts`` measured, the others read from the stored JSON."""
-    stored = json.loads((RESULTS / "calibration_mesh.json").read_text()) if len(parts) < 2 else {}
+    stored = json.loads((RESULTS / "calibration_mesh.json").read_text()) if len(parts) < len(PARTS) else {}
     data = {"env": ENV, "truth": TRUTH, "seed": SEED, "point_noise_m": POINT_NOISE, "force_noise_N": FORCE_NOISE}
-    for part, run in (("linear", measure_linear), ("quadratic", measure_quadratic)):
+    for part, run in (("linear", measure_linear), ("quadratic", measure_quadratic), ("lobe", measure_lobe)):
         data[part] = run() if part in parts else stored[part]
     return data
 
@@ -161,18 +193,20 @@ def _table(study: dict) -> str:
 
 
 def report(data: dict) -> str:
-    lin, quad = data["linear"], data["quadratic"]
-    head = (f"Generated by `benchmarks/accuracy/calibration_mesh.py`. {data['env'].split('/')[-1]}; truth E "
-            f"{data['truth']['young_modulus']:,.0f} Pa, nu {data['truth']['poisson_ratio']}, observed along the "
-            f"scripted retraction and hold (seed {data['seed']}; points: 10 tracked, "
-            f"{data['point_noise_m'] * 1e3:g} mm noise; force: {data['force_noise_N']:g} N noise). Method: the "
-            "script's docstring.\n\n")
+    head = (f"Generated by `benchmarks/accuracy/calibration_mesh.py`. Truth E {data['truth']['young_modulus']:,.0f} Pa, "
+            f"nu {data['truth']['poisson_ratio']}, observed along the scripted retraction and hold (seed "
+            f"{data['seed']}; points: 10 tracked, {data['point_noise_m'] * 1e3:g} mm noise; force: "
+            f"{data['force_noise_N']:g} N noise). Method: the script's docstring.\n\n")
     out = head
-    for study in (lin, quad):
+    for part in PARTS:
+        if part not in data:
+            continue
+        study = data[part]
         m = study["machine"]
         checks = "; ".join(f"{c['finer']}: {1e3 * c['points_max_m']:.2f} mm and {c['force_max_N']:.3f} N"
                            for c in study.get("converged_check", []))
-        out += (f"Observed on {study['observed_on']} ({m['cpu']}, {m['vector_isa']}, one thread, {m['date']}"
+        out += (f"{study.get('env', data['env']).split('/')[-1]}, observed on {study['observed_on']} ({m['cpu']}, "
+                f"{m['vector_isa']}, one thread, {m['date']}"
                 + (f"; observed in finer models, the same tissue's noise-free tracked points and jaws' force "
                    f"move by at most {checks} (the force peaks at "
                    f"{study['converged_check'][0]['force_peak_N']:.2f} N)" if checks else "") + "):\n\n")
@@ -183,11 +217,11 @@ def report(data: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored JSON")
-    ap.add_argument("--part", choices=("linear", "quadratic", "all"), default="all",
-                    help="measure this study only (the other's stored rows kept)")
+    ap.add_argument("--part", choices=(*PARTS, "all"), default="all",
+                    help="measure this study only (the others' stored rows kept)")
     args = ap.parse_args(argv)
-    parts = ("linear", "quadratic") if args.part == "all" else (args.part,)
-    store_and_report("calibration_mesh", None if args.from_json else measure(parts), report, envs=[ENV])
+    parts = PARTS if args.part == "all" else (args.part,)
+    store_and_report("calibration_mesh", None if args.from_json else measure(parts), report, envs=[ENV, LOBE])
     return 0
 
 
