@@ -176,6 +176,7 @@ def measure(parts) -> dict:
     data = {"env": ENV, "truth": TRUTH, "seed": SEED, "point_noise_m": POINT_NOISE, "force_noise_N": FORCE_NOISE}
     for part, run in (("linear", measure_linear), ("quadratic", measure_quadratic), ("lobe", measure_lobe)):
         data[part] = run() if part in parts else stored[part]
+    data["machine"] = data[parts[-1]]["machine"]  # (the run that wrote the file; each study has its own)
     return data
 
 
