@@ -44,7 +44,7 @@ from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeCholesky, Fr
 from ..materials import Material
 from ..model import Model
 from ..solvers import kernels_quasi_newton as kq
-from ..solvers.newton import minimize
+from ..solvers.newton import linear_response, minimize
 from ..solvers.substep import FieldSubstep, HemlSubstep
 
 __all__ = ["ControlLog", "Replay", "ReplayResult", "ReplayError"]
@@ -311,7 +311,9 @@ class Replay:
                     if phi < best:
                         y0, best, warm = candidate, phi, i == 2
                 if not math.isfinite(best):  # each turns a tet inside out: the held vertices moved past a neighbour
-                    y0 = self._following_start(step, x)
+                    following = linear_response(step.hessian(step.x_n, True).tocsr(), step.x_n, x, held)
+                    if following is not None:
+                        y0 = following
                 free = np.repeat(~held, 3)
                 with np.errstate(all="ignore"):
                     result = minimize(y0, potential, gradient, hessian, free, self.tol, self.max_iter,
@@ -335,21 +337,6 @@ class Replay:
             forces.append(-reaction[log.gripped[t]].sum(axis=0))
             xs.append(x.copy())
         return ReplayResult(np.array(xs), np.array(forces), iterations, worst, self.tol, tape)
-
-    @staticmethod
-    def _following_start(step, x: np.ndarray) -> np.ndarray:
-        """A start for a sub-step whose held vertices (already moved in ``x``) moved far
-        enough to turn a tet with a free vertex inside out (small tets at the jaws): the
-        free vertices moved by their linear response to the held vertices' move, one
-        solve with the sub-step's projected Hessian at its start (as the envs' Newton
-        fallback starts)."""
-        held = np.repeat(step.held, 3)
-        free = ~held
-        d = (x - step.x_n).reshape(-1)
-        a = step.hessian(step.x_n, True).tocsr()
-        y = x.copy().reshape(-1)
-        y[free] = step.x_n.reshape(-1)[free] + spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, held] @ d[held]))
-        return y.reshape(x.shape)
 
     def _solve(self, a, b: np.ndarray) -> np.ndarray:
         """``a^-1 b`` for the step's Hessian on the free dofs: a sparse Cholesky factor (the

@@ -19,10 +19,8 @@ factorisation. Units: m, s, kg, N.
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from ..control import Control
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, FreeSubmatrix, LaggedFactorPCG
@@ -30,7 +28,7 @@ from ..mesh import signed_volumes
 from ..model import Model
 from ..state import State
 from .base import Solver, StepStats, stiffness_damping
-from .newton import minimize
+from .newton import linear_response, minimize
 from .quasi_newton import penalised_hessian
 
 __all__ = ["ImplicitSolver"]
@@ -320,27 +318,17 @@ class ImplicitSolver(Solver):
                 best, best_phi = x, phi
         if best is not None:
             return best
-        kin = np.repeat(control.exactly_held()[s], 3)
-        free = np.repeat(~(self.model.fixed | control.exactly_held()[s]), 3)
+        kin = control.exactly_held()[s]
         if kin.any():
-            a = hessian(x_n, True).tocsr()
-            d = (targets - x_n).reshape(-1)
-            u = np.zeros_like(d)
-            # a singular or non-finite step matrix (x_n has inverted elements): no such start
-            # (reported below)
-            u[free] = np.nan
-            if np.all(np.isfinite(a.data)):
-                with warnings.catch_warnings():
-                    warnings.simplefilter("error", spla.MatrixRankWarning)
-                    try:
-                        u[free] = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, kin] @ d[kin]))
-                    except (spla.MatrixRankWarning, RuntimeError):  # RuntimeError: SuperLU failed
-                        u[free] = np.nan
-            u[kin] = d[kin]
-            x = x_n + u.reshape(x_n.shape)
-            v = v_n.copy()
-            self._constrain(s, x, v, control, targets, h, x_n)
-            if np.all(np.isfinite(x)) and np.isfinite(potential(x)):
-                return x
+            x_moved = x_n.copy()
+            x_moved[kin] = targets[kin]
+            # (None: a singular or non-finite step matrix, x_n has inverted elements; reported below)
+            following = linear_response(hessian(x_n, True).tocsr(), x_n, x_moved, self.model.fixed | kin)
+            if following is not None:
+                x = following
+                v = v_n.copy()
+                self._constrain(s, x, v, control, targets, h, x_n)
+                if np.all(np.isfinite(x)) and np.isfinite(potential(x)):
+                    return x
         inverted = np.flatnonzero(signed_volumes(x, self.model.mesh.tets) <= 0)
         raise _Diverged("no feasible start: the driven vertices invert elements within one step", inverted)

@@ -3,12 +3,14 @@ static solvers use it (one world at a time)."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.sparse.linalg as spla
 
 from ..linear_solvers import FreeSubmatrix
 
-__all__ = ["NewtonResult", "minimize"]
+__all__ = ["NewtonResult", "minimize", "linear_response"]
 
 
 class NewtonResult:
@@ -88,3 +90,28 @@ def minimize(x, potential, gradient, hessian, free, tol, max_iter, submatrix: Fr
         # at the round-off floor the residual stops falling: stop after stall_limit such steps
         stalled = stalled + 1 if gnorm > 0.99 * previous else 0
     return NewtonResult(x, it, gnorm, tol)
+
+
+def linear_response(a, x_start: np.ndarray, x_moved: np.ndarray, moved: np.ndarray) -> np.ndarray | None:
+    """A Newton start for a step whose ``moved`` vertices ((n,) bool) went from
+    ``x_start`` to ``x_moved`` (m, (n, 3)): ``x_moved`` with every other vertex moved by
+    its linear response to that motion, one solve with ``a`` (CSR, 3n x 3n: the step's
+    Hessian at ``x_start``, N/m). Where the held vertices moved past a free neighbour,
+    the start ``x_moved`` itself turns tets inside out; this one follows them. None where
+    ``a`` is not finite or singular there."""
+    held = np.repeat(np.asarray(moved, dtype=bool), 3)
+    free = ~held
+    d = (x_moved - x_start).reshape(-1)
+    if not np.all(np.isfinite(a.data)):
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", spla.MatrixRankWarning)
+        try:
+            u = spla.spsolve(a[free][:, free].tocsc(), -(a[free][:, held] @ d[held]))
+        except (spla.MatrixRankWarning, RuntimeError):  # RuntimeError: SuperLU failed
+            return None
+    if not np.all(np.isfinite(u)):
+        return None
+    y = x_moved.copy().reshape(-1)
+    y[free] = x_start.reshape(-1)[free] + u
+    return y.reshape(x_moved.shape)
