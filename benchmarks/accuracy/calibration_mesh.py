@@ -22,11 +22,11 @@ The flap's held line has no fine-mesh limit (benchmarks/accuracy/flap_grasp_line
 neither study's observer is converged next to the jaws. The lobe study (``--part lobe``)
 does the same on OrganRetraction, whose jaws hold a 6 x 40 mm patch (which has a limit):
 observed on a 5 mm lobe in 0.025 s steps (checked against 0.0125 s steps and a 4 mm
-lobe), fitted on the default 10 mm lobe, 8 mm and 7 mm, in 0.05 s steps.
+lobe), fitted on the default 10 mm lobe, 8, 7 and 6 mm, in 0.05 s steps.
 
 Writes docs/benchmarks/calibration_mesh.{json,md}.
 
-    python benchmarks/accuracy/calibration_mesh.py                  # every part, ~75 min on one core
+    python benchmarks/accuracy/calibration_mesh.py                  # every part, ~90 min on one core
     python benchmarks/accuracy/calibration_mesh.py --part lobe       # one part; the others' stored rows kept
 """
 
@@ -81,7 +81,8 @@ LOBE_CHECKS = [("0.0125 s steps", {"mesh_size": 0.005, "physics": {"max_dt": 0.0
                ("a 4 mm lobe", {"mesh_size": 0.004, "physics": {"max_dt": 0.025}})]
 LOBE_MODELS = [("10 mm, 0.05 s steps (the default)", {}, ("points", "force")),
                ("8 mm, 0.05 s steps", {"mesh_size": 0.008}, ("points", "force")),
-               ("7 mm, 0.05 s steps", {"mesh_size": 0.007}, ("points", "force"))]
+               ("7 mm, 0.05 s steps", {"mesh_size": 0.007}, ("points", "force")),
+               ("6 mm, 0.05 s steps", {"mesh_size": 0.006}, ("points", "force"))]
 
 
 def fit_models(obs, models, env_id: str = ENV) -> list[dict]:
