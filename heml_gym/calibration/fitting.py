@@ -163,12 +163,15 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     unit_bounds = transform.bounds
     runs = []
     failures = [0]
-    failed = {}  # search point (bytes of u) -> why its replay failed
+    failed = {}  # search point (its _key) -> why its replay failed
 
     cache = {}
 
+    def _key(u) -> bytes:
+        return np.asarray(u, dtype=np.float64).tobytes()
+
     def objective(u):
-        key = np.asarray(u, dtype=np.float64).tobytes()
+        key = _key(u)
         if key in cache:  # (the iteration callback asks for the point just evaluated)
             return cache[key]
         cache.clear()
@@ -183,7 +186,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
             grad = replay.gradient(theta, result, x_bar, force_bar) * transform.dtheta_du(u)
         except ReplayError as exc:
             failures[0] += 1
-            failed[np.asarray(u, dtype=np.float64).tobytes()] = str(exc)
+            failed[_key(u)] = str(exc)
             return 1e6, np.zeros_like(u)  # a material the log cannot be followed with: far off (the line search backs off)
         return loss, grad
 
@@ -201,11 +204,11 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
                           options={"maxiter": max_iter, "maxfun": 4 * max_iter, "maxls": 10, "gtol": gtol,
                                    "ftol": ftol})
         runs.append((res, history, np.asarray(start, dtype=np.float64)))
-    replayed = [r for r in runs if np.asarray(r[0].x, dtype=np.float64).tobytes() not in failed]
+    replayed = [r for r in runs if _key(r[0].x) not in failed]
     if not replayed:  # (L-BFGS stops at once where the replay fails: zero gradient)
         res, _, start = runs[0]
         raise ReplayError(f"the fit cannot start: replaying the log with {dict(zip(names, start.tolist()))} fails "
-                          f"({failed[np.asarray(res.x, dtype=np.float64).tobytes()]})")
+                          f"({failed[_key(res.x)]})")
     best, history, _ = min(replayed, key=lambda r: r[0].fun)
     u = np.asarray(best.x, dtype=np.float64)
     message = best.message if isinstance(best.message, str) else best.message.decode()
