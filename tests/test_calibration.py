@@ -47,22 +47,23 @@ def _random_loss_gradient_check(replay, theta, steps, rng):
         assert grad[j] == pytest.approx(fd, rel=1e-5), f"constant {j}: adjoint {grad[j]}, central difference {fd}"
 
 
-def _pulled_slab(mesh, field: str, steps: int):
+def _pulled_slab(mesh, field: str, steps: int, move=(-0.002, 0.0, 0.004), damping: float | None = 5.0):
     """``(model, log, material_of)``: a slab clamped at x = 0 on a support plane, its free
-    edge pulled up and back over ``steps`` control steps of 0.1 s (two sub-steps each)."""
+    edge pulled by ``move`` (m) per control step over ``steps`` control steps of 0.1 s (two
+    sub-steps each); ``damping``: the model's mass damping (1/s)."""
     X = mesh.vertices
 
     def material_of(theta):
         return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
 
     model = hg.Model(mesh, material_of((5e3, 0.45)), n_worlds=1, density=950.0, fixed=X[:, 0] < 1e-9,
-                     damping=5.0, supports=[PlaneSupport((0, 0, 1.0), 0.0)], field=field)
+                     damping=damping, supports=[PlaneSupport((0, 0, 1.0), 0.0)], field=field)
     grip = np.flatnonzero(X[:, 0] > 0.06 - 1e-9)
     kinematic = np.zeros((steps, mesh.n_vertices), bool)
     kinematic[:, grip] = True
     targets = np.zeros((steps, mesh.n_vertices, 3))
     for t in range(steps):
-        targets[t, grip] = X[grip] + np.array([-0.002, 0.0, 0.004]) * (t + 1)
+        targets[t, grip] = X[grip] + np.asarray(move) * (t + 1)
     return model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)), material_of
 
 
@@ -164,15 +165,8 @@ def test_a_search_stopped_at_a_kink_is_a_minimum_only_if_no_probe_is_lower():
 def _edge_pulled_slab(move, steps: int = 4, max_iter: int = 60):
     """A replay of a clamped slab (5 mm cells) whose free edge moves by ``move`` (m) per
     0.1 s control step (two sub-steps)."""
-    mesh = hg.box_mesh((0.06, 0.06, 0.008), (12, 12, 2))
-    X = mesh.vertices
-    clamped, gripped = X[:, 0] < 1e-9, X[:, 0] > 0.06 - 1e-9
-    model = hg.Model(mesh, hg.materials.NeoHookean(E=5e3, nu=0.45), n_worlds=1, density=950.0, fixed=clamped,
-                     supports=[PlaneSupport((0, 0, 1.0), 0.0)])
-    kinematic = np.repeat(gripped[None], steps, axis=0)
-    targets = np.stack([np.where(gripped[:, None], X + np.asarray(move) * (t + 1), 0.0) for t in range(steps)])
-    return Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)),
-                  lambda theta: hg.materials.NeoHookean(E=theta[0], nu=0.45), max_iter=max_iter)
+    model, log, _ = _pulled_slab(hg.box_mesh((0.06, 0.06, 0.008), (12, 12, 2)), "heml", steps, move, damping=None)
+    return Replay(model, log, lambda theta: hg.materials.NeoHookean(E=theta[0], nu=0.45), max_iter=max_iter)
 
 
 def test_a_held_edge_moved_past_its_neighbours_turns_no_tet_inside_out():
