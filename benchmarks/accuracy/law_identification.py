@@ -124,7 +124,7 @@ def report(data: dict) -> str:
                       if "difference_ci95_m" in r else "-"),
                      "yes" if r["identified"] else "**no**",
                      ", ".join([f"{x['law']} {x['heldout_rms_m'] * 1e3:.3f}" for x in ranking]
-                               + [f"{x['law']}: no fit (its replay fails at the start)" for x in r["laws"]
+                               + [f"{x['law']}: no fit (a ReplayError, in the JSON)" for x in r["laws"]
                                   if "error" in x]),
                      f"{r['wall_s']:.0f}"])
     n, k = len(data["rows"]), sum(r["identified"] for r in data["rows"])
