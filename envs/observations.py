@@ -289,12 +289,20 @@ def record(env, policy, seed: int = 0, steps: int = 30, points: int = 10, point_
                        adhesion_width=width, meta=meta)
 
 
-def control_log(env, obs: Observation, young_modulus: float | None = None) -> ControlLog:
+def control_log(env, obs: Observation, young_modulus: float | None = None,
+                wrist_reach: float | None = None) -> ControlLog:
     """What drove the tissue in ``obs``, on the scene of the single env ``env``: the env is
     reset to the observed start (gripper, adhesion) and stepped with the actions that move
     its gripper along the observed path and close / open its jaws as observed; each step's
     held vertices and their targets are the log. ``young_modulus`` (Pa): the tissue used
-    to find which vertices the jaws take (default: the scene's upper one)."""
+    to find which vertices the jaws take (default: the scene's upper one).
+
+    ``wrist_reach`` (m): jaws with a footprint on a free wrist instead of the scene's grasp:
+    every vertex within that distance (at rest) of one the jaws take is held, rigidly,
+    where it was when they closed, and the patch turns freely about the jaws' axis (the
+    held vertices' longest direction at rest) through its middle
+    (:mod:`heml_gym.calibration.wrist`). A replay, not the env's solver, steps such a
+    grasp."""
     task = env.unwrapped.task
     st = task.settings
     if not np.allclose(np.diff(obs.t), st.control_dt, rtol=0, atol=1e-9):
@@ -308,10 +316,16 @@ def control_log(env, obs: Observation, young_modulus: float | None = None) -> Co
         options["adhesion_width"] = obs.adhesion_width
     env.reset(seed=0, options=options)
     n = task.scene.mesh.n_vertices
+    if wrist_reach is not None and not (isinstance(wrist_reach, (int, float)) and math.isfinite(wrist_reach)
+                                        and wrist_reach > 0):
+        raise ValueError(f"wrist_reach: must be a positive distance in metres, got {wrist_reach!r}")
     kinematic, targets, gripped = [], [], []
+    wrist = _WristGrasp(task, wrist_reach) if wrist_reach is not None else None
     x0 = task.x[0].copy()
     step = st.max_speed * st.control_dt
     for k in range(1, obs.t.shape[0]):
+        if wrist is not None:
+            wrist.before_step()
         move = (obs.gripper[k] - obs.gripper[k - 1]) / step
         if np.any(np.abs(move) > 1.0 + 1e-6):
             raise ObservationError(f"{obs.source}: field 'gripper': moves {np.abs(move).max() * step:.4g} m in step {k}, "
@@ -324,6 +338,8 @@ def control_log(env, obs: Observation, young_modulus: float | None = None) -> Co
         kinematic.append(task.control.kinematic[0].copy())
         targets.append(task.control.targets[0].copy())
         gripped.append(task.held[0].copy())
+        if wrist is not None:
+            wrist.after_step(kinematic[-1], targets[-1], gripped[-1])
         if np.linalg.norm(task.gripper[0] - obs.gripper[k]) > 1e-6:
             raise ObservationError(f"{obs.source}: field 'gripper': step {k} leaves the scene's workspace or presses "
                                    f"held tissue below its rest (observed {obs.gripper[k].round(5).tolist()}, the "
@@ -332,15 +348,65 @@ def control_log(env, obs: Observation, young_modulus: float | None = None) -> Co
             raise ObservationError(f"{obs.source}: the env's own solver diverged at step {k} of the observed "
                                    "control (its info's simulation_diverged), before any fitting: this model "
                                    "cannot follow it (a shorter max_dt or another integrator may)")
+    turning = {} if wrist is None else wrist.log_fields()
     return ControlLog(np.array(kinematic), np.array(targets), st.control_dt, task.substeps, x0, np.zeros((n, 3)),
-                      gripped=np.array(gripped))
+                      gripped=np.array(gripped), **turning)
+
+
+class _WristGrasp:
+    """:func:`control_log`'s jaws on a free wrist: the patch within ``reach`` (m) of the
+    vertices the scene's jaws take, held where it is when they close and moved with the
+    gripper, turning about the jaws' axis through its middle."""
+
+    def __init__(self, task, reach: float):
+        self.task, self.reach = task, float(reach)
+        self.rest = task.scene.mesh.vertices
+        self.fixed = task.model.fixed
+        self.patch = self.offsets = None
+        self.masks, self.points, self.axis = [], [task.gripper[0].copy()], None
+
+    def before_step(self) -> None:
+        self.x_start, self.gripper_start = self.task.x[0].copy(), self.task.gripper[0].copy()
+
+    def after_step(self, kinematic: np.ndarray, targets: np.ndarray, gripped: np.ndarray) -> None:
+        """Turn the step's recorded grasp (changed in place) into the patch's."""
+        task = self.task
+        jaws = task.held[0]
+        if not jaws.any():
+            self.patch = None
+            self.masks.append(np.zeros_like(jaws))
+            self.points.append(task.gripper[0].copy())
+            return
+        if self.patch is None:  # the jaws close: the patch, where it is
+            near = np.zeros(len(jaws), dtype=bool)
+            for p in self.rest[jaws]:
+                near |= np.linalg.norm(self.rest - p, axis=1) <= self.reach
+            self.patch = near & ~self.fixed & (jaws | ~kinematic)
+            self.offsets = self.x_start[self.patch] - self.gripper_start
+            self.middle = self.offsets.mean(axis=0)
+            if self.axis is None:
+                held = self.rest[jaws] - self.rest[jaws].mean(axis=0)
+                self.axis = np.linalg.svd(held, full_matrices=False)[2][0] if len(held) > 1 else np.array([0, 1.0, 0])
+            self.points[-1] = self.gripper_start + self.middle
+        kinematic[self.patch] = True
+        gripped[self.patch] = True
+        targets[self.patch] = task.gripper[0] + self.offsets
+        self.masks.append(self.patch.copy())
+        self.points.append(task.gripper[0] + self.middle)
+
+    def log_fields(self) -> dict:
+        if self.axis is None:
+            raise ObservationError("wrist_reach: the jaws never close in the observation: nothing turns")
+        return dict(wrist=np.array(self.masks), wrist_axis=self.axis, wrist_points=np.array(self.points))
 
 
 def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_modulus", "poisson_ratio"),
-                        point_scale: float = 1e-3, force_scale: float = 0.05, depth_scale: float = 1e-3):
+                        point_scale: float = 1e-3, force_scale: float = 0.05, depth_scale: float = 1e-3,
+                        wrist_reach: float | None = None):
     """``(replay, observed, names, bounds, start)`` for :func:`heml_gym.calibration.fit`:
     the scene of ``env`` replaying ``obs``, the constants ``fit`` (the others kept at the
-    scene's values) with their bounds, and the scene's own values as the start."""
+    scene's values) with their bounds, and the scene's own values as the start;
+    ``wrist_reach`` (m): the jaws hold a patch on a free wrist (see :func:`control_log`)."""
     unknown = [name for name in fit if name not in FIT_PARAMETERS]
     if unknown or not fit:
         raise ValueError(f"fit: {unknown[0] if unknown else 'nothing'}: can fit {', '.join(FIT_PARAMETERS)}")
@@ -352,7 +418,7 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         if name in LAW_CONSTANTS and LAW_CONSTANTS[name][0] != ph.material:
             raise ValueError(f"fit: {name} is a constant of {LAW_CONSTANTS[name][0]}, the scene's law is "
                              f"{ph.material} (choose the law with --law {LAW_CONSTANTS[name][0]})")
-    log = control_log(env, obs)
+    log = control_log(env, obs, wrist_reach=wrist_reach)
     E0 = float(np.mean(ph.young_modulus))
     defaults = {"young_modulus": E0, "poisson_ratio": float(ph.poisson), "density": float(ph.density),
                 "damping": float(ph.damping)}

@@ -85,10 +85,11 @@ LOBE_MODELS = [("10 mm, 0.05 s steps (the default)", {}, ("points", "force")),
                ("6 mm, 0.05 s steps", {"mesh_size": 0.006}, ("points", "force"))]
 
 
-def fit_models(obs, models, env_id: str = ENV) -> list[dict]:
+def fit_models(obs, models, env_id: str = ENV, wrist_reach: float | None = None) -> list[dict]:
     """Fit each of ``models`` (label, env keyword arguments, what it is fitted from) to
-    ``obs`` of ``env_id``; a model that cannot follow the observed control (its own steps
-    diverge, its replay does not converge) is a row with the ``error``."""
+    ``obs`` of ``env_id`` (``wrist_reach``: its jaws on a free wrist, see ``fit_case``); a
+    model that cannot follow the observed control (its own steps diverge, its replay does
+    not converge) is a row with the ``error``."""
     from heml_gym.calibration import ReplayError
     from heml_gym.envs.observations import ObservationError
 
@@ -97,7 +98,7 @@ def fit_models(obs, models, env_id: str = ENV) -> list[dict]:
         for use in uses:
             names = FITS[use]
             try:
-                _, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use, kwargs)
+                _, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use, kwargs, wrist_reach)
             except (ObservationError, ReplayError) as exc:
                 rows.append({"fitted_model": label, "observed": use, "error": str(exc)})
                 print(f"{label}, {use}: {exc}", flush=True)
@@ -181,7 +182,8 @@ def measure(parts) -> dict:
     return data
 
 
-def _table(study: dict) -> str:
+def fit_table(study: dict) -> str:
+    """The markdown table of a study's fits (its ``results``)."""
     rows = []
     for r in study["results"]:
         if "error" in r:
@@ -212,7 +214,7 @@ def report(data: dict) -> str:
                 + (f"; observed in finer models, the same tissue's noise-free tracked points and jaws' force "
                    f"move by at most {checks} (the force peaks at "
                    f"{study['converged_check'][0]['force_peak_N']:.2f} N)" if checks else "") + "):\n\n")
-        out += _table(study) + "\n"
+        out += fit_table(study) + "\n"
     return out
 
 

@@ -46,6 +46,7 @@ from ..model import Model
 from ..solvers import kernels_quasi_newton as kq
 from ..solvers.newton import linear_response, minimize
 from ..solvers.substep import FieldSubstep, HemlSubstep
+from .wrist import WristSubstep, rotation
 
 __all__ = ["ControlLog", "Replay", "ReplayResult", "ReplayError"]
 
@@ -75,6 +76,18 @@ class ControlLog:
     gripped : (T, n) bool, optional
         Which held vertices the gripper holds (its force is minus their reaction's sum);
         default: the kinematic ones.
+    wrist : (T, n) bool, optional
+        Held vertices that turn with the jaws about their axis, freely: a patch held
+        rigidly by jaws on a free wrist (:mod:`~heml_gym.calibration.wrist`). Their
+        ``targets`` are their places without the turn; the turn's angle is where the
+        torque on them about the axis vanishes, found with each sub-step. A control step
+        whose wrist set differs from the previous one's grasps anew: the patch is held
+        where it is, unturned. Default: none.
+    wrist_axis : (3,) float
+        The jaws' axis (a direction; normalised).
+    wrist_points : (T + 1, 3) float, m
+        A point on the axis at each control step's start and (last row) the log's end; it
+        moves in a straight line over a step's sub-steps.
     """
 
     kinematic: np.ndarray
@@ -84,6 +97,9 @@ class ControlLog:
     x0: np.ndarray
     v0: np.ndarray
     gripped: np.ndarray | None = None
+    wrist: np.ndarray | None = None
+    wrist_axis: np.ndarray | None = None
+    wrist_points: np.ndarray | None = None
 
     def __post_init__(self):
         self.kinematic = np.asarray(self.kinematic, dtype=bool)
@@ -102,14 +118,45 @@ class ControlLog:
         self.gripped = self.kinematic.copy() if self.gripped is None else np.asarray(self.gripped, dtype=bool)
         if self.gripped.shape != (T, n):
             raise ReplayError(f"gripped: must have shape {(T, n)}, got {self.gripped.shape}")
+        self._check_wrist(T, n)
         if not (isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0):
             raise ReplayError(f"dt: must be a positive number of seconds, got {self.dt!r}")
         if isinstance(self.substeps, bool) or not isinstance(self.substeps, (int, np.integer)) or self.substeps < 1:
             raise ReplayError(f"substeps: must be an integer >= 1, got {self.substeps!r}")
 
+    def _check_wrist(self, T: int, n: int) -> None:
+        if self.wrist is None:
+            if self.wrist_axis is not None or self.wrist_points is not None:
+                raise ReplayError("wrist_axis, wrist_points: give them with wrist (the vertices that turn)")
+            return
+        self.wrist = np.asarray(self.wrist, dtype=bool)
+        if self.wrist.shape != (T, n):
+            raise ReplayError(f"wrist: must have shape {(T, n)}, got {self.wrist.shape}")
+        if np.any(self.wrist & ~self.kinematic):
+            raise ReplayError("wrist: every vertex that turns with the jaws must be held (kinematic) in that step")
+        if self.wrist_axis is None or self.wrist_points is None:
+            raise ReplayError("wrist: give wrist_axis (3,) and wrist_points (T + 1, 3) with it")
+        axis = np.asarray(self.wrist_axis, dtype=np.float64)
+        norm = float(np.linalg.norm(axis)) if axis.shape == (3,) and np.all(np.isfinite(axis)) else 0.0
+        if norm < 1e-12:
+            raise ReplayError(f"wrist_axis: must be a finite nonzero (3,) vector, got {self.wrist_axis!r}")
+        self.wrist_axis = axis / norm
+        self.wrist_points = np.asarray(self.wrist_points, dtype=np.float64)
+        if self.wrist_points.shape != (T + 1, 3) or not np.all(np.isfinite(self.wrist_points)):
+            raise ReplayError(f"wrist_points: must be finite with shape {(T + 1, 3)}, got {self.wrist_points.shape}")
+
     @property
     def steps(self) -> int:
         return self.kinematic.shape[0]
+
+    def wrist_at(self, t: int) -> np.ndarray:
+        """``(n,)`` bool: the vertices that turn with the jaws in control step ``t``."""
+        return np.zeros(self.kinematic.shape[1], dtype=bool) if self.wrist is None else self.wrist[t]
+
+    def grasps_anew(self, t: int) -> bool:
+        """Whether control step ``t`` starts a wrist grasp (its set differs from step ``t - 1``'s)."""
+        here = self.wrist_at(t)
+        return bool(here.any()) and (t == 0 or not np.array_equal(here, self.wrist_at(t - 1)))
 
 
 @dataclass
@@ -170,6 +217,8 @@ class Replay:
         if not model.field.has_hessian:
             raise ReplayError(f"replays differentiate force fields with a Hessian, the model's field "
                               f"{type(model.field).__name__} has none")
+        if log.wrist is not None and np.any(log.wrist & model.fixed[None, :]):
+            raise ReplayError("log.wrist: a vertex the model fixes cannot turn with the jaws")
         self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
         self.dynamics_of = dynamics_of
         #: HEML's sub-steps run on the quasi-Newton solver's kernels, any other field's in NumPy
@@ -275,6 +324,14 @@ class Replay:
         return self.model.fields[self.world].hessian(x, project=False)
 
     # ------------------------------------------------------------------ forward
+    def _wrist_scale(self, t: int, wrist: np.ndarray) -> float:
+        """``L`` (m): the root-mean-square distance from the jaws' axis of the patch that
+        turns in control step ``t`` (from the log's targets: the same for every ``theta``)."""
+        log = self.log
+        arms = log.targets[t][wrist] - log.wrist_points[t + 1]
+        arms -= (arms @ log.wrist_axis)[:, None] * log.wrist_axis
+        return max(float(np.sqrt(np.mean(np.sum(arms * arms, axis=1)))), 1e-4)
+
     def run(self, theta) -> ReplayResult:
         """Replay the log with material constants ``theta``."""
         self._set(theta)
@@ -285,36 +342,56 @@ class Replay:
         xs, forces = [x.copy()], []
         tape, iterations, worst = [], 0, 0.0
         previous, self._previous = self._previous, []
+        path, angle, scale = x.copy(), 0.0, 1.0  # the wrist: its patch's unturned places, its angle (rad)
         for t in range(log.steps):
             r_prev = np.zeros((n, 3))
             reaction = np.zeros((n, 3))
             start = x.copy(), v.copy()
+            wrist = log.wrist_at(t)
+            anew = log.grasps_anew(t)
+            if anew:  # the jaws close on the patch where it is: unturned
+                path, angle, scale = x.copy(), 0.0, self._wrist_scale(t, wrist)
+            point = log.wrist_points[t].copy() if wrist.any() else None
             for k in range(1, log.substeps + 1):
                 fraction = 1.0 / (log.substeps - k + 1)
                 step = self._substep(t, h, fraction)
                 x_n = x.copy()
                 step.begin(x, v, r_prev if k == 1 else None)
                 held = step.held
+                turn = None
+                if wrist.any():
+                    path[wrist] += (log.targets[t][wrist] - path[wrist]) * fraction
+                    point += (log.wrist_points[t + 1] - point) * fraction
+                    turn = WristSubstep(step, wrist, log.wrist_axis, point, path, scale, self._forces, self._mass)
+                    x[wrist] = turn.positions(turn.extend(x, angle))[wrist]
+                    potential, hessian, gradient, free = turn.potential, turn.hessian, turn.gradient, turn.free
+                else:
+                    potential, hessian, free = step.potential, step.hessian, np.repeat(~held, 3)
 
-                potential, hessian = step.potential, step.hessian
-
-                def gradient(y, step=step):
-                    return step.gradient(y).reshape(-1)
+                    def gradient(y, step=step):
+                        return step.gradient(y).reshape(-1)
 
                 y0, best, warm = x.copy(), math.inf, False
                 starts = [step.x_n + h * step.v_n, step.x_n.copy()]
                 if len(previous) > len(self._previous):  # where the previous run's Newton ended
                     starts.append(previous[len(self._previous)].copy())
                 for i, candidate in enumerate(starts):  # the lowest-potential start
-                    candidate[held] = x[held]
+                    if turn is not None:
+                        begun = turn.angle(candidate) if candidate.ndim == 1 else angle
+                        candidate = candidate[:-1].reshape(n, 3) if candidate.ndim == 1 else candidate
+                        candidate[held] = x[held]
+                        candidate = turn.extend(candidate, begun)
+                    else:
+                        candidate[held] = x[held]
                     phi = potential(candidate)
                     if phi < best:
                         y0, best, warm = candidate, phi, i == 2
                 if not math.isfinite(best):  # each turns a tet inside out: the held vertices moved past a neighbour
                     following = linear_response(step.hessian(step.x_n, True).tocsr(), step.x_n, x, held)
                     if following is not None:
-                        y0 = following
-                free = np.repeat(~held, 3)
+                        y0 = following if turn is None else turn.extend(following, angle)
+                if turn is not None and y0.ndim == 2:
+                    y0 = turn.extend(y0, angle)
                 with np.errstate(all="ignore"):
                     result = minimize(y0, potential, gradient, hessian, free, self.tol, self.max_iter,
                                       self._submatrix, self._linear, (free.tobytes(), h), stall_limit=None,
@@ -326,13 +403,18 @@ class Replay:
                                       "what the scene can follow")
                 iterations += result.iterations
                 worst = max(worst, result.residual)
-                y = result.x.reshape(n, 3)
-                self._previous.append(y.copy())
+                if turn is not None:
+                    y, angle = turn.positions(result.x), turn.angle(result.x)
+                else:
+                    y = result.x.reshape(n, 3)
+                self._previous.append(result.x.copy())
                 x[:] = y
                 ends = step.finish(x, v, reaction, r_prev)
                 tape.append(dict(t=t, k=k, h=h, c=step.c, fraction=fraction, x_n=x_n, v_n=step.v_n.copy(),
                                  x_hat=step.x_hat.copy(), y=y.copy(), z=x.copy(), held=held, step=step,
-                                 start=start if k == 1 else None, **ends))
+                                 start=start if k == 1 else None, wrist=wrist, turn=turn,
+                                 u=None if turn is None else result.x.copy(), angle=angle,
+                                 grasp_start=anew and k == 1, **ends))
             reaction /= log.substeps
             forces.append(-reaction[log.gripped[t]].sum(axis=0))
             xs.append(x.copy())
@@ -428,6 +510,7 @@ class Replay:
         zb = x_bar[T].copy()  # adjoint of the positions after the current sub-step
         vb = np.zeros((n, 3))  # and of the velocities
         r_bar = np.zeros((n, 3))  # of the current sub-step's end reaction (held rows)
+        path_bar = np.zeros((n, 3))  # of the wrist's patch's unturned places
         for idx in range(len(tape) - 1, -1, -1):
             e = tape[idx]
             t, k, h, c = e["t"], e["k"], e["h"], e["c"]
@@ -463,26 +546,47 @@ class Replay:
             if pr.any():
                 yb[pr] -= np.einsum("id,id->i", yb[pr], nrm[pr])[:, None] * nrm[pr]
             pb = np.where(held[:, None], zb, 0.0)
-            # ---- the minimisation: H w = y_bar on the free rows
+            # ---- the minimisation: H w = y_bar on the free rows (and the wrist's angle)
             free = np.repeat(~held, 3)
-            if free.any() and yb.any():
-                hess = e["step"].hessian(e["y"], False)
-                w_free = self._solve(self._submatrix(hess, free), yb.reshape(-1)[free])
+            turn, wrist = e["turn"], e["wrist"]
+            s_bar = 0.0 if turn is None else float(np.sum(pb[wrist] * turn.lever(e["y"])))  # dz_W/ds
+            if (free.any() and yb.any()) or s_bar != 0.0:
+                if turn is None:
+                    hess = e["step"].hessian(e["y"], False)
+                    w_free = self._solve(self._submatrix(hess, free), yb.reshape(-1)[free])
+                    w = np.zeros(3 * n)
+                    w[free] = w_free
+                else:
+                    hess = turn.hessian(e["u"], False)
+                    w_free = self._solve(self._submatrix(hess, turn.free), np.append(yb.reshape(-1), s_bar)[turn.free])
+                    w = np.zeros(3 * n + 1)
+                    w[turn.free] = w_free
                 if not np.all(np.isfinite(w_free)):
                     raise ReplayError(f"control step {t}, sub-step {k}: the step's Hessian is singular")
-                w = np.zeros(3 * n)
-                w[free] = w_free
-                w = w.reshape(n, 3)
+                w_s = float(w[-1]) if turn is not None else 0.0
+                w = w[:3 * n].reshape(n, 3)
                 xhat_b = c * mass * w
+                if turn is not None:  # the turn moves the patch: w_s dz_W/ds on its rows
+                    w[wrist] = w_s * turn.lever(e["y"])
                 theta_bar += np.einsum("jnd,nd->j", dy[idx], w)
                 he = self._elastic_hessian(e["y"])
                 pb -= np.where(held[:, None], (he @ w.reshape(-1)).reshape(n, 3), 0.0)
+                if turn is not None:  # the torque's own dependence on where the patch is
+                    pb[wrist] -= (w_s / turn.scale) * np.cross(turn.axis, self._forces(e["y"])[wrist])
                 xhat_b = np.where(held[:, None], 0.0, xhat_b)
                 xnb += xhat_b
                 vnb += xhat_b * h / (1.0 + alpha * h)
-            # ---- the held path: p = x_n + fraction (target - x_n) for kinematic rows, x_n for fixed
-            kin = log.kinematic[t] & ~m.fixed
-            xnb += np.where(kin[:, None], (1.0 - e["fraction"]) * pb, np.where(held[:, None], pb, 0.0))
+            # ---- the held path: p = x_n + fraction (target - x_n) for kinematic rows, x_n for fixed;
+            # the wrist's patch: z_W = point + R (q - point), q = q_prev + fraction (target - q_prev)
+            kin = log.kinematic[t] & ~m.fixed & ~wrist
+            xnb += np.where(kin[:, None], (1.0 - e["fraction"]) * pb,
+                            np.where((held & ~wrist)[:, None], pb, 0.0))
+            if wrist.any():
+                path_bar[wrist] += pb[wrist] @ rotation(turn.axis, e["angle"])
+                path_bar *= 1.0 - e["fraction"]
+                if e["grasp_start"]:  # q_0: where the patch was when the jaws closed
+                    xnb[wrist] += path_bar[wrist]
+                    path_bar[:] = 0.0
             # ---- the previous sub-step's end reaction, or the step start's holding force
             if k > 1:
                 r_bar = r_carry.copy()  # r_{k-1} appears in two trapezoids: 0.5 + 0.5

@@ -1,0 +1,194 @@
+"""Jaws on a free wrist (heml_gym.calibration.wrist): a held patch turns about the jaws'
+axis to where the tissue's torque on it vanishes; the replay's adjoint gradients hold
+through the turn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.optimize as so
+
+import heml_gym as hg
+from heml_gym.calibration import ControlLog, Replay, ReplayError
+from heml_gym.calibration.wrist import rotation
+from heml_gym.contact import PlaneSupport
+
+from test_calibration import _random_loss_gradient_check
+
+AXIS = np.array([0.0, 1.0, 0.0])  # the jaws' axis: along the slab's free edge
+
+
+def _material(theta):
+    return hg.materials.NeoHookean(E=theta[0], nu=theta[1])
+
+
+def _slab(mesh, field="heml"):
+    """A slab 60 x 60 x 8 mm clamped at x = 0 on a support plane; its last 10 mm (x >= 50
+    mm) is the patch the jaws hold."""
+    X = mesh.vertices
+    model = hg.Model(mesh, _material((5e3, 0.45)), n_worlds=1, density=950.0, fixed=X[:, 0] < 1e-9, damping=5.0,
+                     supports=[PlaneSupport((0, 0, 1.0), 0.0)], field=field)
+    return model, X[:, 0] > 0.05 - 1e-9
+
+
+def _wrist_log(mesh, patch, steps, move, substeps=2, turning=True, lead=0):
+    """The patch lifted by ``move`` (m) per 0.1 s control step; ``turning``: on a free wrist
+    about the y axis through the patch's middle, else held rigidly. With ``lead`` steps,
+    the edge line alone is lifted first (held without the wrist) and the patch is grasped
+    after them where the tissue then is (so that the grasp's start depends on the tissue)."""
+    X = mesh.vertices
+    move = np.asarray(move, dtype=np.float64)
+    edge = X[:, 0] > 0.06 - 1e-9
+    kinematic = np.zeros((steps, mesh.n_vertices), bool)
+    kinematic[:lead, edge] = True
+    kinematic[lead:, patch] = True
+    targets = np.zeros((steps, mesh.n_vertices, 3))
+    for t in range(steps):
+        targets[t, kinematic[t]] = X[kinematic[t]] + move * (t + 1)
+    points = np.array([0.055, 0.03, 0.004]) + move * np.arange(steps + 1)[:, None]
+    wrist = kinematic.copy()
+    wrist[:lead] = False
+    wrist = dict(wrist=wrist, wrist_axis=AXIS, wrist_points=points) if turning else {}
+    return ControlLog(kinematic, targets, 0.1, substeps, X, np.zeros_like(X), **wrist)
+
+
+def _torque(model, y, patch, point):
+    """The elastic torque (N m) on the patch about the axis through ``point``."""
+    f = model.fields[0].forces(y)
+    return float(np.cross(y[patch] - point, f[patch]).sum(axis=0) @ AXIS)
+
+
+@pytest.mark.parametrize("field", ["heml", "quadratic"])
+def test_a_free_wrist_turns_the_patch_to_where_the_torque_on_it_vanishes(field):
+    """One backward Euler step that lifts the patch by 12 mm: the free wrist's end state is
+    the rigidly held patch's at the angle where the tissue's torque on it about the axis is
+    zero, found independently by root-finding over rigid holds at fixed angles."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
+    if field == "quadratic":
+        mesh = hg.QuadraticTetMesh.from_linear(hg.box_mesh((0.06, 0.06, 0.008), (3, 3, 1)))
+    model, patch = _slab(mesh, field)
+    move = np.array([-0.004, 0.0, 0.012])
+    free = Replay(model, _wrist_log(mesh, patch, 1, move, substeps=1), _material).run((5e3, 0.45))
+    point = np.array([0.055, 0.03, 0.004]) + move
+    X = mesh.vertices
+
+    def held_at(angle):
+        log = _wrist_log(mesh, patch, 1, move, substeps=1, turning=False)
+        log.targets[0, patch] = point + (X[patch] + move - point) @ rotation(AXIS, angle).T
+        return Replay(model, log, _material).run((5e3, 0.45)).x[-1]
+
+    angle = so.brentq(lambda a: _torque(model, held_at(a), patch, point), -1.5, 0.5, xtol=1e-12)
+    assert abs(angle) > 0.1  # the tissue turns the patch
+    assert free.tape[-1]["angle"] == pytest.approx(angle, abs=1e-7)
+    assert np.abs(free.x[-1] - held_at(angle)).max() < 1e-8
+    # and that angle matters: held 0.1 rad further, the patch feels a torque (the slab's
+    # weight, 0.27 N, times its length is 0.016 N m)
+    assert abs(_torque(model, held_at(angle + 0.1), patch, point)) > 1e-4
+
+
+def test_adjoint_gradients_with_a_free_wrist():
+    """The edge lifted for 2 control steps, then the patch around it grasped on a free wrist
+    where the tissue is and lifted and pulled back for 5 more (two sub-steps each; it turns
+    by over 1 rad), on the support plane, with damping: d/dE, d/dnu, d/density and
+    d/damping of a random loss on every position and the jaws' force against central
+    differences."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
+    model, patch = _slab(mesh)
+    log = _wrist_log(mesh, patch, 7, (-0.004, 0.0, 0.006), lead=2)
+    replay = Replay(model, log, _material, dynamics_of=lambda theta: (theta[2], theta[3]))
+    result = replay.run((5e3, 0.45, 1100.0, 3.0))
+    assert abs(result.tape[-1]["angle"]) > 1.0
+    _random_loss_gradient_check(replay, (5e3, 0.45, 1100.0, 3.0), (0.5, 1e-5, 0.1, 1e-3), np.random.default_rng(3))
+
+
+def test_adjoint_gradients_with_a_free_wrist_on_quadratic_tets():
+    """The same on 10-node tets (the NumPy sub-step), over 4 control steps (the first on the edge)."""
+    mesh = hg.QuadraticTetMesh.from_linear(hg.box_mesh((0.06, 0.06, 0.008), (3, 3, 1)))
+    model, patch = _slab(mesh, "quadratic")
+    replay = Replay(model, _wrist_log(mesh, patch, 4, (-0.004, 0.0, 0.006), lead=1), _material)
+    _random_loss_gradient_check(replay, (5e3, 0.45), (0.5, 1e-5), np.random.default_rng(4))
+
+
+@pytest.mark.parametrize("change, says", [
+    (dict(wrist_axis=None), "wrist: give wrist_axis"),
+    (dict(wrist_axis=(0.0, 0.0, 0.0)), "wrist_axis: must be a finite nonzero"),
+    (dict(wrist_points=np.zeros((2, 3))), "wrist_points: must be finite with shape (3, 3)"),
+    (dict(wrist=np.ones((2, 8), bool)), "wrist: must have shape"),
+    (dict(unheld=True), "wrist: every vertex that turns with the jaws must be held"),
+    (dict(wrist=None), "wrist_axis, wrist_points: give them with wrist"),
+])
+def test_a_bad_wrist_is_a_one_line_error_naming_the_field(change, says):
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (2, 2, 1))
+    _, patch = _slab(mesh)
+    log = _wrist_log(mesh, patch, 2, (0.0, 0.0, 0.001))
+    fields = dict(kinematic=log.kinematic, targets=log.targets, dt=0.1, substeps=1, x0=log.x0, v0=log.v0,
+                  wrist=log.wrist, wrist_axis=AXIS, wrist_points=log.wrist_points)
+    if change.pop("unheld", False):
+        fields["wrist"] = np.ones_like(log.wrist)
+    fields.update(change)
+    with pytest.raises(ReplayError) as error:
+        ControlLog(**fields)
+    assert says in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_fixed_vertex_cannot_turn_with_the_jaws():
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (2, 2, 1))
+    model, patch = _slab(mesh)
+    log = _wrist_log(mesh, patch, 2, (0.0, 0.0, 0.001))
+    log.kinematic[:] = True
+    log.wrist[:] = True
+    with pytest.raises(ReplayError, match="a vertex the model fixes cannot turn"):
+        Replay(model, log, _material)
+
+
+def test_the_flaps_jaws_on_a_free_wrist_hold_the_patch_next_to_their_line():
+    """control_log(wrist_reach=...) on the flap's scripted retraction: the jaws hold every
+    vertex within 10 mm (at rest) of the line the scene's jaws take, about the edge's
+    direction; replayed, the patch stays rigid, ends turned, and feels no torque about
+    the jaws' axis through its middle."""
+    import gymnasium as gym
+
+    from heml_gym.envs import TISSUE_RETRACTION
+    from heml_gym.envs.observations import control_log, record
+    from heml_gym.envs.scripted import scripted_policy
+
+    env = gym.make(TISSUE_RETRACTION, physics={"young_modulus": [5e3, 5e3]})
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=2, steps=12, points=4)
+    env = gym.make(TISSUE_RETRACTION)
+    line = control_log(env, obs)
+    log = control_log(env, obs, wrist_reach=0.01)
+    X = env.unwrapped.task.scene.mesh.vertices
+    t = int(np.flatnonzero(line.gripped.any(axis=1))[0])  # the jaws close
+    taken = line.gripped[t]
+    near = np.array([np.linalg.norm(X[taken] - p, axis=1).min() <= 0.01 for p in X])
+    assert np.array_equal(log.wrist[t], near) and not log.wrist[:t].any()
+    assert np.all(log.gripped[t:] >= log.wrist[t:])
+    edge = X[taken][-1] - X[taken][0]
+    assert abs(log.wrist_axis @ edge) == pytest.approx(np.linalg.norm(edge), rel=1e-9)
+    model = env.unwrapped.task.model
+    replay = Replay(model, log, lambda theta: env.unwrapped.task.scene.physics.material_for(theta[0]))
+    result = replay.run((5e3,))
+    patch = log.wrist[-1]
+    rest = result.x[t][patch]
+    end = result.x[-1][patch]
+    assert np.abs(np.linalg.norm(end[:, None] - end[None], axis=-1)
+                  - np.linalg.norm(rest[:, None] - rest[None], axis=-1)).max() < 1e-9  # rigid
+    assert abs(result.tape[-1]["angle"]) > 0.3
+    f = model.fields[0].forces(result.x[-1])
+    torque = np.cross(result.x[-1][patch] - log.wrist_points[-1], f[patch]).sum(axis=0) @ log.wrist_axis
+    weight = float(np.linalg.norm(model.gravity) * model.mass.sum())
+    assert abs(torque) < 1e-6 * weight * 0.1  # (the flap's weight times its length)
+
+
+def test_a_wrist_reach_must_be_a_positive_distance():
+    import gymnasium as gym
+
+    from heml_gym.envs import TISSUE_RETRACTION
+    from heml_gym.envs.observations import control_log, record
+    from heml_gym.envs.scripted import scripted_policy
+
+    env = gym.make(TISSUE_RETRACTION)
+    obs = record(env, scripted_policy(env.unwrapped.scene), seed=2, steps=2, points=4)
+    for bad in (0.0, -0.01, float("nan"), "1cm"):
+        with pytest.raises(ValueError, match="wrist_reach: must be a positive distance in metres"):
+            control_log(env, obs, wrist_reach=bad)
