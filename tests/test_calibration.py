@@ -131,16 +131,10 @@ def test_a_search_stopped_at_a_kink_is_a_minimum_only_if_no_probe_is_lower():
     1 % moves of E while they lower the loss). Stopped after one iteration from 3,000 Pa,
     twenty 1 % moves do not reach it: not converged, and the message names the move that
     still lowers the loss."""
-    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
-    X = mesh.vertices
+    model, log, _ = _pulled_slab(hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1)), "heml", 6, damping=None)
+    replay = Replay(model, log, lambda theta: hg.materials.NeoHookean(E=theta[0], nu=0.45))
+    X = model.mesh.vertices
     clamped, gripped = X[:, 0] < 1e-9, X[:, 0] > 0.06 - 1e-9
-    model = hg.Model(mesh, hg.materials.NeoHookean(E=5e3, nu=0.45), n_worlds=1, density=950.0, fixed=clamped,
-                     supports=[PlaneSupport((0, 0, 1.0), 0.0)])
-    kinematic = np.repeat(gripped[None], 6, axis=0)
-    targets = np.stack([np.where(gripped[:, None], X + np.array([-0.002, 0.0, 0.004]) * (t + 1), 0.0)
-                        for t in range(6)])
-    replay = Replay(model, ControlLog(kinematic, targets, 0.1, 2, X, np.zeros_like(X)),
-                    lambda theta: hg.materials.NeoHookean(E=theta[0], nu=0.45))
     free = ~clamped & ~gripped
     height = replay.run((6000.0,)).x[-1, free, 2].mean()
 
