@@ -100,9 +100,11 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
 
 def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_modulus", "poisson_ratio"),
               law: str | None = None, env_kwargs: str | None = None, starts: int = 1, point_scale: float = 1e-3,
-              force_scale: float = 0.05, progress: bool = True) -> dict:
+              force_scale: float = 0.05, progress: bool = True, wrist_reach: float | None = None) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
-    ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. Returns the fit's record."""
+    ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. ``wrist_reach`` (m):
+    the jaws hold the tissue within that distance of what the scene's jaws take, on a free
+    wrist (:func:`heml_gym.envs.observations.control_log`). Returns the fit's record."""
     from heml_gym.calibration import embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
     from heml_gym.envs.observations import FIT_PARAMETERS, calibration_problem, load_observation
@@ -117,16 +119,18 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         raise ValueError(f"ENV: {unknown_env_message(env_id)}")
     if starts < 1:
         raise ValueError(f"--starts: must be >= 1, got {starts}")
+    if wrist_reach is not None and not (math.isfinite(wrist_reach) and wrist_reach > 0):
+        raise ValueError(f"--wrist-reach: must be a positive distance in metres, got {wrist_reach}")
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
     selection = None
     if law == "auto":
         law, selection = select_law(env_id, obs, tuple(fit_names), parse_json_mapping(env_kwargs), point_scale, force_scale,
-                                    progress)
+                                    progress, wrist_reach)
     env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
-                                                                 force_scale)
+                                                                 force_scale, wrist_reach=wrist_reach)
     first = np.array(start, dtype=np.float64)
     start_list = [first]
     rng = np.random.default_rng(0)
@@ -168,6 +172,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "law_selection": selection,
         "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
+                     "wrist_reach_m": wrist_reach,
                      "observed": [k for k in ("points", "force", "depth") if getattr(obs, k) is not None],
                      "steps": obs.steps, "mesh": {"vertices": int(replay.model.n_vertices),
                                                    "tets": int(replay.model.mesh.n_tets)}},
@@ -213,7 +218,7 @@ def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
 
 
 def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,
-               progress: bool = True) -> tuple[str, list[dict]]:
+               progress: bool = True, wrist_reach: float | None = None) -> tuple[str, list[dict]]:
     """``--law auto``: fit each law of :mod:`heml_gym.materials` to half the tracked points
     (and the force) and keep the one that predicts the other half best (held-out RMS, m).
     Returns the law's name and every law's record."""
@@ -245,7 +250,8 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
     for name in iterator:
         env = _make(env_id, env_kwargs, physics_overrides(law=name))
         try:
-            replay, observed, names, bounds, start = calibration_problem(env, part, fit_names, point_scale, force_scale)
+            replay, observed, names, bounds, start = calibration_problem(env, part, fit_names, point_scale, force_scale,
+                                                                         wrist_reach=wrist_reach)
             result = fit(replay, observed, names, [start], bounds)
             predicted = replay.run(result.theta)
         except ReplayError as exc:

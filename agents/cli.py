@@ -236,7 +236,7 @@ def _calibrate(args) -> int:
     names = tuple(n.strip() for n in args.fit.split(",") if n.strip())
     record = calibrate(None if args.env == "-" else args.env, args.observation, args.out, names, law=args.law,
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
-                       force_scale=args.force_scale, progress=not args.no_progress)
+                       force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach)
     for name, p in record["parameters"].items():
         std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
         print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
@@ -424,6 +424,9 @@ def main(argv=None) -> int:
     c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
     c.add_argument("--point-scale", type=float, default=1e-3, help="tracked points' residual scale, m")
     c.add_argument("--force-scale", type=float, default=0.05, help="force residual scale, N")
+    c.add_argument("--wrist-reach", type=float, default=None,
+                   help="the jaws hold the tissue within this distance (m) of what the scene's jaws take, rigidly, "
+                        "on a free wrist (it turns about the jaws' axis); default: the scene's grasp")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
 

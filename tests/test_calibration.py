@@ -341,6 +341,7 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
     (["calibrate", "-", "{tmp}/none.npz", "--out", "{tmp}/fit"], "not found"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "stiffness"], "fit: stiffness"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "young_modulus,b"], "fit: b is a constant of Demiray"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--wrist-reach", "-0.01"], "--wrist-reach"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.txt"], "--out"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--young-modulus", "-5"], "--young-modulus"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--env-kwargs", "[1]"], "--env-kwargs"),
