@@ -26,6 +26,12 @@ the support penalty, and the mass damping ``alpha``) enter the sub-step's gradie
 reactions on the held vertices, not the elastic forces: their derivatives are central
 differences of those, at the sub-step's stored state.
 
+Jaws on a free wrist (``ControlLog.wrist``): the held patch's angle about the jaws' axis
+is one more unknown of each sub-step (:class:`~heml_gym.calibration.wrist.WristSubstep`:
+Newton on the free vertices and the angle together, with the bordered Hessian), and the
+reverse pass solves with that bordered Hessian, so the patch's turn, its unturned path
+and the place where the jaws took it are all differentiated.
+
 Only backward Euler (BDF2's two-step history is not differentiated). Units: m, s, N, Pa.
 """
 
