@@ -61,10 +61,14 @@ def _make(env_id: str, kwargs: dict, physics: dict | None = None):
 
 def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
             force_noise: float = 0.0, young_modulus=None, poisson=None, law=None, env_kwargs: str | None = None,
-            depth: str | None = None, depth_noise: float = 0.0, force: bool = True) -> dict:
+            depth: str | None = None, depth_noise: float = 0.0, force: bool = True,
+            wrist_reach: float | None = None) -> dict:
     """Record an observation file of ``env_id``'s scripted retraction (the tissue given by
-    ``young_modulus`` / ``poisson`` / ``law``, else drawn as the scene draws it)."""
-    from heml_gym.envs.observations import record, save_observation
+    ``young_modulus`` / ``poisson`` / ``law``, else drawn as the scene draws it); with
+    ``wrist_reach`` (m), as the calibration's replay steps it with the jaws holding the
+    tissue within that distance of what the scene's jaws take on a free wrist
+    (:func:`heml_gym.envs.observations.on_a_free_wrist`)."""
+    from heml_gym.envs.observations import on_a_free_wrist, record, save_observation
     from heml_gym.envs.scripted import scripted_policy
 
     for name, value in (("--steps", steps), ("--points", points)):
@@ -83,19 +87,28 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
     for name, value in (("--point-noise", point_noise), ("--force-noise", force_noise), ("--depth-noise", depth_noise)):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name}: must be >= 0, got {value}")
+    if wrist_reach is not None:
+        if not (math.isfinite(wrist_reach) and wrist_reach > 0):
+            raise ValueError(f"--wrist-reach: must be a positive distance in metres, got {wrist_reach}")
+        if depth_size is not None:
+            raise ValueError("--wrist-reach: not with --depth (the camera renders the env's own grasp)")
     if not str(out).endswith(".npz"):
         raise ValueError(f"--out: an observation file ends in .npz, got {out!r}")
     env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(young_modulus, poisson, law))
-    obs = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points,
-                 point_noise=point_noise, force_noise=force_noise, env_id=env_id, depth_size=depth_size,
-                 depth_noise=depth_noise)
+    if wrist_reach is None:
+        obs = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points,
+                     point_noise=point_noise, force_noise=force_noise, env_id=env_id, depth_size=depth_size,
+                     depth_noise=depth_noise)
+    else:  # the env records the gripper's path; the replay, the tissue held on the wrist
+        path = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points, env_id=env_id)
+        obs, _, _ = on_a_free_wrist(env, path, wrist_reach, point_noise, force_noise, noise_seed=seed)
     obs.meta["env_kwargs"] = parse_json_mapping(env_kwargs)
     if not force:  # (what a robot without a force sensor logs)
         obs.force = None
     save_observation(obs, out)
     return {"out": str(out), "steps": obs.steps, "points": 0 if obs.points is None else obs.points.shape[1],
             "depth": None if obs.depth is None else list(obs.depth.shape[1:]),
-            "truth": obs.meta["truth"], "adhesion_width_m": obs.adhesion_width}
+            "truth": obs.meta["truth"], "adhesion_width_m": obs.adhesion_width, "wrist_reach_m": wrist_reach}
 
 
 def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_modulus", "poisson_ratio"),

@@ -223,7 +223,7 @@ def _observe(args) -> int:
     summary = observe(args.env, args.out, seed=args.seed, steps=args.steps, points=args.points,
                       point_noise=args.point_noise, force_noise=args.force_noise, young_modulus=args.young_modulus,
                       poisson=args.poisson, law=args.law, env_kwargs=args.env_kwargs, depth=args.depth,
-                      depth_noise=args.depth_noise, force=not args.no_force)
+                      depth_noise=args.depth_noise, force=not args.no_force, wrist_reach=args.wrist_reach)
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -409,6 +409,9 @@ def main(argv=None) -> int:
     o.add_argument("--depth", help="also record the task camera's depth image, HxW pixels (e.g. 84x84)")
     o.add_argument("--depth-noise", type=float, default=0.0, help="Gaussian noise per depth pixel, m")
     o.add_argument("--no-force", action="store_true", help="no jaw force in the file (no force sensor)")
+    o.add_argument("--wrist-reach", type=float, default=None,
+                   help="the jaws hold the tissue within this distance (m) of what the scene's jaws take on a free "
+                        "wrist (stepped by the calibration's replay; no --depth)")
     o.set_defaults(func=_observe)
 
     c = sub.add_parser("calibrate", help="fit a scene's tissue to an observation file")

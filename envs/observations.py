@@ -38,10 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
-from heml_gym.calibration import ControlLog, Observed, Replay
+from heml_gym.calibration import ControlLog, Observed, Replay, ReplayResult, embed_points
 
 __all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
-           "calibration_problem", "FIT_PARAMETERS", "LAW_CONSTANTS", "physics_from_fit"]
+           "on_a_free_wrist", "calibration_problem", "FIT_PARAMETERS", "LAW_CONSTANTS", "physics_from_fit"]
 
 #: Constants a calibration can fit: name -> (unit, bounds).
 #: m: a depth image's value where the camera saw nothing
@@ -351,6 +351,40 @@ def control_log(env, obs: Observation, young_modulus: float | None = None,
     turning = {} if wrist is None else wrist.log_fields()
     return ControlLog(np.array(kinematic), np.array(targets), st.control_dt, task.substeps, x0, np.zeros((n, 3)),
                       gripped=np.array(gripped), **turning)
+
+
+def on_a_free_wrist(env, obs: Observation, wrist_reach: float, point_noise: float = 0.0, force_noise: float = 0.0,
+                    noise_seed: int = 0) -> tuple[Observation, ReplayResult, ControlLog]:
+    """``obs`` (recorded by :func:`record` on ``env``'s scene) as it would have been with the
+    jaws holding the tissue within ``wrist_reach`` (m) of what the scene's jaws take on a
+    free wrist (:func:`control_log`): the same gripper path and grasp replayed with the
+    recorded tissue (its ``meta["truth"]``) by the calibration's replay (the envs' solvers
+    do not step that grasp), the tracked points and the jaws' force replaced by the
+    replay's with Gaussian noise of ``point_noise`` m and ``force_noise`` N (drawn with
+    ``noise_seed``). Returns the observation, the replay's result and its log."""
+    if obs.depth is not None:
+        raise ObservationError(f"{obs.source}: field 'depth': a free-wrist observation has no depth images (the "
+                               "camera renders the env's own state, whose jaws hold the scene's grasp)")
+    truth = obs.meta.get("truth", {})
+    if "young_modulus" not in truth or "poisson_ratio" not in truth:
+        raise ObservationError(f"{obs.source}: field 'meta': no truth (young_modulus, poisson_ratio) to replay")
+    if truth.get("law") not in (None, env.unwrapped.task.scene.physics.material):
+        raise ObservationError(f"{obs.source}: the truth's law is {truth['law']}, the env's "
+                               f"{env.unwrapped.task.scene.physics.material}: make the env with it")
+    replay, *_ = calibration_problem(env, obs, wrist_reach=wrist_reach)
+    result = replay.run((float(truth["young_modulus"]), float(truth["poisson_ratio"])))
+    rng = np.random.default_rng(noise_seed)
+    points = None
+    if obs.points is not None:
+        B = embed_points(env.unwrapped.task.scene.mesh, obs.rest_points)
+        points = np.stack([B @ x for x in result.x])
+        points = points + rng.normal(0.0, point_noise, points.shape)
+    force = None
+    if obs.force is not None:
+        force = np.vstack([np.zeros(3), result.force + rng.normal(0.0, force_noise, result.force.shape)])
+    meta = {**obs.meta, "made_by": "heml_gym.envs.observations.on_a_free_wrist", "wrist_reach_m": float(wrist_reach),
+            "point_noise_m": point_noise, "force_noise_N": force_noise}
+    return dataclasses.replace(obs, points=points, force=force, meta=meta), result, replay.log
 
 
 class _WristGrasp:

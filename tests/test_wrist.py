@@ -194,34 +194,26 @@ def test_a_wrist_reach_must_be_a_positive_distance():
             control_log(env, obs, wrist_reach=bad)
 
 
-def test_calibrate_with_a_free_wrist_from_the_command_line(tmp_path, capsys):
-    """An observation of the flap held on a free wrist (made by the replay: the envs do not
-    step that grasp), saved as a file, is calibrated by `heml-gym calibrate --wrist-reach`
-    on the same model: E recovered to 1 %; without the wrist, the same file is not."""
-    import dataclasses
+def test_observe_and_calibrate_with_a_free_wrist_from_the_command_line(tmp_path, capsys):
+    """`heml-gym observe --wrist-reach` (the flap held on a free wrist, stepped by the
+    replay: the envs do not step that grasp) then `heml-gym calibrate --wrist-reach` on the
+    same model: E recovered to 1 %; calibrated with the scene's own grasp instead, the same
+    file gives an E more than 5 % off."""
     import json
 
-    import gymnasium as gym
-
     from heml_gym.agents.cli import main
-    from heml_gym.calibration import embed_points
     from heml_gym.envs import TISSUE_RETRACTION
-    from heml_gym.envs.observations import calibration_problem, record, save_observation
-    from heml_gym.envs.scripted import scripted_policy
 
-    env = gym.make(TISSUE_RETRACTION, physics={"young_modulus": [4500.0, 4500.0]})
-    path = record(env, scripted_policy(env.unwrapped.scene), seed=5, steps=12, points=6, env_id=TISSUE_RETRACTION)
-    replay, *_ = calibration_problem(gym.make(TISSUE_RETRACTION), path, ("young_modulus",), wrist_reach=0.01)
-    truth = replay.run((4500.0,))
-    B = embed_points(replay.model.mesh, path.rest_points)
-    obs = dataclasses.replace(path, points=np.stack([B @ x for x in truth.x]),
-                              force=np.vstack([np.zeros(3), truth.force]))
-    save_observation(obs, tmp_path / "wrist.npz")
+    obs = tmp_path / "wrist.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(obs), "--young-modulus", "4500", "--steps", "12",
+                 "--points", "6", "--seed", "5", "--wrist-reach", "0.01"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["wrist_reach_m"] == 0.01 and summary["truth"]["young_modulus"] == 4500.0
     fits = {}
     for name, extra in (("wrist", ["--wrist-reach", "0.01"]), ("line", [])):
         out = tmp_path / name
-        assert main(["calibrate", "-", str(tmp_path / "wrist.npz"), "--out", str(out), "--fit", "young_modulus",
-                     "--no-progress", *extra]) in (0, 1)
+        assert main(["calibrate", "-", str(obs), "--out", str(out), "--fit", "young_modulus", "--no-progress",
+                     *extra]) in (0, 1)
         fits[name] = json.loads((out / "fit.json").read_text())
     capsys.readouterr()
     assert fits["wrist"]["settings"]["wrist_reach_m"] == 0.01 and fits["wrist"]["converged"]

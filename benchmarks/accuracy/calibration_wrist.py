@@ -53,22 +53,18 @@ def replayed(kwargs: dict, obs) -> dict:
     start), the wrist's angle at the end (rad) and the patch's vertex count."""
     import gymnasium as gym
 
-    from heml_gym.calibration import embed_points
-    from heml_gym.envs.observations import calibration_problem
+    from heml_gym.envs.observations import on_a_free_wrist
 
-    env = gym.make(ENV, **kwargs)
-    replay, *_ = calibration_problem(env, obs, wrist_reach=REACH)
     t0 = time.perf_counter()
-    result = replay.run((TRUTH["young_modulus"], TRUTH["poisson_ratio"]))
-    B = embed_points(env.unwrapped.task.scene.mesh, obs.rest_points)
-    return {"points": np.array([B @ x for x in result.x]), "force": np.vstack([np.zeros(3), result.force]),
-            "angle": float(result.tape[-1]["angle"]), "patch": int(replay.log.wrist[-1].sum()),
-            "wall_s": time.perf_counter() - t0}
+    seen, result, log = on_a_free_wrist(gym.make(ENV, **kwargs), obs, REACH)
+    return {"points": seen.points, "force": seen.force, "angle": float(result.tape[-1]["angle"]),
+            "patch": int(log.wrist[-1].sum()), "wall_s": time.perf_counter() - t0}
 
 
 def measure() -> dict:
     numba.set_num_threads(1)
     path = observe(ENV, OBSERVED, SEED, 0.0, 0.0)  # the gripper's path, the grasp, the tracked points' rest places
+    path = dataclasses.replace(path, depth=None, intrinsics=None, camera_pose=None)  # (the env's own grasp's images)
     truth = replayed(OBSERVED, path)
     print(f"observer: wrist at {truth['angle']:.3f} rad, patch of {truth['patch']} vertices, {truth['wall_s']:.0f} s",
           flush=True)
