@@ -418,9 +418,11 @@ class _WristGrasp:
             self.patch = near & ~self.fixed & (jaws | ~kinematic)
             self.offsets = self.x_start[self.patch] - self.gripper_start
             self.middle = self.offsets.mean(axis=0)
-            if self.axis is None:
+            if self.axis is None:  # the jaws' axis: the longest direction of what they take, at rest
+                if jaws.sum() < 2:
+                    raise ObservationError("wrist_reach: the jaws take a single vertex, so their axis is undefined")
                 held = self.rest[jaws] - self.rest[jaws].mean(axis=0)
-                self.axis = np.linalg.svd(held, full_matrices=False)[2][0] if len(held) > 1 else np.array([0, 1.0, 0])
+                self.axis = np.linalg.svd(held, full_matrices=False)[2][0]
             self.points[-1] = self.gripper_start + self.middle
         kinematic[self.patch] = True
         gripped[self.patch] = True
