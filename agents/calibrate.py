@@ -59,6 +59,12 @@ def _make(env_id: str, kwargs: dict, physics: dict | None = None):
     return gym.make(env_id, max_episode_steps=episode_steps(kwargs), **kwargs)
 
 
+def _check_wrist_reach(wrist_reach: float | None) -> None:
+    """``--wrist-reach``: None (the scene's grasp) or a positive distance in metres."""
+    if wrist_reach is not None and not (math.isfinite(wrist_reach) and wrist_reach > 0):
+        raise ValueError(f"--wrist-reach: must be a positive distance in metres, got {wrist_reach}")
+
+
 def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int = 10, point_noise: float = 0.0,
             force_noise: float = 0.0, young_modulus=None, poisson=None, law=None, env_kwargs: str | None = None,
             depth: str | None = None, depth_noise: float = 0.0, force: bool = True,
@@ -87,11 +93,9 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
     for name, value in (("--point-noise", point_noise), ("--force-noise", force_noise), ("--depth-noise", depth_noise)):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name}: must be >= 0, got {value}")
-    if wrist_reach is not None:
-        if not (math.isfinite(wrist_reach) and wrist_reach > 0):
-            raise ValueError(f"--wrist-reach: must be a positive distance in metres, got {wrist_reach}")
-        if depth_size is not None:
-            raise ValueError("--wrist-reach: not with --depth (the camera renders the env's own grasp)")
+    _check_wrist_reach(wrist_reach)
+    if wrist_reach is not None and depth_size is not None:
+        raise ValueError("--wrist-reach: not with --depth (the camera renders the env's own grasp)")
     if not str(out).endswith(".npz"):
         raise ValueError(f"--out: an observation file ends in .npz, got {out!r}")
     env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(young_modulus, poisson, law))
@@ -132,8 +136,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         raise ValueError(f"ENV: {unknown_env_message(env_id)}")
     if starts < 1:
         raise ValueError(f"--starts: must be >= 1, got {starts}")
-    if wrist_reach is not None and not (math.isfinite(wrist_reach) and wrist_reach > 0):
-        raise ValueError(f"--wrist-reach: must be a positive distance in metres, got {wrist_reach}")
+    _check_wrist_reach(wrist_reach)
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")

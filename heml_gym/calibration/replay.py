@@ -233,7 +233,7 @@ class Replay:
         self._body = model.heml_body() if self._heml else None  # the kernels' body, with the replay's mass, alpha
         #: each sub-step's converged positions of the latest run: the next run's Newton may
         #: start there (a fit's successive constants are close, so are their trajectories)
-        self._previous: list[np.ndarray] = []
+        self._previous: list[tuple[np.ndarray, float]] = []  # (positions, wrist angle)
         self.steps = None if steps is None else np.asarray(steps, dtype=np.float64)
         self.tol = float(tol) * max(float(np.linalg.norm(model.gravity) * model.mass.sum()), 1e-12)
         self.contact_stiffness = float(contact_stiffness)
@@ -377,27 +377,24 @@ class Replay:
                     def gradient(y, step=step):
                         return step.gradient(y).reshape(-1)
 
-                y0, best, warm = x.copy(), math.inf, False
-                starts = [step.x_n + h * step.v_n, step.x_n.copy()]
+                def unknowns(y, turned, turn=turn):  # Newton's vector: y, and with a wrist its angle
+                    return y if turn is None else turn.extend(y, turned)
+
+                y0, best, warm = unknowns(x.copy(), angle), math.inf, False
+                starts = [(step.x_n + h * step.v_n, angle), (step.x_n.copy(), angle)]
                 if len(previous) > len(self._previous):  # where the previous run's Newton ended
-                    starts.append(previous[len(self._previous)].copy())
-                for i, candidate in enumerate(starts):  # the lowest-potential start
-                    if turn is not None:
-                        begun = turn.angle(candidate) if candidate.ndim == 1 else angle
-                        candidate = candidate[:-1].reshape(n, 3) if candidate.ndim == 1 else candidate
-                        candidate[held] = x[held]
-                        candidate = turn.extend(candidate, begun)
-                    else:
-                        candidate[held] = x[held]
+                    y_end, angle_end = previous[len(self._previous)]
+                    starts.append((y_end.copy(), angle_end))
+                for i, (candidate, turned) in enumerate(starts):  # the lowest-potential start
+                    candidate[held] = x[held]
+                    candidate = unknowns(candidate, turned)
                     phi = potential(candidate)
                     if phi < best:
                         y0, best, warm = candidate, phi, i == 2
                 if not math.isfinite(best):  # each turns a tet inside out: the held vertices moved past a neighbour
                     following = linear_response(step.hessian(step.x_n, True).tocsr(), step.x_n, x, held)
                     if following is not None:
-                        y0 = following if turn is None else turn.extend(following, angle)
-                if turn is not None and y0.ndim == 2:
-                    y0 = turn.extend(y0, angle)
+                        y0 = unknowns(following, angle)
                 with np.errstate(all="ignore"):
                     result = minimize(y0, potential, gradient, hessian, free, self.tol, self.max_iter,
                                       self._submatrix, self._linear, (free.tobytes(), h), stall_limit=None,
@@ -413,7 +410,7 @@ class Replay:
                     y, angle = turn.positions(result.x), turn.angle(result.x)
                 else:
                     y = result.x.reshape(n, 3)
-                self._previous.append(result.x.copy())
+                self._previous.append((y.copy(), angle))
                 x[:] = y
                 ends = step.finish(x, v, reaction, r_prev)
                 tape.append(dict(t=t, k=k, h=h, c=step.c, fraction=fraction, x_n=x_n, v_n=step.v_n.copy(),

@@ -49,7 +49,7 @@ class WristSubstep:
         self.forces, self.mass = forces, mass
         self.n = len(wrist)
         self.free = np.append(np.repeat(~step.held, 3), True)  # (3n + 1,)
-        self._border = None  # (pattern key, rows of the coupling column)
+        self.dofs = np.repeat(3 * self.rows, 3) + np.tile(np.arange(3), len(self.rows))
 
     # ------------------------------------------------------------------ geometry
     def angle(self, u: np.ndarray) -> float:
@@ -101,12 +101,8 @@ class WristSubstep:
             / self.scale ** 2
         if project:
             curvature = max(curvature, 0.0)
-        key = (hess.shape, hess.nnz, hess.indptr.tobytes(), hess.indices.tobytes())
-        if self._border is None or self._border[0] != key:
-            dofs = np.repeat(3 * self.rows, 3) + np.tile(np.arange(3), len(self.rows))
-            touched = np.unique(hess.tocsc()[:, dofs].indices)
-            self._border = (key, touched)
-        rows = self._border[1]
+        # the coupling's rows: the dofs the wrist's dofs couple to (the pattern is symmetric)
+        rows = np.unique(np.concatenate([hess.indices[hess.indptr[d]:hess.indptr[d + 1]] for d in self.dofs]))
         border = sp.csr_matrix((column[rows], (rows, np.zeros(len(rows), dtype=np.int64))), shape=(3 * self.n, 1))
         corner = sp.csr_matrix(np.array([[rigid + curvature]]))
         return sp.bmat([[hess, border], [border.T, corner]], format="csr")
