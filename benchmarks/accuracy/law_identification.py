@@ -17,11 +17,19 @@ the quadratic study's converged observer of ``calibration_mesh.py`` (10-node tet
 12 x 2 cells, 0.025 s steps) and every law fitted on 10-node tets on 6 x 6 x 1 cells (the
 default's nodes), 0.05 s steps, instead of the linear finer and default models.
 
+``--model wrist`` (the flap only) takes the line grasp's unconverged strain away: the
+flap's jaws hold the 10 mm next to their line on a free wrist (as in
+``calibration_wrist.py``), the tissue observed by the calibration's replay on 24 x 24 x 4
+cells in 0.025 s steps along the gripper path the env's own run recorded, and every law
+fitted with the same grasp on 18 x 18 x 3 cells in 0.05 s steps (where E and nu from points
+meet the bar with that grasp). The largest gauge strain is then the replay's.
+
 Writes docs/benchmarks/law_identification.{json,md}.
 
     python -m heml_gym.benchmarks.accuracy.law_identification [--envs tissue,organ]
     python -m heml_gym.benchmarks.accuracy.law_identification --model quadratic --name law_identification_quadratic
     python -m heml_gym.benchmarks.accuracy.law_identification --envs organ --name law_identification_organ  # ~50 min
+    python -m heml_gym.benchmarks.accuracy.law_identification --model wrist --name law_identification_wrist  # ~40 min
 """
 
 from __future__ import annotations
@@ -34,7 +42,11 @@ import numpy as np
 
 from heml_gym.benchmarks.accuracy.calibration import CASES, POINT_NOISE, SEED, STEPS, TRUTH
 from heml_gym.benchmarks.accuracy.calibration import observe as observe_truth
+from heml_gym.benchmarks.accuracy.calibration import truth_env
 from heml_gym.benchmarks.accuracy.calibration_mesh import QUADRATIC, QUADRATIC_OBSERVED, QUADRATIC_OBSERVED_LABEL
+from heml_gym.benchmarks.accuracy.calibration_wrist import OBSERVED as WRIST_OBSERVED
+from heml_gym.benchmarks.accuracy.calibration_wrist import OBSERVED_LABEL as WRIST_OBSERVED_LABEL
+from heml_gym.benchmarks.accuracy.calibration_wrist import REACH
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
 ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v2"}
@@ -42,16 +54,32 @@ BOOTSTRAP = 2000
 #: (observer, fitted model): env keyword arguments, and their labels
 MODELS = {"linear": (None, {}, "the finer model of calibration.md", "the default model"),
           "quadratic": (QUADRATIC_OBSERVED, {"cells": [6, 6, 1], "physics": QUADRATIC},
-                        QUADRATIC_OBSERVED_LABEL, "quadratic tets on 6 x 6 x 1 cells, 0.05 s steps")}
+                        QUADRATIC_OBSERVED_LABEL, "quadratic tets on 6 x 6 x 1 cells, 0.05 s steps"),
+          "wrist": (WRIST_OBSERVED, {"scene": {"tissue": {"cells": [18, 18, 3]}}},
+                    f"{WRIST_OBSERVED_LABEL}, its jaws holding the {REACH * 1e3:g} mm next to their line on a free "
+                    "wrist (the calibration's replay)",
+                    "18 x 18 x 3 cells, 0.05 s steps, the same grasp")}
+#: the model whose jaws hold a patch on a free wrist, and the patch's reach (m)
+WRIST_REACH = {"wrist": REACH}
 
 
-def observe(env_id: str, law: str, stretch: float, observer: dict | None = None):
+def observe(env_id: str, law: str, stretch: float, observer: dict | None = None, wrist_reach: float | None = None):
     """The observation of a ``law`` tissue on ``observer`` (env keyword arguments; default
-    the env's finer model), and its largest gauge strain."""
-    obs = observe_truth(env_id, observer or CASES[env_id]["fine"], SEED, POINT_NOISE, 0.0, law=law, stretch=stretch,
-                        depth_size=None)
-    obs.force = None  # points only: what a tracker sees
-    return obs, obs.meta["max_strain"]
+    the env's finer model), and its largest gauge strain; with ``wrist_reach`` (m) the
+    env's gripper path replayed with the jaws on a free wrist
+    (:func:`heml_gym.envs.observations.on_a_free_wrist`)."""
+    from heml_gym.envs.observations import on_a_free_wrist
+
+    observer = observer or CASES[env_id]["fine"]
+    if wrist_reach is None:
+        obs = observe_truth(env_id, observer, SEED, POINT_NOISE, 0.0, law=law, stretch=stretch, depth_size=None)
+        obs.force = None  # points only: what a tracker sees
+        return obs, obs.meta["max_strain"]
+    path = observe_truth(env_id, observer, SEED, 0.0, 0.0, law=law, stretch=stretch, depth_size=None)
+    env, _ = truth_env(env_id, observer, law)
+    obs, result, _ = on_a_free_wrist(env, path, wrist_reach, POINT_NOISE, 0.0, SEED)
+    obs.force = None
+    return obs, float(env.unwrapped.task.gauges.max_strain(result.x).max())
 
 
 def paired_interval(a: list[float], b: list[float], rng) -> tuple[float, float]:
@@ -72,10 +100,10 @@ def measure(envs: list[str], stretch: float, model: str = "linear") -> dict:
     observer, fitted, _, _ = MODELS[model]
     for env_id in envs:
         for law in LAWS:
-            obs, strain = observe(env_id, law, stretch, observer)
+            obs, strain = observe(env_id, law, stretch, observer, WRIST_REACH.get(model))
             t0 = time.perf_counter()
             winner, records = select_law(env_id, obs, ("young_modulus", "poisson_ratio"), fitted, 1e-3, 0.05,
-                                         progress=False)
+                                         progress=False, wrist_reach=WRIST_REACH.get(model))
             wall = time.perf_counter() - t0
             by_law = {r["law"]: r for r in records}
             true, best = by_law.get(law, {}), by_law[winner]
@@ -106,7 +134,7 @@ def report(data: dict) -> str:
     _, _, observer, fitted = MODELS[model]
     head = (f"Generated by `python -m heml_gym.benchmarks.accuracy.law_identification"
             f"{' --stretch 1 --name law_identification_scripted' if stretch == 1.0 else ''}"
-            f"{' --model quadratic --name law_identification_quadratic' if model == 'quadratic' else ''}"
+            f"{f' --model {model} --name law_identification_{model}' if model != 'linear' else ''}"
             f"{_envs_option(data)}` on {m['cpu']} "
             f"({m['vector_isa']}, one thread), {m['date']}. Each law's tissue (E {data['truth']['young_modulus']:g} "
             f"Pa, nu {data['truth']['poisson_ratio']:g}) observed on {observer} along the "
@@ -140,7 +168,8 @@ def main(argv=None) -> int:
     ap.add_argument("--stretch", type=float, default=1.2, help="the fold's arc radius over the grasp's distance "
                     "from the hinge (1: the scripted fold; 1.2: gauge strains about 0.3 on the flap)")
     ap.add_argument("--model", choices=sorted(MODELS), default="linear",
-                    help="linear: the finer and default linear-tet models; quadratic: 10-node tets (the flap only)")
+                    help="linear: the finer and default linear-tet models; quadratic: 10-node tets (the flap only); "
+                    "wrist: the jaws on a free wrist, 24 x 24 x 4 observed, 18 x 18 x 3 fitted (the flap only)")
     ap.add_argument("--name", default="law_identification", help="results: docs/benchmarks/NAME.{json,md}")
     ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored JSON")
     args = ap.parse_args(argv)
@@ -151,8 +180,8 @@ def main(argv=None) -> int:
             ap.error(f"--envs: give names among {', '.join(ENVS)}, got {args.envs!r}")
         if not (1.0 <= args.stretch <= 1.5):
             ap.error(f"--stretch: between 1 (the scripted fold) and 1.5 (tears soft tissue), got {args.stretch}")
-        if args.model == "quadratic" and names != ["tissue"]:
-            ap.error("--model quadratic: the flap only (--envs tissue)")
+        if args.model != "linear" and names != ["tissue"]:
+            ap.error(f"--model {args.model}: the flap only (--envs tissue)")
         data = measure([ENVS[e] for e in names], args.stretch, args.model)
     store_and_report(args.name, data, report)
     return 0
