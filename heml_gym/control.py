@@ -26,6 +26,25 @@ class Control:
         Where each spring's anchor is (the solver moves it towards :attr:`targets`).
     external_forces : (N, n, 3) float, N
         Applied to every vertex every step (a tip load, a probe).
+    turns : (N, n) bool
+        Held vertices on a free wrist (:meth:`turn`): a patch the jaws hold rigidly but
+        that turns about the jaws' axis to where the tissue's torque on it vanishes. They
+        are at ``pivot + R(angle) arms`` (their :attr:`targets` are not read), and the
+        quasi-Newton solver finds the angle in every sub-step; the other solvers refuse them.
+    arms : (N, n, 3) float, m
+        Each wrist vertex's place relative to the pivot at angle 0.
+    wrist_axis : (N, 3) float
+        The jaws' axis (unit), which the patch turns about.
+    pivot : (N, 3) float, m
+        The point on the axis the patch turns about, where it is now (the solver moves
+        it to :attr:`pivot_target` along a straight line during a step).
+    pivot_target : (N, 3) float, m
+        Where the pivot is at the end of the next step.
+    wrist_angle : (N,) float, rad
+        The patch's angle about the axis since the jaws took it (the solver's).
+    wrist_stiffness : (N,) float, N/m
+        The solver's latest estimate of ``d^2 Phi / ds^2`` (``s`` = angle times the patch's
+        radius about the axis): its warm start, 0 when none.
     """
 
     def __init__(self, n_worlds: int, n_vertices: int):
@@ -34,6 +53,13 @@ class Control:
         self.external_forces = np.zeros((n_worlds, n_vertices, 3))
         self.hold_stiffness = np.zeros((n_worlds, n_vertices))
         self.anchors = np.zeros((n_worlds, n_vertices, 3))
+        self.turns = np.zeros((n_worlds, n_vertices), dtype=bool)
+        self.arms = np.zeros((n_worlds, n_vertices, 3))
+        self.wrist_axis = np.zeros((n_worlds, 3))
+        self.pivot = np.zeros((n_worlds, 3))
+        self.pivot_target = np.zeros((n_worlds, 3))
+        self.wrist_angle = np.zeros(n_worlds)
+        self.wrist_stiffness = np.zeros(n_worlds)
 
     @property
     def n_worlds(self) -> int:
@@ -82,22 +108,76 @@ class Control:
             raise ValueError("kinematic targets must be finite")
         self.targets[world, idx] = targets
 
+    def turn(self, world: int, vertices, pivot, axis) -> None:
+        """Put held ``vertices`` of ``world`` on a free wrist: from now on they keep their
+        places relative to each other and to the ``pivot`` (m, (3,)), which follows
+        :meth:`drive_wrist`, and turn about ``axis`` (3,) through it to where the tissue's
+        torque about the axis vanishes (the wrist is massless: the patch's inertia and
+        weight are the jaws'). One patch per world: a second call replaces the first."""
+        idx = self.indices(vertices)
+        pivot = np.asarray(pivot, dtype=np.float64).reshape(-1)
+        axis = np.asarray(axis, dtype=np.float64).reshape(-1)
+        if not idx.size:
+            raise ValueError("turn: give at least one vertex")
+        if not np.all(self.kinematic[world, idx] & (self.hold_stiffness[world, idx] == 0.0)):
+            raise ValueError("turn: the wrist's vertices must be held exactly (attach them first, no springs)")
+        if pivot.shape != (3,) or not np.all(np.isfinite(pivot)):
+            raise ValueError(f"turn: pivot must be 3 finite coordinates (m), got {pivot.tolist()}")
+        norm = float(np.linalg.norm(axis)) if axis.shape == (3,) else 0.0
+        if not (np.isfinite(norm) and norm > 0.0):
+            raise ValueError(f"turn: axis must be a finite nonzero (3,) vector, got {axis.tolist()}")
+        arms = self.targets[world, idx] - pivot
+        radial = arms - np.outer(arms @ axis / norm, axis / norm)
+        if not np.any(np.sum(radial * radial, axis=1) > 0.0):
+            raise ValueError("turn: every vertex lies on the axis, so the patch has no angle to turn to")
+        self.turns[world] = False
+        self.turns[world, idx] = True
+        self.arms[world] = 0.0
+        self.arms[world, idx] = arms
+        self.wrist_axis[world] = axis / norm
+        self.pivot[world] = pivot
+        self.pivot_target[world] = pivot
+        self.wrist_angle[world] = 0.0
+        self.wrist_stiffness[world] = 0.0
+
+    def drive_wrist(self, world: int, pivot) -> None:
+        """The wrist's pivot of ``world`` reaches ``pivot`` (m, (3,)) at the end of the next step."""
+        pivot = np.asarray(pivot, dtype=np.float64).reshape(-1)
+        if not self.turns[world].any():
+            raise ValueError("drive_wrist() needs a wrist: call turn() first")
+        if pivot.shape != (3,) or not np.all(np.isfinite(pivot)):
+            raise ValueError(f"drive_wrist: pivot must be 3 finite coordinates (m), got {pivot.tolist()}")
+        self.pivot_target[world] = pivot
+
+    def wrist_places(self, world: int) -> np.ndarray:
+        """``(k, 3)`` m: where the wrist's vertices of ``world`` are at its current pivot
+        and angle (Rodrigues' rotation of their arms)."""
+        idx = np.flatnonzero(self.turns[world])
+        a, r, t = self.wrist_axis[world], self.arms[world, idx], float(self.wrist_angle[world])
+        turned = r * np.cos(t) + np.cross(a, r) * np.sin(t) + np.outer(r @ a, a) * (1.0 - np.cos(t))
+        return self.pivot[world] + turned
+
     def detach(self, world: int, vertices=None) -> None:
-        """Release the kinematic vertices of ``world`` (all, or ``vertices``); they keep
-        their velocity."""
+        """Release the kinematic vertices of ``world`` (all, or ``vertices``: the wrist too
+        if it holds any of them); they keep their velocity."""
         if vertices is None:
             self.kinematic[world] = False
             self.hold_stiffness[world] = 0.0
+            self.turns[world] = False
         else:
             idx = self.indices(vertices)
             self.kinematic[world, idx] = False
             self.hold_stiffness[world, idx] = 0.0
+            if self.turns[world, idx].any():  # the rest of the patch stays held where it is
+                self.targets[world, self.turns[world]] = self.wrist_places(world)
+                self.turns[world] = False
 
     def clear(self, world: int) -> None:
         """Nothing held and no external force in ``world``."""
         self.kinematic[world] = False
         self.hold_stiffness[world] = 0.0
         self.external_forces[world] = 0.0
+        self.turns[world] = False
 
     def exactly_held(self) -> np.ndarray:
         """``(N, n)`` bool: the kinematic vertices held exactly (no spring)."""

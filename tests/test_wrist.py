@@ -109,6 +109,81 @@ def test_adjoint_gradients_with_a_free_wrist_on_quadratic_tets():
     _random_loss_gradient_check(replay, (5e3, 0.45), (0.5, 1e-5), np.random.default_rng(4))
 
 
+def test_the_quasi_newton_solver_steps_a_free_wrist_as_the_replay_does():
+    """The envs' solver (L-BFGS, the wrist's angle eliminated inside each evaluation of the
+    potential) against the calibration's replay (Newton on the free vertices and the angle
+    together, an independent implementation): the patch lifted and pulled back over 3
+    control steps of two sub-steps each, turning by over 0.8 rad. Two worlds in one call:
+    the first on the free wrist, the second holding the same patch rigidly (its replay
+    holds it rigidly too), so the wrist stays in its world."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
+    model, patch = _slab(mesh)
+    model = hg.Model(mesh, _material((5e3, 0.45)), n_worlds=2, density=950.0, fixed=model.fixed, damping=5.0,
+                     supports=[PlaneSupport((0, 0, 1.0), 0.0)])
+    steps, move, point = 3, np.array([-0.004, 0.0, 0.006]), np.array([0.055, 0.03, 0.004])
+    X = mesh.vertices
+    solver = hg.QuasiNewtonSolver(model, newton_tol=1e-9, max_iter=1000)
+    state = hg.State(np.stack([X, X]))
+    control = hg.Control(2, mesh.n_vertices)
+    for world in (0, 1):
+        control.attach(world, patch, X)
+    control.turn(0, patch, point, AXIS)
+    for t in range(steps):
+        control.drive_wrist(0, point + move * (t + 1))
+        control.drive(1, patch, X[patch] + move * (t + 1))
+        stats = solver.step(state, state, control, 0.1, substeps=2)
+        assert stats.converged.all(), stats.messages
+    turned = Replay(model, _wrist_log(mesh, patch, steps, move), _material).run((5e3, 0.45))
+    rigid = Replay(model, _wrist_log(mesh, patch, steps, move, turning=False), _material).run((5e3, 0.45))
+    assert control.wrist_angle[0] < -0.8
+    assert control.wrist_angle[0] == pytest.approx(turned.tape[-1]["angle"], abs=1e-7)
+    assert np.abs(state.x[0] - turned.x[-1]).max() < 1e-8
+    assert np.abs(state.x[1] - rigid.x[-1]).max() < 1e-8
+    assert np.abs(turned.x[-1] - rigid.x[-1]).max() > 5e-3  # (the turn matters)
+    # the patch is where the control says the wrist is, and rigid
+    assert np.abs(state.x[0][patch] - control.wrist_places(0)).max() < 1e-12
+
+
+@pytest.mark.parametrize("solver", ["ExplicitSolver", "ImplicitSolver", "StaticSolver"])
+def test_solvers_that_do_not_step_a_wrist_say_so(solver):
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (2, 2, 1))
+    _, patch = _slab(mesh)
+    model = hg.Model(mesh, _material((5e3, 0.45)), fixed=mesh.vertices[:, 0] < 1e-9)  # (statics: no supports)
+    control = hg.Control(1, mesh.n_vertices)
+    control.attach(0, patch, mesh.vertices)
+    control.turn(0, patch, (0.055, 0.03, 0.004), AXIS)
+    state = hg.State(mesh.vertices[None].copy())
+    with pytest.raises(ValueError, match="does not step jaws on a free wrist") as error:
+        stepper = getattr(hg, solver)(model)
+        if solver == "StaticSolver":
+            stepper.solve(state, control)
+        else:
+            stepper.step(state, state, control, 0.01)
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("change, says", [
+    (dict(vertices="unheld"), "must be held exactly"),
+    (dict(axis=(0.0, 0.0, 0.0)), "axis must be a finite nonzero"),
+    (dict(pivot=(0.0, np.nan, 0.0)), "pivot must be 3 finite coordinates"),
+    (dict(vertices="on the axis"), "every vertex lies on the axis"),
+])
+def test_a_bad_wrist_control_is_a_one_line_error(change, says):
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (2, 2, 1))
+    _, patch = _slab(mesh)
+    control = hg.Control(1, mesh.n_vertices)
+    control.attach(0, patch, mesh.vertices)
+    args = dict(vertices=patch, pivot=(0.055, 0.03, 0.004), axis=AXIS)
+    args.update(change)
+    if isinstance(args["vertices"], str) and args["vertices"] == "unheld":
+        args["vertices"] = ~patch
+    elif isinstance(args["vertices"], str):  # on the axis
+        args["vertices"], args["pivot"] = np.flatnonzero(patch)[:1], mesh.vertices[patch][0]
+    with pytest.raises(ValueError, match=says) as error:
+        control.turn(0, args["vertices"], args["pivot"], args["axis"])
+    assert "\n" not in str(error.value)
+
+
 @pytest.mark.parametrize("change, says", [
     (dict(wrist_axis=None), "wrist: give wrist_axis"),
     (dict(wrist_axis=(0.0, 0.0, 0.0)), "wrist_axis: must be a finite nonzero"),

@@ -113,6 +113,8 @@ class Solver:
 
     #: whether the solver steps vertices held by springs (``Control.hold_stiffness``)
     takes_hold_springs = False
+    #: whether it steps jaws on a free wrist (``Control.turns``)
+    takes_wrist = False
 
     def __init__(self, model: Model, max_speed: float = 1e3):
         if not isinstance(model, Model):
@@ -141,6 +143,9 @@ class Solver:
             raise TypeError(f"control must be a heml_gym.Control, got {type(control).__name__}")
         if control.targets.shape != shape:
             raise ValueError(f"control holds {control.targets.shape}, the model needs {shape}")
+        if not self.takes_wrist and control.turns.any():
+            raise ValueError(f"control.turns: {type(self).__name__} does not step jaws on a free wrist; the "
+                             "quasi-Newton solver does (physics integrator 'quasi_newton')")
         if not self.takes_hold_springs and control.spring_held().any():
             raise ValueError(f"control.hold_stiffness: {type(self).__name__} holds vertices exactly only; vertices "
                              "held by springs (a part of the jaws' grip) need a solver that steps them")

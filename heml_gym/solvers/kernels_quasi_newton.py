@@ -47,6 +47,7 @@ from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, consta
 from ..kernel_data import world_law
 from ..kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
 from ..kernels_contact import signed_distances
+from .kernels_wrist import begin_wrist, radius, settle, subset_forces, tets_touching, world_wrist
 
 
 # ------------------------------------------------------------------------ bundles
@@ -327,41 +328,7 @@ def held_forces(x, f, held, body, law):
     """The HEML forces (N) at ``x`` on the ``held`` vertices, exactly (from every tet that
     touches one), into ``f``; ``f`` is zero or partial elsewhere. The reaction on held
     vertices needs no more: a tenth of the tets of the lobe, or fewer."""
-    tets, coef_t, q_t, w, inv_det = body.tets, body.coef_t, law.q_t, law.weights, body.inv_det
-    split, use_q = law.split, law.use_q
-    vt_ptr, vt_tets = body.vt_ptr, body.vt_tets
-    m = tets.shape[0]
-    touches = np.zeros(m, dtype=np.bool_)
-    k = 0
-    for i in range(held.shape[0]):
-        if held[i]:
-            for j in range(vt_ptr[i], vt_ptr[i + 1]):
-                t = vt_tets[j]
-                if not touches[t]:
-                    touches[t] = True
-                    k += 1
-    sub_tets = np.empty((k, 4), dtype=tets.dtype)
-    sub_inv_det = np.empty(k)
-    sub_w = np.empty((w.shape[0], k if split else 1))
-    sub_coef = np.empty((coef_t.shape[0], 1 if split else k))
-    sub_q = np.empty((q_t.shape[0], k if use_q else 1))
-    r = 0
-    for t in range(m):
-        if touches[t]:
-            for a in range(4):
-                sub_tets[r, a] = tets[t, a]
-            sub_inv_det[r] = inv_det[t]
-            if split:
-                for a in range(w.shape[0]):
-                    sub_w[a, r] = w[a, t]
-            else:
-                for a in range(coef_t.shape[0]):
-                    sub_coef[a, r] = coef_t[a, t]
-            if use_q:
-                for a in range(q_t.shape[0]):
-                    sub_q[a, r] = q_t[a, t]
-            r += 1
-    _forces_of(x, f, sub_tets, sub_coef, sub_q, use_q, law.law, law.params, split, sub_w, sub_inv_det)
+    subset_forces(x, f, tets_touching(held, body, law), law)
 
 
 _FAST = {"reassoc", "contract", "nsz", "arcp"}  # lets the dot products vectorise
@@ -552,7 +519,7 @@ def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, 
 
 @nb.njit(cache=True)
 def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
-                 reaction, out):
+                 reaction, out, wrist):
     """One backward Euler (``sub.order`` 1) or BDF2 (2) sub-step of one world by L-BFGS, in
     place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best of four
     starts, :func:`end_substep`. ``body``, ``law``, ``supports``: the model's (see
@@ -567,12 +534,25 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
     step-mean constraint force on held and fixed vertices of this sub-step (see
     :func:`end_substep`). ``out`` receives ``(iterations, residual (N), converged,
     feasible)``.
+
+    A free wrist (``wrist``, :class:`~.kernels_wrist.Wrist`): its patch (held) is turned,
+    in every evaluation of the potential, to the angle where the tissue's torque on it
+    vanishes (:func:`~.kernels_wrist.settle`); the sub-step ends at that angle.
     """
     n = x.shape[0]
     h = sub.h
     work = substep_work(n, sub.order)
     x_n, v_n, held, jump, f = work.x_n, work.v_n, work.held, work.jump, work.f
     c, any_jump = begin_substep(x, v, targets, holds, ext, body, law, sub, history, r_prev, work)
+    has_wrist = False
+    for i in range(n):
+        has_wrist = has_wrist or wrist.turns[i]
+    if has_wrist:
+        any_jump = begin_wrist(x, x_n, v_n, jump, h, sub.fraction, wrist)
+    patch = tets_touching(wrist.turns, body, law)  # (none without a wrist)
+    scale = radius(wrist)
+    wrist_tol = 1e-3 * tol  # |dPhi/ds| (N): far below the free vertices' tolerance
+    f_wrist = np.zeros((n, 3)) if has_wrist else np.zeros((0, 3))
     k_contact = sub.kappa * c
     n_supports = supports.planes.shape[0] + supports.grids.shape[0]
     g = np.zeros((n, 3))
@@ -613,13 +593,15 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
                         trial[i, d] = x_n[i, d] + h * v_n[i, d]
                     if attempt % 2 == 0:
                         trial[i, d] += response[i, d]
-        phi = potential_and_gradient(trial, True, g, f, dist, normal, *args)
+        phi = _reduced_potential(trial, g, f, dist, normal, args, has_wrist, wrist, patch, law, f_wrist, scale,
+                                 wrist_tol)
         if math.isfinite(phi):
             break
     if not math.isfinite(phi):
         out[0], out[1], out[2], out[3] = 0.0, math.inf, 0.0, 0.0
         return
     x[:, :] = trial
+    angle_at_x = wrist.angle[0]  # (the wrist's angle at x: trials the line search rejects move it)
     last_at_x = True  # ``f`` holds the elastic forces at ``x``
     gnorm = math.sqrt(_dot(g, g))
     stored = memory.memory[0]  # curvature pairs kept from the world's earlier steps (same initial Hessian)
@@ -657,7 +639,8 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
             for i in range(n):
                 for dd in range(3):
                     trial[i, dd] = x[i, dd] + step * d_vec[i, dd]
-            phi_t = potential_and_gradient(trial, True, g_new, f, dist, normal, *args)
+            phi_t = _reduced_potential(trial, g_new, f, dist, normal, args, has_wrist, wrist, patch, law, f_wrist,
+                                       scale, wrist_tol)
             if math.isfinite(phi_t):
                 # Armijo on the potential or, near convergence where its round-off hides the
                 # decrease, a smaller residual (as Newton's line search)
@@ -671,10 +654,11 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
             last_at_x = False
             break
         phi = phi_t
+        angle_at_x = wrist.angle[0]
         newest = (newest + 1) % history_len
         for i in range(n):
             for dd in range(3):
-                s_hist[newest, i, dd] = trial[i, dd] - x[i, dd]
+                s_hist[newest, i, dd] = 0.0 if held[i] else trial[i, dd] - x[i, dd]  # (a wrist turns held ones)
                 y_hist[newest, i, dd] = g_new[i, dd] - g[i, dd]
         sy = _dot(s_hist[newest], y_hist[newest])
         if sy > 1e-300:
@@ -685,6 +669,8 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
         x[:, :] = trial
         g[:, :] = g_new
         gnorm = math.sqrt(_dot(g, g))
+    if has_wrist:
+        wrist.angle[0] = angle_at_x
     end_substep(x, v, work, dist, normal, n_supports, last_at_x, reaction, r_prev, body, law, sub, history, holds)
     memory.memory[0] = stored
     memory.memory[1] = newest
@@ -692,39 +678,49 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
 
 
 @nb.njit(cache=True, inline="always")
+def _reduced_potential(trial, g, f, dist, normal, args, has_wrist, wrist, patch, law, f_wrist, scale, wrist_tol):
+    """:func:`potential_and_gradient` (with the gradient) at ``trial``, its wrist's patch
+    first turned to where the torque on it vanishes (:func:`~.kernels_wrist.settle`)."""
+    if has_wrist and not math.isfinite(settle(trial, wrist, patch, law, f_wrist, scale, wrist_tol, 50)):
+        return math.inf
+    return potential_and_gradient(trial, True, g, f, dist, normal, *args)
+
+
+@nb.njit(cache=True, inline="always")
 def _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
-                reaction, out):
+                reaction, out, wrist):
     """:func:`_lbfgs_world` of world ``s`` of the stacked bundles."""
     _lbfgs_world(x[s], v[s], targets[s], Holds(holds.kinematic[s], holds.stiffness[s], holds.anchor[s]), ext[s],
                  body, world_law(laws, s), supports,
                  world_hessian(hessians, s),
                  LbfgsMemory(memory.s_hist[s], memory.y_hist[s], memory.rho[s], memory.memory[s]), tol[s], sub,
                  Bdf2History(history.x_prev[s], history.v_prev[s], history.history_h[s:s + 1]), r_prev[s],
-                 reaction[s], out[s])
+                 reaction[s], out[s], world_wrist(wrist, s))
 
 
 @nb.njit(cache=True, parallel=True)
 def lbfgs_steps_parallel(x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                         active, r_prev, reaction, out):
+                         active, r_prev, reaction, out, wrist):
     """:func:`_lbfgs_world` for every ``active`` world (leading axis N of the arrays and of
     ``laws`` (:class:`~heml_gym.kernel_data.HemlLaws`), ``hessians``
     (:class:`InitialHessians`), ``memory`` (:class:`LbfgsMemory`), ``history``
-    (:class:`Bdf2History`)), worlds over threads; world ``s`` preconditions with its
-    current initial Hessian ``hessians.values[s, hessians.entry[s]]``."""
+    (:class:`Bdf2History`), ``wrist`` (:class:`~.kernels_wrist.Wrist`)), worlds over
+    threads; world ``s`` preconditions with its current initial Hessian
+    ``hessians.values[s, hessians.entry[s]]``."""
     for s in prange(x.shape[0]):
         if active[s]:
             _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                        r_prev, reaction, out)
+                        r_prev, reaction, out, wrist)
 
 
 @nb.njit(cache=True)
 def lbfgs_steps_serial(x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                       active, r_prev, reaction, out):
+                       active, r_prev, reaction, out, wrist):
     """:func:`lbfgs_steps_parallel` world after world."""
     for s in range(x.shape[0]):
         if active[s]:
             _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                        r_prev, reaction, out)
+                        r_prev, reaction, out, wrist)
 
 
 @nb.njit(cache=True)

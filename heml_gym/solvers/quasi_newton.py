@@ -51,6 +51,7 @@ from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeLayout, Free
 from ..model import Model
 from ..state import State
 from . import kernels_quasi_newton as kq
+from .kernels_wrist import Wrist
 from .base import Solver, StepStats
 from .newton import minimize
 
@@ -153,6 +154,7 @@ class QuasiNewtonSolver(Solver):
     """
 
     takes_hold_springs = True
+    takes_wrist = True
 
     SCHEMES = {"backward_euler": 1, "bdf2": 2}
 
@@ -373,6 +375,7 @@ class QuasiNewtonSolver(Solver):
         stats.tolerance[:] = tol
         x, v = state_out.x, state_out.v
         x0, v0 = x.copy(), v.copy()
+        wrist_start = self._wrist_state(control)
         r_prev = np.zeros_like(x)
         stats.reaction[:] = 0.0
         feasible = np.ones(N, dtype=bool)
@@ -381,6 +384,7 @@ class QuasiNewtonSolver(Solver):
             for k in range(1, substeps + 1):
                 run = active & feasible
                 saved = x.copy(), v.copy(), r_prev.copy()  # (whole arrays: cheaper than a masked gather)
+                wrist_saved = self._wrist_state(control)
                 history = self._x_prev.copy(), self._v_prev.copy(), self._history_h.copy()  # (BDF2's)
                 residual_before, converged_before = stats.residual.copy(), stats.converged.copy()
                 contribution = np.zeros_like(x)
@@ -397,6 +401,7 @@ class QuasiNewtonSolver(Solver):
                     # held vertices move a ``factor``-th as far per step, and the tissue in
                     # front of them has time to give way)
                     x[retry], v[retry], r_prev[retry] = saved[0][retry], saved[1][retry], saved[2][retry]
+                    self._restore_wrist(control, wrist_saved, retry)
                     self._x_prev[retry], self._v_prev[retry] = history[0][retry], history[1][retry]
                     self._history_h[retry] = history[2][retry]
                     finer = np.zeros_like(x)
@@ -427,6 +432,7 @@ class QuasiNewtonSolver(Solver):
                 reason = "no feasible start: the held vertices invert elements within one step"
             if reason:
                 x[s], v[s] = x0[s], v0[s]
+                self._restore_wrist(control, wrist_start, s)
                 self._memory[s] = (0, -1)
                 self._history_h[s] = 0.0
                 stats.diverged[s] = True
@@ -434,6 +440,9 @@ class QuasiNewtonSolver(Solver):
                 stats.reaction[s] = 0.0
                 stats.messages[s] = reason
                 stats.elements[s] = elements
+            elif not stats.converged[s] and stats.fallback[s] and control.turns[s].any():
+                stats.messages[s] = (f"L-BFGS stopped at a force residual above its tolerance of {tol[s]:.3g} N in "
+                                     f"every re-take, and its Newton fallback does not step jaws on a free wrist")
             elif not stats.converged[s]:
                 method = "Newton (the fallback)" if stats.fallback[s] else "L-BFGS"
                 stats.messages[s] = (f"{method} stopped at a force residual of {stats.residual[s]:.3g} N, above its "
@@ -441,6 +450,16 @@ class QuasiNewtonSolver(Solver):
                                      f"in all (sub-steps refined {stats.refinement[s]}x)")
         stats.reaction[~active] = 0.0
         return stats
+
+    @staticmethod
+    def _wrist_state(control: Control) -> tuple:
+        """What a step changes of the wrists (pivot, angle, stiffness estimate), copied."""
+        return control.pivot.copy(), control.wrist_angle.copy(), control.wrist_stiffness.copy()
+
+    @staticmethod
+    def _restore_wrist(control: Control, saved: tuple, worlds) -> None:
+        control.pivot[worlds], control.wrist_angle[worlds], control.wrist_stiffness[worlds] = (
+            saved[0][worlds], saved[1][worlds], saved[2][worlds])
 
     def _kernel_args(self, state: State, control: Control, held: np.ndarray, tol: np.ndarray) -> dict:
         """What every call of the L-BFGS kernel in one step shares."""
@@ -476,9 +495,11 @@ class QuasiNewtonSolver(Solver):
                                       self._entry, self._axis_slot, self._edge_i, self._edge_j, self._edge_w,
                                       a["stiffness"])
         kernel = kq.lbfgs_steps_parallel if N > 1 and numba.get_num_threads() > 1 else kq.lbfgs_steps_serial
+        wrist = Wrist(control.turns, control.arms, control.wrist_axis, control.pivot, control.pivot_target,
+                      control.wrist_angle, control.wrist_stiffness)
         kernel(x, v, control.targets, a["holds"], control.external_forces, a["body"], a["laws"],
                a["supports"], hessians, self._lbfgs_memory(), a["tol"], self._substep(h, fraction, first_substep),
-               self._bdf2_history(), run, r_prev, contribution, out)
+               self._bdf2_history(), run, r_prev, contribution, out, wrist)
         return out
 
     def _substep(self, h: float, fraction: float, first_substep: bool) -> kq.Substep:
@@ -502,6 +523,9 @@ class QuasiNewtonSolver(Solver):
         m = self.model
         out = np.zeros((m.n_worlds, 4))
         for s in np.flatnonzero(run):
+            if a["control"].turns[s].any():  # (not stepped by Newton: reported unconverged, from its start)
+                out[s] = (0.0, math.inf, 0.0, 1.0)
+                continue
             out[s] = self._newton_world(a, int(s), h, fraction, first_substep, r_prev[s], contribution[s])
             self._memory[s] = (0, -1)
         return out
