@@ -153,6 +153,9 @@ class BatchedRetraction:
         self.solver = make_solver(self.model, ph.integrator, scheme=ph.scheme, safety=ph.safety,
                                   newton_tol=ph.newton_tol, max_iterations=ph.max_newton,
                                   hessian_scale=ph.hessian_scale if ph.integrator == "quasi_newton" else 1.0)
+        if s.spec.gripper.wrist_reach is not None and not self.solver.takes_wrist:
+            raise SpecError(f"scene.gripper.wrist_reach: jaws on a free wrist are stepped by the quasi_newton "
+                            f"integrator, not {ph.integrator}")
         if s.spec.gripper.jaw_ends == "weighted" and not self.solver.takes_hold_springs:
             raise SpecError(f"scene.gripper.jaw_ends: weighted jaws hold their end vertices by springs, which the "
                             f"{ph.integrator} integrator does not step (use quasi_newton or implicit)")
@@ -192,6 +195,7 @@ class BatchedRetraction:
         self.adhered = np.zeros((n, s.mesh.n_vertices), dtype=bool)
         self.adhesion_width = np.zeros(n)
         self.offsets = np.zeros((n, s.mesh.n_vertices, 3))
+        self.pivot_offset = np.zeros((n, 3))  # a free wrist's pivot from the gripper (m)
         self.target = np.zeros((n, 3))
         self.exposure = np.zeros(n)
         self.lift = np.zeros(n)
@@ -310,12 +314,18 @@ class BatchedRetraction:
             release = a[i, 3] < st.release_command  # between it and 0 the jaws stay as they are
             if close and not self.grasping[i]:
                 picked, share = self._jaw_vertices(i)
+                wrist = self._wrist(i, picked) if picked.size else None
+                if wrist is not None:
+                    picked, share = wrist[0], np.ones(len(wrist[0]))
                 if picked.size:
                     self.grasping[i] = True
                     self.held[i, picked] = True
                     self.held_share[i, picked] = share
                     self.offsets[i, picked] = x[i, picked] - self.gripper[i]
                     self.control.attach(i, picked, x[i], stiffness=self._hold_springs(i, picked, share))
+                    if wrist is not None and wrist[2] is not None:
+                        self.control.turn(i, picked, wrist[1], wrist[2])
+                        self.pivot_offset[i] = wrist[1] - self.gripper[i]
                     if not self.grasped_once[i]:
                         self.grasped_once[i] = True
                         grasp_bonus[i] = w.grasp
@@ -335,8 +345,12 @@ class BatchedRetraction:
         for i in np.flatnonzero(self.grasping):
             idx = np.flatnonzero(self.held[i])
             self.control.drive(i, idx, self.gripper[i] + self.offsets[i, idx])
+            if self.control.turns[i].any():
+                self.control.drive_wrist(i, self.gripper[i] + self.pivot_offset[i])
         stats = self.solver.step(self.state, self.state, self.control, st.control_dt, substeps=self.substeps,
                                  active=active)
+        for i in np.flatnonzero(self.grasping & self.control.turns.any(axis=1)):  # the patch has turned
+            self.offsets[i, self.held[i]] = self.state.x[i, self.held[i]] - self.gripper[i]
         diverged = stats.diverged
         failed = diverged | ~stats.converged
         self.reaction = stats.reaction
@@ -392,6 +406,7 @@ class BatchedRetraction:
             "newton_iterations": stats.newton_iterations.copy(),
             "substep_refinement": stats.refinement.copy(),
             "solver_fallback": stats.fallback.copy(),
+            **self._wrist_info(all_worlds),
             **self._episode_info(all_worlds),
         }
         return reward, terminated, truncated, info
@@ -420,7 +435,15 @@ class BatchedRetraction:
                 "grasping": self.grasping[worlds].copy(), "is_success": no.copy(), "hold_time": zero.copy(),
                 "tissue_torn": no.copy(), "simulation_diverged": no.copy(), "solver_converged": ~no,
                 "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),
-                "solver_fallback": no.copy(), **self._episode_info(worlds)}
+                "solver_fallback": no.copy(), **self._wrist_info(worlds), **self._episode_info(worlds)}
+
+    def _wrist_info(self, worlds) -> dict:
+        """``wrist_angle`` (rad): how far the jaws on a free wrist have turned since they
+        closed (0 when open), where the scene has them."""
+        if self.scene.spec.gripper.wrist_reach is None:
+            return {}
+        turned = self.control.turns[worlds].any(axis=1)
+        return {"wrist_angle": np.where(turned, self.control.wrist_angle[worlds], 0.0)}
 
     def _jaw_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """The tissue vertices that closing the gripper of world ``i`` holds (maybe none),
@@ -428,6 +451,28 @@ class BatchedRetraction:
         picked, share = self._reached_vertices(i)
         keep = ~self.adhered[i, picked]
         return picked[keep], share[keep]
+
+    def _wrist(self, i: int, picked: np.ndarray):
+        """Jaws on a free wrist (``scene.gripper.wrist_reach``) closing on ``picked`` in world
+        ``i``: ``(patch, pivot, axis)``, the vertices within the reach (at rest) of
+        ``picked`` (not fixed or stuck), the patch's middle (m) and the jaws' axis (unit: the
+        longest direction of ``picked`` at rest, else of the patch; None when the patch is
+        a single vertex, which has no angle); None without a wrist."""
+        reach = self.scene.spec.gripper.wrist_reach
+        if reach is None:
+            return None
+        rest = self.scene.mesh.vertices
+        near = np.zeros(len(rest), dtype=bool)
+        for p in rest[picked]:
+            near |= np.linalg.norm(rest - p, axis=1) <= reach
+        near[picked] = True
+        patch = np.flatnonzero(near & ~self.model.fixed & ~self.adhered[i])
+        x = self.state.x[i]
+        shape = rest[picked] if len(picked) > 1 else rest[patch]
+        if len(shape) < 2:
+            return patch, x[patch].mean(axis=0), None
+        axis = np.linalg.svd(shape - shape.mean(axis=0), full_matrices=False)[2][0]
+        return patch, x[patch].mean(axis=0), axis
 
     def _hold_springs(self, i: int, vertices: np.ndarray, share: np.ndarray) -> np.ndarray:
         """The hold stiffness (N/m) of ``vertices`` of world ``i`` held with ``share``: 0 (exact)

@@ -302,7 +302,8 @@ def control_log(env, obs: Observation, young_modulus: float | None = None,
     where it was when they closed, and the patch turns freely about the jaws' axis (the
     held vertices' longest direction at rest) through its middle
     (:mod:`heml_gym.calibration.wrist`). A replay, not the env's solver, steps such a
-    grasp."""
+    grasp. A scene whose jaws are on a free wrist already (``scene.gripper.wrist_reach``)
+    logs its own: the patch, axis and pivot its solver turned."""
     task = env.unwrapped.task
     st = task.settings
     if not np.allclose(np.diff(obs.t), st.control_dt, rtol=0, atol=1e-9):
@@ -319,8 +320,12 @@ def control_log(env, obs: Observation, young_modulus: float | None = None,
     if wrist_reach is not None and not (isinstance(wrist_reach, (int, float)) and math.isfinite(wrist_reach)
                                         and wrist_reach > 0):
         raise ValueError(f"wrist_reach: must be a positive distance in metres, got {wrist_reach!r}")
+    native = task.scene.spec.gripper.wrist_reach is not None
+    if native and wrist_reach is not None:
+        raise ValueError(f"wrist_reach: the scene's jaws are on a free wrist already (scene.gripper.wrist_reach "
+                         f"{task.scene.spec.gripper.wrist_reach} m): give no other")
     kinematic, targets, gripped = [], [], []
-    wrist = _WristGrasp(task, wrist_reach) if wrist_reach is not None else None
+    wrist = _WristGrasp(task, wrist_reach) if wrist_reach is not None else _SceneWrist(task) if native else None
     x0 = task.x[0].copy()
     step = st.max_speed * st.control_dt
     for k in range(1, obs.t.shape[0]):
@@ -385,6 +390,41 @@ def on_a_free_wrist(env, obs: Observation, wrist_reach: float, point_noise: floa
     meta = {**obs.meta, "made_by": "heml_gym.envs.observations.on_a_free_wrist", "wrist_reach_m": float(wrist_reach),
             "point_noise_m": point_noise, "force_noise_N": force_noise}
     return dataclasses.replace(obs, points=points, force=force, meta=meta), result, replay.log
+
+
+class _SceneWrist:
+    """:func:`control_log` of a scene whose jaws are on a free wrist: the patch each step
+    held on it, the jaws' axis and the pivot's path, from the env's control (the
+    replay's targets for the patch: its places at angle 0 about the step's last pivot)."""
+
+    def __init__(self, task):
+        self.task = task
+        self.masks, self.points, self.axis = [], [task.gripper[0].copy()], None
+
+    def before_step(self) -> None:
+        self.gripper_start = self.task.gripper[0].copy()
+
+    def after_step(self, kinematic: np.ndarray, targets: np.ndarray, gripped: np.ndarray) -> None:
+        control, task = self.task.control, self.task
+        turns = control.turns[0].copy()
+        self.masks.append(turns)
+        if not turns.any():
+            self.points.append(task.gripper[0].copy())
+            return
+        pivot = control.pivot[0].copy()
+        if len(self.masks) == 1 or not np.array_equal(turns, self.masks[-2]):  # closed in this step
+            self.points[-1] = self.gripper_start + (pivot - task.gripper[0])  # (the pivot moves with the gripper)
+        if self.axis is not None and not np.allclose(self.axis, control.wrist_axis[0], atol=1e-12):
+            raise ObservationError("the scene's jaws closed on their wrist about another axis in a later grasp; a "
+                                   "replay takes one axis")
+        self.axis = control.wrist_axis[0].copy()
+        targets[turns] = pivot + control.arms[0, turns]
+        self.points.append(pivot)
+
+    def log_fields(self) -> dict:
+        if self.axis is None:
+            return {}
+        return dict(wrist=np.array(self.masks), wrist_axis=self.axis, wrist_points=np.array(self.points))
 
 
 class _WristGrasp:

@@ -288,7 +288,13 @@ class GripperSpec:
     span along the axis, from midway to the previous row to midway to the next): a whole
     share exactly, a part ``w`` by a spring of ``w / (1 - w)`` times the tissue's own
     stiffness at the vertex (so that, in series with the tissue, it holds with ``w`` of
-    it), a vertex with no share not at all."""
+    it), a vertex with no share not at all. ``wrist_reach`` (m): jaws with a footprint on
+    a free wrist: closed, they hold every vertex within this distance (at rest) of those
+    they take (not fixed or stuck), rigidly, where it is, and the patch turns about the
+    jaws' axis (the taken vertices' longest direction at rest) through its middle to
+    where the tissue's torque on it vanishes (:meth:`heml_gym.Control.turn`; the
+    ``quasi_newton`` integrator only, exact jaw ends); null: the jaws hold what they take,
+    rigidly."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)
@@ -296,10 +302,17 @@ class GripperSpec:
     workspace_high: Vec3 = (1.0, 1.0, 1.0)
     jaw_length: float | None = None
     jaw_ends: str = "vertex"
+    wrist_reach: float | None = None
 
     def __post_init__(self):
         if self.jaw_ends not in ("vertex", "weighted"):
             raise invalid(self, "jaw_ends", f"must be 'vertex' or 'weighted', got {self.jaw_ends!r}")
+        r = self.wrist_reach
+        if r is not None and (isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r)
+                              or r <= 0):
+            raise invalid(self, "wrist_reach", f"must be a positive length in metres or null, got {r!r}")
+        if r is not None and self.jaw_ends == "weighted":
+            raise invalid(self, "wrist_reach", "a free wrist holds its patch exactly: give jaw_ends 'vertex'")
         j = self.jaw_length
         if j is not None and (isinstance(j, bool) or not isinstance(j, (int, float)) or not math.isfinite(j)
                               or j <= 0):
