@@ -12,9 +12,12 @@ targets, external forces) and a solver (:class:`ExplicitSolver`,
 single-world facade over them.
 """
 
-from .numba_cache import tolerate_stale_indexes
+from pathlib import Path as _Path
+
+from .numba_cache import stamp_with_package_sources, tolerate_stale_indexes
 
 tolerate_stale_indexes()  # before any kernel is compiled or loaded (see heml_gym.numba_cache)
+stamp_with_package_sources(_Path(__file__).parent)  # a changed callee recompiles its callers
 
 from . import kinematics, materials, organs  # noqa: E402
 from .contact import MeshSupport, PlaneSupport

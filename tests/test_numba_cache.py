@@ -43,3 +43,37 @@ def test_a_cache_naming_a_renamed_bundle_type_is_recompiled(tmp_path, guarded):
         assert again.returncode == 0 and again.stdout.strip() == "3.0", again.stderr
     else:  # what Numba alone does (if this starts passing, Numba fixed it and the guard can go)
         assert again.returncode != 0 and "Can't get attribute 'SceneBundle'" in again.stderr
+
+
+CALLEE = "from numba import njit\n\n\n@njit(cache=True)\ndef value():\n    return {value}\n"
+CALLER = textwrap.dedent("""
+    from numba import njit
+    from callee import value
+
+    @njit(cache=True)
+    def twice():
+        return 2.0 * value()
+""")
+CALL_CALLER = ("import sys; sys.path.insert(0, {folder!r}); {prelude}"
+               "import caller; print(caller.twice())")
+
+
+@pytest.mark.parametrize("guarded", [False, True])
+def test_a_kernel_whose_callee_changed_in_another_file_is_recompiled(tmp_path, guarded):
+    """Numba judges a cached kernel by its own file's stamp: with the callee changed and
+    the caller's file untouched it loads the old machine code; with
+    heml_gym.numba_cache.stamp_with_package_sources on the folder it compiles again."""
+    (tmp_path / "callee.py").write_text(CALLEE.format(value="1.0"))
+    (tmp_path / "caller.py").write_text(CALLER)
+    prelude = (f"from heml_gym.numba_cache import stamp_with_package_sources; "
+               f"stamp_with_package_sources({str(tmp_path)!r}); ") if guarded else ""
+
+    def call():
+        run = subprocess.run([sys.executable, "-c", CALL_CALLER.format(folder=str(tmp_path), prelude=prelude)],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        return float(run.stdout.strip())
+
+    assert call() == 2.0
+    (tmp_path / "callee.py").write_text(CALLEE.format(value="5.0"))
+    assert call() == (10.0 if guarded else 2.0)  # (unguarded: stale; if this changes, Numba fixed it)
