@@ -12,7 +12,13 @@ env's docstring keeps a version history); ``-v0`` named several former tasks and
 no longer registered: asking for it is a one-line error naming ``-v1``.
 """
 
+from pathlib import Path as _Path
+
 import gymnasium as gym
+
+from heml_gym.numba_cache import stamp_with_package_sources
+
+stamp_with_package_sources(_Path(__file__).parent)  # (before any kernel here is loaded: see heml_gym.numba_cache)
 
 from .core import STATE_FIELDS, STATE_SPEC, RewardWeights, TaskSettings
 from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec,
