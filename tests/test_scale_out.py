@@ -141,7 +141,10 @@ def test_a_tiny_rllib_run_trains_checkpoints_evaluates_and_resumes_on_a_two_node
     try:
         assert main(["train", str(config), "--run-dir", str(run), "--no-progress", "--address", cluster.address]) == 0
         assert (run / "rllib_checkpoint" / "obs_stats.json").is_file()
-        assert sorted(p.name for p in (run / "checkpoints").iterdir())[:1] == ["rllib_128_steps"]
+        # the first checkpoint at the first iteration past 128 env steps (RLlib's iteration may
+        # overshoot its batch by a rollout fragment on a busy machine: 192 steps seen)
+        first = min(int(p.name.split("_")[1]) for p in (run / "checkpoints").iterdir())
+        assert 128 <= first < 256
         history = json.loads((run / "evaluations.json").read_text())
         assert history[-1]["timesteps"] >= 256 and 0 <= history[-1]["success_rate"] <= 1
         with pytest.raises(ValueError, match="--trust-pickle"):  # RLlib unpickles its checkpoints

@@ -33,6 +33,7 @@ scene, for the top of docs/scene_convergence.md) and docs/img/scene_convergence*
     python benchmarks/accuracy/scene_convergence.py [tissue] [organ] [--quick] [--from-json]
     python benchmarks/accuracy/scene_convergence.py tissue --variation {jaws_adhesion,jaws,adhesion}
     python benchmarks/accuracy/scene_convergence.py organ --variation jaws
+    python benchmarks/accuracy/scene_convergence.py tissue --variation wrist
 """
 
 from __future__ import annotations
@@ -60,7 +61,10 @@ SCENE_ARGS = {"tissue": "TissueRetraction", "organ": "OrganRetraction"}
 #: stuck to the support, since 2026-11-25): the flap's 40 mm jaws
 #: (``configs/quick_jaws_adhesion.yaml``), the lobe's 20 mm (the middle half of the 40 mm
 #: footprint, where they close)
-VARIATIONS = {"TissueRetraction": {"jaws": {"gripper": JAWS_AND_ADHESION["gripper"]}},
+#: (the flap's ``wrist``: its jaws holding the 10 mm next to the edge on a free wrist,
+#: ``scene.gripper.wrist_reach``; every model then by L-BFGS, the only integrator that steps it)
+VARIATIONS = {"TissueRetraction": {"jaws": {"gripper": JAWS_AND_ADHESION["gripper"]},
+                                   "wrist": {"gripper": {"wrist_reach": 0.01}}},
               "OrganRetraction": {"jaws": {"gripper": ORGAN_JAWS_AND_ADHESION["gripper"]}}}
 
 
@@ -209,6 +213,22 @@ VARIATION_SPECS = {
                                    organ(0.005, jaw=J, **ORGAN_QN)],
                         "check": (SCENES["OrganRetraction"]["check"][0], ())},
 }
+
+
+#: ``--variation wrist``: the flap's quasi-Newton models, the default's step and tolerance
+#: varied, against a reference and a check stepped by L-BFGS in 0.0125 s steps to 1e-4 of the
+#: weight (the explicit reference of the other runs cannot step a free wrist)
+FINE_QN = {**QN, "max_dt": 0.0125, "newton_tol": 1e-4, "max_newton": 500}
+WRIST_SPEC = {
+    **SCENES["TissueRetraction"],
+    "models": [tissue((8, 8, 1), **QN), tissue((10, 10, 1), **QN), tissue((12, 12, 1), **QN),
+               tissue((12, 12, 2), **QN), tissue((12, 12, 2), **{**QN, "newton_tol": 1e-2}),
+               tissue((12, 12, 2), **{**QN, "max_dt": 0.1}), tissue((12, 12, 2), **{**QN, "max_dt": 0.025}),
+               tissue((16, 16, 2), **QN), tissue((18, 18, 3), **QN), tissue((24, 24, 3), **QN),
+               tissue((32, 32, 4), **{**QN, "max_dt": 0.025})],
+    "reference": tissue((32, 32, 4), **FINE_QN), "check": (tissue((40, 40, 5), **FINE_QN), (1, 2))}
+#: the specs of the variations that have their own models (the others: VARIATION_SPECS)
+OWN_SPECS = {("TissueRetraction", "wrist"): WRIST_SPEC}
 
 
 def variation_name(scene: str, variation: str) -> str:
@@ -636,7 +656,8 @@ def main(argv=None):
         name = variation_name(scene, args.variation)
         numba.set_num_threads(1)
         start = time.perf_counter()
-        results = {scene: run_scene(scene, VARIATION_SPECS[scene], False, changes)}
+        spec = OWN_SPECS.get((scene, args.variation), VARIATION_SPECS[scene])
+        results = {scene: run_scene(scene, spec, False, changes)}
         what = "The flap" if scene == "TissueRetraction" else "The lobe"
         md = (f"{what} with `--variation {args.variation}` ({changes}) on every model: not the "
               "default task; the tables of docs/scene_convergence.md are the default's.\n\n"
