@@ -231,6 +231,33 @@ WRIST_SPEC = {
 OWN_SPECS = {("TissueRetraction", "wrist"): WRIST_SPEC}
 
 
+def after_the_grasp(res: dict) -> str:
+    """A table of each model's force error (worst seed, % of the reference's peak, over the
+    default's episode) in the step in which the jaws close and over the steps after it:
+    the closing step's force holds the impulse that sets the held tissue moving, which
+    depends on how much tissue the mesh's vertex rows put in the jaws."""
+    runs = {lab: {int(s): r for s, r in by.items()} for lab, by in res["runs"].items()}
+    ref = runs[res["reference"]]
+    windows = dict(zip(res["seeds"], res["windows"]))
+    rows = []
+    for lab, by in runs.items():
+        closing, after = [], []
+        for s, run in by.items():
+            if lab == res["reference"] or s not in ref:
+                continue
+            F, F_ref = np.asarray(run["grasp_force"]), np.asarray(ref[s]["grasp_force"])
+            w = windows[s]
+            k = int(np.argmax(F_ref[:w] > 0))  # the step in which the jaws close
+            err = np.abs(F[:w] - F_ref[:w]) / F_ref[:w].max()
+            closing.append(err[k])
+            after.append(err[k + 1:].max())
+        if closing:
+            rows.append([lab, f"{100 * max(closing):.1f}", f"{100 * max(after):.1f}"])
+    return ("\nThe force error split at the jaws' closing (worst seed, % of the reference's peak force): the step "
+            "in which they close, and every step after it.\n\n"
+            + markdown_table(["model", "closing step", "after it"], rows))
+
+
 def variation_name(scene: str, variation: str) -> str:
     """The results name of ``--variation``: ``scene_convergence_VARIATION`` for the flap (as
     first stored), ``scene_convergence_organ_VARIATION`` for the lobe."""
@@ -661,7 +688,7 @@ def main(argv=None):
         what = "The flap" if scene == "TissueRetraction" else "The lobe"
         md = (f"{what} with `--variation {args.variation}` ({changes}) on every model: not the "
               "default task; the tables of docs/scene_convergence.md are the default's.\n\n"
-              + markdown(results, time.perf_counter() - start))
+              + markdown(results, time.perf_counter() - start) + after_the_grasp(results[scene]))
         write_json(f"{name}.json", {"machine": machine_info(), "wall_s": time.perf_counter() - start,
                                     "variation": args.variation, "changes": changes, "results": results})
         (RESULTS / f"{name}.md").write_text(md)
