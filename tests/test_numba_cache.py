@@ -2,6 +2,7 @@
 crash: Numba unpickles a cache index before it checks the source's stamp (numba#6018), and
 heml_gym.numba_cache makes an index it cannot unpickle count as stale."""
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -21,6 +22,10 @@ CALL = ("import sys; sys.path.insert(0, {folder!r}); {prelude}"
         "import bundles, kernel; print(kernel.total(bundles.{name}(1.0, 2.0)))")
 
 
+#: the subprocesses cache beside their sources (in __pycache__), whatever this process uses
+ENV = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+
+
 def _write(folder, name):
     (folder / "bundles.py").write_text(BUNDLES.format(name=name))
     (folder / "kernel.py").write_text(KERNEL.format(name=name))
@@ -28,7 +33,7 @@ def _write(folder, name):
 
 def _call(folder, name, prelude=""):
     code = CALL.format(folder=str(folder), name=name, prelude=prelude)
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=ENV)
 
 
 @pytest.mark.parametrize("guarded", [False, True])
@@ -70,7 +75,7 @@ def test_a_kernel_whose_callee_changed_in_another_file_is_recompiled(tmp_path, g
 
     def call():
         run = subprocess.run([sys.executable, "-c", CALL_CALLER.format(folder=str(tmp_path), prelude=prelude)],
-                             capture_output=True, text=True, timeout=300)
+                             capture_output=True, text=True, timeout=300, env=ENV)
         assert run.returncode == 0, run.stderr
         return float(run.stdout.strip())
 
