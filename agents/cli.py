@@ -411,7 +411,8 @@ def main(argv=None) -> int:
     o.add_argument("--no-force", action="store_true", help="no jaw force in the file (no force sensor)")
     o.add_argument("--wrist-reach", type=float, default=None,
                    help="the jaws hold the tissue within this distance (m) of what the scene's jaws take on a free "
-                        "wrist (stepped by the calibration's replay; no --depth)")
+                        "wrist (stepped by the calibration's replay; no --depth; a scene with gripper.wrist_reach in "
+                        "--env-kwargs has the envs' own wrist, depth included)")
     o.set_defaults(func=_observe)
 
     c = sub.add_parser("calibrate", help="fit a scene's tissue to an observation file")
