@@ -144,6 +144,32 @@ def test_the_quasi_newton_solver_steps_a_free_wrist_as_the_replay_does():
     assert np.abs(state.x[0][patch] - control.wrist_places(0)).max() < 1e-12
 
 
+def test_releasing_part_of_a_wrist_keeps_the_rest_held_where_it_is():
+    """``Control.detach`` of some of the wrist's vertices ends the wrist; the others stay
+    held exactly where the turn left them (a step without new targets does not move them),
+    and ``wrist_places`` is where the solver put the patch."""
+    mesh = hg.box_mesh((0.06, 0.06, 0.008), (6, 6, 1))
+    model, patch = _slab(mesh)
+    X = mesh.vertices
+    solver = hg.QuasiNewtonSolver(model)
+    state = hg.State(X[None].copy())
+    control = hg.Control(1, mesh.n_vertices)
+    control.attach(0, patch, X)
+    point = np.array([0.055, 0.03, 0.004])
+    control.turn(0, patch, point, AXIS)
+    control.drive_wrist(0, point + np.array([-0.004, 0.0, 0.01]))
+    assert solver.step(state, state, control, 0.1, substeps=2).converged.all()
+    assert abs(control.wrist_angle[0]) > 0.1
+    assert np.abs(control.wrist_places(0) - state.x[0][patch]).max() < 1e-12
+    rows = np.flatnonzero(patch)
+    released, kept = rows[: len(rows) // 2], rows[len(rows) // 2:]
+    here = state.x[0][kept].copy()
+    control.detach(0, released)
+    assert not control.turns.any() and control.kinematic[0, kept].all() and not control.kinematic[0, released].any()
+    assert solver.step(state, state, control, 0.1, substeps=2).converged.all()
+    assert np.abs(state.x[0][kept] - here).max() < 1e-12
+
+
 @pytest.mark.parametrize("solver", ["ExplicitSolver", "ImplicitSolver", "StaticSolver"])
 def test_solvers_that_do_not_step_a_wrist_say_so(solver):
     mesh = hg.box_mesh((0.06, 0.06, 0.008), (2, 2, 1))
