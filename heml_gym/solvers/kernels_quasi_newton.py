@@ -549,8 +549,8 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
         has_wrist = has_wrist or wrist.turns[i]
     if has_wrist:
         any_jump = begin_wrist(x, x_n, v_n, jump, h, sub.fraction, wrist)
-    patch = tets_touching(wrist.turns, body, law)  # (none without a wrist)
-    scale = radius(wrist)
+    patch = tets_touching(wrist.turns if has_wrist else wrist.turns[:0], body, law)  # (none without a wrist)
+    scale = radius(wrist) if has_wrist else 1.0
     wrist_tol = 1e-3 * tol  # |dPhi/ds| (N): far below the free vertices' tolerance
     f_wrist = np.zeros((n, 3)) if has_wrist else np.zeros((0, 3))
     k_contact = sub.kappa * c
@@ -658,8 +658,13 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
         newest = (newest + 1) % history_len
         for i in range(n):
             for dd in range(3):
-                s_hist[newest, i, dd] = 0.0 if held[i] else trial[i, dd] - x[i, dd]  # (a wrist turns held ones)
+                s_hist[newest, i, dd] = trial[i, dd] - x[i, dd]
                 y_hist[newest, i, dd] = g_new[i, dd] - g[i, dd]
+        if has_wrist:  # (its turn moves held vertices: L-BFGS's pairs are of the free ones)
+            for i in range(n):
+                if held[i]:
+                    for dd in range(3):
+                        s_hist[newest, i, dd] = 0.0
         sy = _dot(s_hist[newest], y_hist[newest])
         if sy > 1e-300:
             rho[newest] = 1.0 / sy

@@ -62,12 +62,12 @@ def world_wrist(wrist, s):
 
 @nb.njit(cache=True)
 def tets_touching(mask, body, law):
-    """The :class:`TetSubset` of ``body``'s tets with a vertex in ``mask`` ((n,) bool), for
-    ``law`` (:class:`~heml_gym.kernel_data.WorldLaw`)."""
+    """The :class:`TetSubset` of ``body``'s tets with a vertex in ``mask`` ((n,) bool, or
+    empty: no tets, nothing scanned), for ``law`` (:class:`~heml_gym.kernel_data.WorldLaw`)."""
     tets, coef_t, q_t, w, inv_det = body.tets, body.coef_t, law.q_t, law.weights, body.inv_det
     vt_ptr, vt_tets = body.vt_ptr, body.vt_tets
     m = tets.shape[0]
-    touches = np.zeros(m, dtype=np.bool_)
+    touches = np.zeros(m if mask.shape[0] else 0, dtype=np.bool_)
     k = 0
     for i in range(mask.shape[0]):
         if mask[i]:
@@ -82,7 +82,7 @@ def tets_touching(mask, body, law):
     sub_coef = np.empty((coef_t.shape[0], k))
     sub_q = np.zeros((q_t.shape[0], k if law.use_q else 1))
     r = 0
-    for t in range(m):
+    for t in range(m if k else 0):
         if touches[t]:
             for a in range(4):
                 sub_tets[r, a] = tets[t, a]
