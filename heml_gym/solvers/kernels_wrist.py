@@ -24,7 +24,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from ..forces.kernels_heml import constant_psi1_forces_chunk, heml_energy_chunk, heml_forces_chunk
+from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
+                                   heml_energy_chunk, heml_forces_chunk)
 
 
 class TetSubset(NamedTuple):
@@ -162,7 +163,17 @@ def _torque_force(x, f, wrist, scale):
 
 @nb.njit(cache=True)
 def _energy_and_slope(x, wrist, angle, sub, law, f, scale):
+    """The energy (J) of ``sub`` with the patch at ``angle`` (placed in ``x``) and
+    ``dPhi/ds`` (N); ``(inf, 0)`` where a tet inverts. A law with a constant ``Psi_1``
+    (Neo-Hookean) takes both in one pass."""
     place(x, wrist, angle)
+    if law.split:
+        f[:, :] = 0.0
+        phi = constant_psi1_energy_and_forces_chunk(x, sub.tets, sub.inv_det, sub.coef_t[0], sub.weights, law.psi1,
+                                                    law.law, law.params, f, 0, sub.tets.shape[0])
+        if not math.isfinite(phi):
+            return math.inf, 0.0
+        return phi, _torque_force(x, f, wrist, scale)
     phi = subset_energy(x, sub, law)
     if not math.isfinite(phi):
         return math.inf, 0.0
