@@ -452,27 +452,32 @@ class BatchedRetraction:
         keep = ~self.adhered[i, picked]
         return picked[keep], share[keep]
 
-    def _wrist(self, i: int, picked: np.ndarray):
-        """Jaws on a free wrist (``scene.gripper.wrist_reach``) closing on ``picked`` in world
-        ``i``: ``(patch, pivot, axis)``, the vertices within the reach (at rest) of
-        ``picked`` (not fixed or stuck), the patch's middle (m) and the jaws' axis (unit: the
-        longest direction of ``picked`` at rest, else of the patch; None when the patch is
-        a single vertex, which has no angle); None without a wrist."""
-        reach = self.scene.spec.gripper.wrist_reach
-        if reach is None:
-            return None
+    def wrist_patch(self, i: int, picked: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """What jaws on a free wrist hold when they close on ``picked`` (vertex indices) in
+        world ``i``: the vertices within ``reach`` (m, at rest) of one of them, not fixed or
+        stuck (indices, ascending), and the jaws' axis (unit: the longest direction of
+        ``picked`` at rest, else of the patch; None when that is a single vertex, which has
+        no angle). The scene's wrist (``scene.gripper.wrist_reach``) and the calibration's
+        (:func:`heml_gym.envs.observations.control_log`) both take it."""
         rest = self.scene.mesh.vertices
         near = np.zeros(len(rest), dtype=bool)
         for p in rest[picked]:
             near |= np.linalg.norm(rest - p, axis=1) <= reach
         near[picked] = True
         patch = np.flatnonzero(near & ~self.model.fixed & ~self.adhered[i])
-        x = self.state.x[i]
         shape = rest[picked] if len(picked) > 1 else rest[patch]
         if len(shape) < 2:
-            return patch, x[patch].mean(axis=0), None
-        axis = np.linalg.svd(shape - shape.mean(axis=0), full_matrices=False)[2][0]
-        return patch, x[patch].mean(axis=0), axis
+            return patch, None
+        return patch, np.linalg.svd(shape - shape.mean(axis=0), full_matrices=False)[2][0]
+
+    def _wrist(self, i: int, picked: np.ndarray):
+        """``(patch, pivot, axis)`` of the scene's free wrist closing on ``picked`` in world
+        ``i`` (:meth:`wrist_patch`; the pivot: the patch's middle, m), None without one."""
+        reach = self.scene.spec.gripper.wrist_reach
+        if reach is None:
+            return None
+        patch, axis = self.wrist_patch(i, picked, reach)
+        return patch, self.state.x[i, patch].mean(axis=0), axis
 
     def _hold_springs(self, i: int, vertices: np.ndarray, share: np.ndarray) -> np.ndarray:
         """The hold stiffness (N/m) of ``vertices`` of world ``i`` held with ``share``: 0 (exact)

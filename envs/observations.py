@@ -434,8 +434,6 @@ class _WristGrasp:
 
     def __init__(self, task, reach: float):
         self.task, self.reach = task, float(reach)
-        self.rest = task.scene.mesh.vertices
-        self.fixed = task.model.fixed
         self.patch = self.offsets = None
         self.masks, self.points, self.axis = [], [task.gripper[0].copy()], None
 
@@ -452,17 +450,15 @@ class _WristGrasp:
             self.points.append(task.gripper[0].copy())
             return
         if self.patch is None:  # the jaws close: the patch, where it is
-            near = np.zeros(len(jaws), dtype=bool)
-            for p in self.rest[jaws]:
-                near |= np.linalg.norm(self.rest - p, axis=1) <= self.reach
-            self.patch = near & ~self.fixed & (jaws | ~kinematic)
+            if self.axis is None and jaws.sum() < 2:
+                raise ObservationError("wrist_reach: the jaws take a single vertex, so their axis is undefined")
+            patch, axis = task.wrist_patch(0, np.flatnonzero(jaws), self.reach)
+            self.patch = np.zeros(len(jaws), dtype=bool)
+            self.patch[patch] = True
             self.offsets = self.x_start[self.patch] - self.gripper_start
             self.middle = self.offsets.mean(axis=0)
             if self.axis is None:  # the jaws' axis: the longest direction of what they take, at rest
-                if jaws.sum() < 2:
-                    raise ObservationError("wrist_reach: the jaws take a single vertex, so their axis is undefined")
-                held = self.rest[jaws] - self.rest[jaws].mean(axis=0)
-                self.axis = np.linalg.svd(held, full_matrices=False)[2][0]
+                self.axis = axis
             self.points[-1] = self.gripper_start + self.middle
         kinematic[self.patch] = True
         gripped[self.patch] = True

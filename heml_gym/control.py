@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Control"]
+__all__ = ["Control", "rotation"]
+
+
+def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The (3, 3) rotation by ``angle`` (rad) about the unit vector ``axis`` (Rodrigues)."""
+    a = np.asarray(axis, dtype=np.float64)
+    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
 
 class Control:
@@ -153,9 +160,8 @@ class Control:
         """``(k, 3)`` m: where the wrist's vertices of ``world`` are at its current pivot
         and angle (Rodrigues' rotation of their arms)."""
         idx = np.flatnonzero(self.turns[world])
-        a, r, t = self.wrist_axis[world], self.arms[world, idx], float(self.wrist_angle[world])
-        turned = r * np.cos(t) + np.cross(a, r) * np.sin(t) + np.outer(r @ a, a) * (1.0 - np.cos(t))
-        return self.pivot[world] + turned
+        turn = rotation(self.wrist_axis[world], float(self.wrist_angle[world]))
+        return self.pivot[world] + self.arms[world, idx] @ turn.T
 
     def detach(self, world: int, vertices=None) -> None:
         """Release the kinematic vertices of ``world`` (all, or ``vertices``: the wrist too

@@ -22,14 +22,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..control import rotation
+
 __all__ = ["rotation", "WristSubstep"]
-
-
-def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """The (3, 3) rotation by ``angle`` (rad) about the unit vector ``axis`` (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
 
 class WristSubstep:
