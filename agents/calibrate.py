@@ -117,14 +117,17 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
 
 def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_modulus", "poisson_ratio"),
               law: str | None = None, env_kwargs: str | None = None, starts: int = 1, point_scale: float = 1e-3,
-              force_scale: float = 0.05, progress: bool = True, wrist_reach: float | None = None) -> dict:
+              force_scale: float = 0.05, progress: bool = True, wrist_reach: float | None = None,
+              regions: str | None = None) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. ``wrist_reach`` (m):
     the jaws hold the tissue within that distance of what the scene's jaws take, on a free
-    wrist (:func:`heml_gym.envs.observations.control_log`). Returns the fit's record."""
+    wrist (:func:`heml_gym.envs.observations.control_log`); ``regions`` (``"NXxNYxNZ"``):
+    Young's modulus fitted per box of that grid over the tissue's rest bounding box.
+    Returns the fit's record."""
     from heml_gym.calibration import embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
-    from heml_gym.envs.observations import FIT_PARAMETERS, calibration_problem, load_observation
+    from heml_gym.envs.observations import calibration_problem, fit_parameter, load_observation
 
     import gymnasium as gym
 
@@ -137,16 +140,17 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     if starts < 1:
         raise ValueError(f"--starts: must be >= 1, got {starts}")
     _check_wrist_reach(wrist_reach)
+    grid = parse_regions(regions)
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
     selection = None
     if law == "auto":
         law, selection = select_law(env_id, obs, tuple(fit_names), parse_json_mapping(env_kwargs), point_scale, force_scale,
-                                    progress, wrist_reach)
+                                    progress, wrist_reach, grid)
     env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
-                                                                 force_scale, wrist_reach=wrist_reach)
+                                                                 force_scale, wrist_reach=wrist_reach, regions=grid)
     first = np.array(start, dtype=np.float64)
     start_list = [first]
     rng = np.random.default_rng(0)
@@ -154,8 +158,8 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         s = first.copy()
         for j, name in enumerate(names):
             lo, hi = bounds[j]
-            s[j] = np.clip(s[j] * 2.0 ** rng.uniform(-1, 1) if name == "young_modulus" else s[j] + rng.uniform(-0.05, 0.05),
-                           lo, hi)
+            s[j] = np.clip(s[j] * 2.0 ** rng.uniform(-1, 1) if name.startswith("young_modulus")
+                           else s[j] + rng.uniform(-0.05, 0.05), lo, hi)
         start_list.append(s)
     bar = None
     if progress:
@@ -179,15 +183,17 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     record = {
         # (a standard error the data do not determine is null, not JSON's non-standard Infinity)
         "parameters": {name: {"value": float(v), "std": float(s) if math.isfinite(s) else None,
-                              "unit": FIT_PARAMETERS[name][0]}
+                              "unit": fit_parameter(name)[0]}
                        for name, v, s in zip(names, result.theta, result.std)},
         "law": env.unwrapped.scene.physics.material,
         "converged": result.converged, "message": result.message, "loss": result.loss,
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
         "law_selection": selection,
+        "regions": None if grid is None else _regions_record(replay.model.mesh, grid),
         "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
+                     "regions": regions,
                      "wrist_reach_m": wrist_reach,
                      "observed": [k for k in ("points", "force", "depth") if getattr(obs, k) is not None],
                      "steps": obs.steps, "mesh": {"vertices": int(replay.model.n_vertices),
@@ -202,6 +208,34 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+def parse_regions(regions: str | None) -> tuple[int, int, int] | None:
+    """``--regions NXxNYxNZ`` as three integers (None: one E for the whole tissue)."""
+    if regions is None:
+        return None
+    from heml_gym.mesh import check_region_grid
+
+    try:
+        grid = tuple(int(v) for v in str(regions).lower().split("x"))
+    except ValueError:
+        grid = ()
+    try:
+        return check_region_grid(grid, "--regions")
+    except ValueError:
+        raise ValueError(f"--regions: boxes along x, y and z as NXxNYxNZ (each 1-64), e.g. 2x1x1, got {regions!r}") \
+            from None
+
+
+def _regions_record(mesh, grid) -> dict:
+    """fit.json's ``regions``: the grid, the box it cuts (m) and each box's share of the
+    tissue's volume (:func:`heml_gym.envs.observations.physics_from_fit` reads them)."""
+    from heml_gym.mesh import box_regions
+
+    region = box_regions(mesh, grid)
+    volume = np.bincount(region, weights=mesh.volumes, minlength=int(np.prod(grid)))
+    return {"grid": list(grid), "box_m": [mesh.vertices.min(axis=0).tolist(), mesh.vertices.max(axis=0).tolist()],
+            "volume_fraction": (volume / volume.sum()).tolist()}
 
 
 def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
@@ -234,7 +268,7 @@ def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
 
 
 def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,
-               progress: bool = True, wrist_reach: float | None = None) -> tuple[str, list[dict]]:
+               progress: bool = True, wrist_reach: float | None = None, regions=None) -> tuple[str, list[dict]]:
     """``--law auto``: fit each law of :mod:`heml_gym.materials` to half the tracked points
     (and the force) and keep the one that predicts the other half best (held-out RMS, m).
     Returns the law's name and every law's record."""
@@ -267,7 +301,7 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
         env = _make(env_id, env_kwargs, physics_overrides(law=name))
         try:
             replay, observed, names, bounds, start = calibration_problem(env, part, fit_names, point_scale, force_scale,
-                                                                         wrist_reach=wrist_reach)
+                                                                         wrist_reach=wrist_reach, regions=regions)
             result = fit(replay, observed, names, [start], bounds)
             predicted = replay.run(result.theta)
         except ReplayError as exc:

@@ -8,7 +8,7 @@
     heml-gym export RUN --out policy.onnx [--speed-limit 0.02] [--workspace x0,y0,z0,x1,y1,z1]
     heml-gym demos ENV --out NAME [--policy scripted|pretrained|RUN|policy.onnx] [--episodes 20]
     heml-gym observe ENV --out obs.npz [--young-modulus E] [--points 10] [--point-noise 0.0005]
-    heml-gym calibrate ENV obs.npz --out DIR [--fit young_modulus,poisson_ratio]
+    heml-gym calibrate ENV obs.npz --out DIR [--fit young_modulus,poisson_ratio] [--regions 2x1x1]
     heml-gym bench [NAME ...] [--out DIR] [--extra ARGS]   (no name: the benchmarks by group)
 """
 
@@ -236,7 +236,8 @@ def _calibrate(args) -> int:
     names = tuple(n.strip() for n in args.fit.split(",") if n.strip())
     record = calibrate(None if args.env == "-" else args.env, args.observation, args.out, names, law=args.law,
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
-                       force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach)
+                       force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach,
+                       regions=args.regions)
     for name, p in record["parameters"].items():
         std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
         print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
@@ -431,6 +432,9 @@ def main(argv=None) -> int:
     c.add_argument("--wrist-reach", type=float, default=None,
                    help="the jaws hold the tissue within this distance (m) of what the scene's jaws take, rigidly, "
                         "on a free wrist (it turns about the jaws' axis); default: the scene's grasp")
+    c.add_argument("--regions", default=None,
+                   help="fit Young's modulus in each box of an NXxNYxNZ grid over the tissue's rest bounding box "
+                        "(e.g. 2x1x1: two halves along x); default: one E for the whole tissue")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from heml_gym import Model
+from heml_gym.mesh import box_regions
 from heml_gym.solvers import make_solver
 
 from .geometry import fibonacci_sphere, nearest_triangle_distance, visible_fraction, visible_fraction_batch
@@ -149,6 +150,9 @@ class BatchedRetraction:
         E_low, E_high = ph.young_modulus
         self.model = Model(s.mesh, ph.material_for(E_high), n_worlds=self.n, field=ph.field, density=ph.density,
                            fixed=s.fixed, gravity=ph.gravity, damping=ph.damping, supports=s.supports)
+        if ph.stiffness_regions:  # E varies over the tissue: each region's share of the drawn E
+            relative = np.asarray(ph.stiffness_regions["relative"], dtype=np.float64)
+            self.model.set_stiffness_map(relative[box_regions(s.mesh, ph.stiffness_regions["grid"])])
         dt = self.settings.control_dt
         self.solver = make_solver(self.model, ph.integrator, scheme=ph.scheme, safety=ph.safety,
                                   newton_tol=ph.newton_tol, max_iterations=ph.max_newton,

@@ -39,9 +39,11 @@ from pathlib import Path
 import numpy as np
 
 from heml_gym.calibration import ControlLog, Observed, Replay, ReplayResult, embed_points
+from heml_gym.mesh import box_regions, check_region_grid
 
 __all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
-           "on_a_free_wrist", "calibration_problem", "FIT_PARAMETERS", "LAW_CONSTANTS", "physics_from_fit"]
+           "on_a_free_wrist", "calibration_problem", "FIT_PARAMETERS", "LAW_CONSTANTS", "physics_from_fit",
+           "fit_parameter", "region_names"]
 
 #: Constants a calibration can fit: name -> (unit, bounds).
 #: m: a depth image's value where the camera saw nothing
@@ -53,6 +55,18 @@ FIT_PARAMETERS = {"young_modulus": ("Pa", (200.0, 200e3)), "poisson_ratio": ("",
                   "c01_fraction": ("", (0.0, 1.0)), "b": ("", (0.05, 50.0))}
 #: The fittable constants of one law only (its ``material_options``), and their defaults.
 LAW_CONSTANTS = {"c01_fraction": ("MooneyRivlin", 0.25), "b": ("Demiray", 2.0)}
+
+
+def region_names(count: int) -> list[str]:
+    """The names of Young's modulus in each of ``count`` regions (``young_modulus_0``, ...)."""
+    return [f"young_modulus_{k}" for k in range(count)]
+
+
+def fit_parameter(name: str) -> tuple[str, tuple[float, float]]:
+    """``(unit, bounds)`` of a fittable constant, a region's modulus (``young_modulus_k``) included."""
+    if name.startswith("young_modulus_") and name[len("young_modulus_"):].isdigit():
+        return FIT_PARAMETERS["young_modulus"]
+    return FIT_PARAMETERS[name]
 
 
 class ObservationError(ValueError):
@@ -474,11 +488,16 @@ class _WristGrasp:
 
 def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_modulus", "poisson_ratio"),
                         point_scale: float = 1e-3, force_scale: float = 0.05, depth_scale: float = 1e-3,
-                        wrist_reach: float | None = None):
+                        wrist_reach: float | None = None, regions=None):
     """``(replay, observed, names, bounds, start)`` for :func:`heml_gym.calibration.fit`:
     the scene of ``env`` replaying ``obs``, the constants ``fit`` (the others kept at the
     scene's values) with their bounds, and the scene's own values as the start;
-    ``wrist_reach`` (m): the jaws hold a patch on a free wrist (see :func:`control_log`)."""
+    ``wrist_reach`` (m): the jaws hold a patch on a free wrist (see :func:`control_log`);
+    ``regions`` ``(nx, ny, nz)``: Young's modulus fitted in each box of that grid over the
+    tissue's rest bounding box (:func:`heml_gym.mesh.box_regions`; the names
+    ``young_modulus_0``, ... in place of ``young_modulus``; the scene's own
+    ``stiffness_regions`` are replaced). Without ``regions`` a scene whose E varies keeps
+    its regions' ratios and ``young_modulus`` scales them all."""
     unknown = [name for name in fit if name not in FIT_PARAMETERS]
     if unknown or not fit:
         raise ValueError(f"fit: {unknown[0] if unknown else 'nothing'}: can fit {', '.join(FIT_PARAMETERS)}")
@@ -490,6 +509,18 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         if name in LAW_CONSTANTS and LAW_CONSTANTS[name][0] != ph.material:
             raise ValueError(f"fit: {name} is a constant of {LAW_CONSTANTS[name][0]}, the scene's law is "
                              f"{ph.material} (choose the law with --law {LAW_CONSTANTS[name][0]})")
+    names, region_of = list(fit), None
+    if regions is not None:
+        grid = check_region_grid(regions, "regions")
+        if "young_modulus" not in fit:
+            raise ValueError("regions: fit young_modulus with them (it is Young's modulus that varies by region)")
+        region_of = box_regions(task.model.mesh, grid)
+        empty = np.flatnonzero(np.bincount(region_of, minlength=int(np.prod(grid))) == 0)
+        if empty.size:
+            raise ValueError(f"regions: box {int(empty[0])} of {'x'.join(map(str, grid))} holds no tet's centre on this "
+                             "mesh (use fewer boxes)")
+        at = names.index("young_modulus")
+        names[at:at + 1] = region_names(int(np.prod(grid)))
     log = control_log(env, obs, wrist_reach=wrist_reach)
     E0 = float(np.mean(ph.young_modulus))
     defaults = {"young_modulus": E0, "poisson_ratio": float(ph.poisson), "density": float(ph.density),
@@ -498,19 +529,27 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         if law == ph.material:
             defaults[name] = float(ph.material_options.get(name, default))
 
+    for name in names:
+        defaults.setdefault(name, E0)  # (a region's modulus starts at the scene's)
+
     def material_of(theta):
-        values = dict(defaults, **dict(zip(fit, theta)))
+        values = dict(defaults, **dict(zip(names, theta)))
         options = dict(ph.material_options, **{k: values[k] for k in LAW_CONSTANTS if k in fit})
         return dataclasses.replace(ph, poisson=values["poisson_ratio"],
                                    material_options=options).material_for(values["young_modulus"])
 
     def dynamics_of(theta):
-        values = dict(defaults, **dict(zip(fit, theta)))
+        values = dict(defaults, **dict(zip(names, theta)))
         return values["density"], values["damping"]
+
+    def stiffness_of(theta):  # each tet's region's modulus over the material's (E0)
+        values = dict(zip(names, theta))
+        return np.array([values[name] for name in region_names(int(region_of.max()) + 1)])[region_of] / E0
 
     # the replay's own one-world model: the env's, whose world 0 it re-materialises
     replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0),
-                    dynamics_of=dynamics_of if {"density", "damping"} & set(fit) else None)
+                    dynamics_of=dynamics_of if {"density", "damping"} & set(fit) else None,
+                    stiffness_of=None if region_of is None else stiffness_of)
     extra = ()
     if obs.depth is not None:
         from .depth_loss import DepthTerm
@@ -524,14 +563,16 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         extra = (term,)
     observed = Observed(points=obs.points, rest_points=obs.rest_points, force=obs.force,
                         point_scale=point_scale, force_scale=force_scale, extra=extra)
-    return replay, observed, list(fit), [FIT_PARAMETERS[name][1] for name in fit], [defaults[name] for name in fit]
+    return replay, observed, names, [fit_parameter(name)[1] for name in names], [defaults[name] for name in names]
 
 
 def physics_from_fit(path, spread: float = 2.0) -> dict:
     """``physics=`` changes that make a scene's tissue the one a calibration found
     (``heml-gym calibrate``'s ``fit.json``): its law and Poisson ratio, and Young's modulus
     drawn per episode uniformly within ``spread`` standard errors of the fitted value (the
-    fit's uncertainty as the spread; at least 1 % of the value); a fitted density, damping
+    fit's uncertainty as the spread; at least 1 % of the value; a fit per region: their
+    volume-weighted mean drawn within ``spread`` times the largest relative standard error,
+    the regions' ratios as ``stiffness_regions``); a fitted density, damping
     or law constant (``c01_fraction``, ``b``) as fitted. ``physics={"fit":
     "DIR/fit.json"}`` in ``gym.make`` does this."""
     from .spec import SpecError
@@ -550,6 +591,22 @@ def physics_from_fit(path, spread: float = 2.0) -> dict:
     if not record.get("converged", False):
         raise SpecError(f"physics.fit: {path} records a fit that did not converge ({record.get('message', '?')})")
     out = {"material": law}
+    regions = record.get("regions")
+    if regions:  # E per region: its volume-weighted mean drawn, the regions' ratios kept
+        try:
+            values = np.array([float(parameters[name]["value"]) for name in region_names(len(regions["volume_fraction"]))])
+            stds = [parameters[name]["std"] for name in region_names(len(values))]
+            share = np.asarray(regions["volume_fraction"], dtype=np.float64)
+            grid = list(regions["grid"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SpecError(f"physics.fit: {path}: its regions do not match its parameters ({exc})") from None
+        if any(s is None or not math.isfinite(float(s)) for s in stds):
+            raise SpecError(f"physics.fit: {path}: the fit determined no uncertainty for a region's young_modulus "
+                            "(the data did not constrain it): nothing to draw the tissue from")
+        E = float(share @ values)
+        half = max(spread * max(float(s) / v for s, v in zip(stds, values)) * E, 0.01 * E)
+        out["young_modulus"] = [max(E - half, 0.5 * E), E + half]
+        out["stiffness_regions"] = {"grid": grid, "relative": (values / E).tolist()}
     if "young_modulus" in parameters:
         E, s = float(parameters["young_modulus"]["value"]), parameters["young_modulus"]["std"]
         if s is None or not math.isfinite(float(s)):

@@ -19,13 +19,14 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 import numpy as np
 
 from heml_gym import QuadraticTetMesh, box_mesh, load_mesh, materials, organs
 from heml_gym.contact import MeshSupport, PlaneSupport
-from heml_gym.mesh import TetMesh
+from heml_gym.mesh import TetMesh, check_region_grid
 from heml_gym.model import FORCE_FIELDS
 from heml_gym.solvers import SolverChoiceError, check_solver_choice
 
@@ -112,7 +113,12 @@ class PhysicsSpec:
     ``"quasi_newton"``, ``"bdf2"`` (second order, the same cost per step);
     ``hessian_scale``: the weight of the quasi-Newton initial Hessian's Laplacian in units
     of ``lambda + mu`` (iterations per step, not accuracy; the other integrators have no
-    initial Hessian and do not read it, see :class:`heml_gym.QuasiNewtonSolver`).
+    initial Hessian and do not read it, see :class:`heml_gym.QuasiNewtonSolver`);
+    ``stiffness_regions``: Young's modulus varying over the tissue, ``{"grid": [nx, ny,
+    nz], "relative": [...]}``: the tissue's rest bounding box cut into ``nx x ny x nz``
+    equal boxes, and each box's E relative to the episode's drawn E (``nx ny nz`` numbers,
+    x fastest; a tet is in the box that holds its centre, :func:`heml_gym.mesh.box_regions`);
+    empty (the default): uniform. HEML fields only; ``heml-gym calibrate --regions`` fits it.
     """
 
     material: str = "NeoHookean"
@@ -130,6 +136,7 @@ class PhysicsSpec:
     max_newton: int = 20
     scheme: str = "backward_euler"
     hessian_scale: float = 1.0
+    stiffness_regions: dict = dataclass_field(default_factory=dict)  # (`field` is the force field here)
 
     def __post_init__(self):
         if self.material not in LAWS:
@@ -169,6 +176,29 @@ class PhysicsSpec:
         if not (isinstance(self.hessian_scale, (int, float)) and not isinstance(self.hessian_scale, bool)
                 and math.isfinite(self.hessian_scale) and self.hessian_scale > 0):
             raise invalid(self, "hessian_scale", f"must be a positive number, got {self.hessian_scale!r}")
+        self._check_stiffness_regions()
+
+    def _check_stiffness_regions(self) -> None:
+        regions = self.stiffness_regions
+        if not regions:
+            return
+        if not isinstance(regions, dict) or set(regions) != {"grid", "relative"}:
+            raise invalid(self, "stiffness_regions", f"must be {{grid: [nx, ny, nz], relative: [nx ny nz numbers]}}, "
+                                                     f"got {regions!r}")
+        try:
+            nx, ny, nz = check_region_grid(regions["grid"], "grid")
+        except ValueError as exc:
+            raise invalid(self, "stiffness_regions", str(exc)) from None
+        relative = regions["relative"]
+        if (not isinstance(relative, (list, tuple)) or len(relative) != nx * ny * nz
+                or not all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+                           for r in relative)):
+            raise invalid(self, "stiffness_regions", f"relative: must be {nx * ny * nz} positive numbers (one per box, "
+                                                     f"x fastest), got {relative!r}")
+        if self.field != "heml":
+            raise invalid(self, "stiffness_regions", f"a modulus that varies over the tissue needs field 'heml', "
+                                                     f"got {self.field!r}")
+        self.stiffness_regions = {"grid": [nx, ny, nz], "relative": [float(r) for r in relative]}
 
     def material_for(self, young_modulus: float) -> materials.Material:
         """The scene's law with Young's modulus ``young_modulus`` (Pa)."""

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["TetMesh", "box_mesh", "load_mesh", "save_mesh", "EDGE_PAIRS", "MeshQualityWarning", "tet_quality"]
+__all__ = ["TetMesh", "box_mesh", "load_mesh", "save_mesh", "EDGE_PAIRS", "MeshQualityWarning", "tet_quality",
+           "box_regions", "check_region_grid"]
 
 #: The six local edges of a tet, in the order used by every kernel: (a, b) local indices.
 EDGE_PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)], dtype=np.int64)
@@ -331,6 +332,33 @@ def box_mesh(
 
 # ---------------------------------------------------------------------------- file I/O
 _TET_CELL_TYPES = ("tetra",)
+
+
+def check_region_grid(grid, argument: str = "grid") -> tuple[int, int, int]:
+    """``grid`` as three integers >= 1 (boxes along x, y, z), or a one-line error naming
+    ``argument``."""
+    try:
+        values = tuple(grid)
+    except TypeError:
+        values = ()
+    if len(values) != 3 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 64
+                                   for v in values):
+        raise ValueError(f"{argument}: must be three integers from 1 to 64 (boxes along x, y, z), got {grid!r}")
+    return tuple(int(v) for v in values)
+
+
+def box_regions(mesh: TetMesh, grid) -> np.ndarray:
+    """Each tet's region, ``(m,)`` int: the box holding its centroid in a grid of
+    ``nx x ny x nz`` equal boxes over the mesh's rest bounding box (index
+    ``ix + nx (iy + ny iz)``). A definition by place, not by vertex: the same regions on
+    any mesh of one body."""
+    nx, ny, nz = check_region_grid(grid)
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    centres = mesh.vertices[mesh.tets].mean(axis=1)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    cells = np.array([nx, ny, nz])
+    index = np.clip(np.floor((centres - lo) / span * cells).astype(np.int64), 0, cells - 1)
+    return index[:, 0] + nx * (index[:, 1] + ny * index[:, 2])
 
 
 def load_mesh(path: str | Path, reorient: bool = True) -> TetMesh:

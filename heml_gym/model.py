@@ -151,6 +151,7 @@ class Model:
         if base is None:
             base = cls(mesh, materials[0])
         self._base = base
+        self._mapped = None  # HEML rest data with a relative stiffness per tet (set_stiffness_map)
         self._body: HemlBody | None = None  # see heml_body / heml_laws
         self._laws: HemlLaws | None = None
         self.material_revision = 0  # counts set_material calls (for what a solver derives from materials)
@@ -171,7 +172,7 @@ class Model:
         shares every material-independent precomputation with the others."""
         if not isinstance(material, Material):
             raise TypeError(f"material must be a heml_gym.materials.Material, got {type(material).__name__}")
-        field = self._base if material is self._base.material else self._base.with_material(material)
+        field = self._field_for(material)
         for s in np.atleast_1d(worlds):
             s = int(s)
             if not 0 <= s < self.n_worlds:
@@ -180,6 +181,37 @@ class Model:
             self.materials[s] = material
         self.material_revision += 1
         self._update_laws(np.atleast_1d(worlds))
+
+    def _field_for(self, material: Material) -> ForceField:
+        """The force field of ``material`` on this mesh (with the stiffness map, if set)."""
+        if self._mapped is not None:
+            return HemlForce(self.mesh, material, rest=self._mapped)
+        return self._base if material is self._base.material else self._base.with_material(material)
+
+    def set_stiffness_map(self, relative) -> None:
+        """Make Young's modulus vary over the body: tet ``t`` of every world gets
+        ``relative[t]`` times its world's modulus, at the world's Poisson ratio (its strain
+        energy is multiplied by ``relative[t]``; ``relative``: ``(m,)``, dimensionless,
+        finite and > 0). None makes the body uniform again. HEML fields only. Every solver
+        reads it (the explicit one's critical step is divided by the square root of the
+        stiffest tet's factor: a safe bound); a Neo-Hookean body with a map takes the
+        general kernels (the constant ``Psi_1`` ones assume a uniform body), about as fast
+        as Mooney-Rivlin's."""
+        if not isinstance(self._base, HemlForce):
+            raise ValueError(f"stiffness map: HEML force fields only (field 'heml'), the model's is "
+                             f"{type(self._base).__name__}")
+        self._mapped = None if relative is None else self._base.rest.with_stiffness(relative)
+        for s in range(self.n_worlds):
+            self.fields[s] = self._field_for(self.materials[s])
+        self._body = None
+        self._laws = None
+        self.material_revision += 1
+
+    @property
+    def stiffness_map(self) -> np.ndarray | None:
+        """Each tet's Young's modulus relative to its world's, ``(m,)``, or None (uniform);
+        see :meth:`set_stiffness_map`."""
+        return None if self._mapped is None else self._mapped.relative_stiffness
 
     # -------------------------------------------------------------- kernel arrays
     def heml_body(self) -> HemlBody:
@@ -287,7 +319,8 @@ class Model:
             field = self._base if material is self._base.material else self._base.with_material(material)
             self._critical[key] = (E, 2.0 / math.sqrt(rest_max_eigenvalue(field, self.mass)))
         E_ref, dt_ref = self._critical[key]
-        return dt_ref * math.sqrt(E_ref / E)
+        stiffest = 1.0 if self._mapped is None else float(self._mapped.relative_stiffness.max())
+        return dt_ref * math.sqrt(E_ref / (E * stiffest))  # (a map's stiffest tet: a safe bound)
 
     def estimated_critical_dt(self, world: int = 0) -> float:
         """``h_min / c`` (s): the smallest tet altitude over the small-strain P-wave speed.

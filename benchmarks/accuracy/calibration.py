@@ -78,11 +78,13 @@ def observe(env_id: str, kwargs: dict, seed: int, point_noise: float, force_nois
                   noise_seed=seed, env_id=env_id, depth_size=depth_size, depth_noise=depth_noise)
 
 
-def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reach: float | None = None):
+def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reach: float | None = None,
+             regions=None):
     """Fit ``names`` to the ``use`` part of ``obs`` (the rest dropped) on the env's default
     model, or on ``model`` (the env's keyword arguments: a finer mesh, another step);
     ``wrist_reach`` (m): the jaws hold a patch on a free wrist
-    (:func:`heml_gym.envs.observations.control_log`)."""
+    (:func:`heml_gym.envs.observations.control_log`); ``regions`` ``(nx, ny, nz)``: E per box
+    of that grid (``heml-gym calibrate --regions``)."""
     import gymnasium as gym
 
     from heml_gym.calibration import fit
@@ -95,7 +97,7 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reac
     if use != "depth":
         obs.depth = obs.intrinsics = obs.camera_pose = None
     replay, observed, names, bounds, start = calibration_problem(gym.make(env_id, **(model or {})), obs, names,
-                                                                 wrist_reach=wrist_reach)
+                                                                 wrist_reach=wrist_reach, regions=regions)
     warm_up = replay.run(start)
     replay.gradient(start, warm_up, np.zeros_like(warm_up.x))  # compiles the kernels
     replay.forget()  # (the fit's first replay starts cold, as a user's does)

@@ -20,7 +20,8 @@ vertices' prescribed path and the reaction on them (the step-mean force the jaws
 ``df/dtheta``, the elastic forces' derivative in a material constant at a fixed
 configuration, is a central difference in the constant (exact up to rounding for laws
 linear in their constants, as Neo-Hookean, St Venant-Kirchhoff and Mooney-Rivlin are in
-``mu`` and ``lambda`` and so in ``E``; within 1e-9 relative for ``nu``). Constants of the
+``mu`` and ``lambda`` and so in ``E``, and every law in a region's modulus when E varies
+over the body, ``stiffness_of``; within 1e-9 relative for ``nu``). Constants of the
 dynamics (``dynamics_of``: the density, which scales every lumped mass, their weight and
 the support penalty, and the mass damping ``alpha``) enter the sub-step's gradient and the
 reactions on the held vertices, not the elastic forces: their derivatives are central
@@ -208,12 +209,18 @@ class Replay:
     max_iter : int
         Newton iterations per sub-step at most (a sub-step that stops above its tolerance
         is a :class:`ReplayError`).
+    stiffness_of : callable, optional
+        ``theta`` -> ``(m,)`` each tet's Young's modulus relative to ``material_of(theta)``'s
+        (:meth:`~heml_gym.Model.set_stiffness_map`): a modulus that varies over the body,
+        e.g. one per region of a coarse grid (HEML models only). Default: the model's own
+        map, whatever ``theta``.
     """
 
     def __init__(self, model: Model, log: ControlLog, material_of: Callable[[Sequence[float]], Material],
                  world: int = 0, steps: Sequence[float] | None = None, tol: float = 1e-8,
                  contact_stiffness: float = 1000.0, max_iter: int = 60,
-                 dynamics_of: Callable[[Sequence[float]], tuple[float, float]] | None = None):
+                 dynamics_of: Callable[[Sequence[float]], tuple[float, float]] | None = None,
+                 stiffness_of: Callable[[Sequence[float]], np.ndarray] | None = None):
         if not isinstance(log, ControlLog):
             raise TypeError(f"log must be a ControlLog, got {type(log).__name__}")
         if log.kinematic.shape[1] != model.n_vertices:
@@ -225,8 +232,11 @@ class Replay:
                               f"{type(model.field).__name__} has none")
         if log.wrist is not None and np.any(log.wrist & model.fixed[None, :]):
             raise ReplayError("log.wrist: a vertex the model fixes cannot turn with the jaws")
+        if stiffness_of is not None and not isinstance(model.field, HemlForce):
+            raise ReplayError(f"stiffness_of: a modulus that varies over the body needs a HEML model, the model's "
+                              f"field is {type(model.field).__name__}")
         self.model, self.log, self.material_of, self.world = model, log, material_of, int(world)
-        self.dynamics_of = dynamics_of
+        self.dynamics_of, self.stiffness_of = dynamics_of, stiffness_of
         #: HEML's sub-steps run on the quasi-Newton solver's kernels, any other field's in NumPy
         self._heml = isinstance(model.field, HemlForce)
         self._mass, self._alpha = model.mass, float(model.damping.alpha)  # the replay's (see dynamics_of)
@@ -254,6 +264,8 @@ class Replay:
 
     def _set(self, theta) -> None:
         theta = tuple(float(t) for t in theta)
+        if self.stiffness_of is not None:
+            self.model.set_stiffness_map(self.stiffness_of(theta))
         self.model.set_material(self.world, self.material_of(theta))
         self._mass, self._alpha = self.model.mass, float(self.model.damping.alpha)
         if self.dynamics_of is not None:

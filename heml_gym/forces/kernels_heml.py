@@ -9,11 +9,14 @@ At run time, with ``e_k = x_b - x_a`` for edge ``k = (a, b)``:
 
 * ``I1 = a . s``, ``I2 = s^T Q s / 2``, ``J = det(Ds) / (6 V0)``,
 * edge weight ``w_k = 2 V0 (Psi_1 a_k + Psi_2 (Q s)_k)``: ``f_a += w_k e_k``, ``f_b -= w_k e_k``,
-* volume term ``f_a -= Psi_J / 6 * d det(Ds) / d x_a`` (cross products of the edges).
+* volume term ``f_a -= s Psi_J / 6 * d det(Ds) / d x_a`` (cross products of the edges),
+
+with ``s`` the tet's relative stiffness (``coef[t, 8]``, 1 unless E varies over the body;
+``coef[t, 0]`` is then ``s V0``).
 
 The force kernels work in blocks of :data:`BLOCK` tets (gather the edges, compute in
 loops that vectorise across the block, scatter), reading the per-tet constants
-constant-major (``coef_t (8, m)``, ``q_t (21, m)``); indices are unsigned (see
+constant-major (``coef_t (9, m)``, ``q_t (21, m)``); indices are unsigned (see
 :func:`tet_vertices`). Neo-Hookean, whose ``Psi_1`` is constant, has a kernel of its own
 with precomputed spring weights.
 
@@ -40,7 +43,7 @@ from ..materials import ST_VENANT_KIRCHHOFF, STABLE_NEO_HOOKEAN
 def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
     """Add the HEML forces (N) of tets ``lo..hi-1`` at positions ``x`` (m) into ``f``, any law.
 
-    ``coef_t (8, m)`` and ``q_t (21, m)`` are the per-tet constants stored constant-major
+    ``coef_t (9, m)`` and ``q_t (21, m)`` are the per-tet constants stored constant-major
     (``q_t`` is read only if ``use_q``). Tets are processed in blocks of :data:`BLOCK`:
     gather the edges; compute the squared edge lengths, ``Q s``, the invariants and the
     cross products in loops that vectorise; the law's derivatives per tet; the edge
@@ -79,7 +82,7 @@ def heml_forces_chunk(x, tets, coef_t, q_t, use_q, law, p, f, lo, hi):
             v2 = 2.0 * coef_t[0, t]
             w1 = v2 * grad[0, k]
             w2 = v2 * grad[1, k] if use_q else 0.0
-            g = grad[2, k] * (1.0 / 6.0)
+            g = grad[2, k] * (1.0 / 6.0) * coef_t[8, t]  # (times 1: exact, E uniform)
             _store_tet_forces(work, k, (ax, ay, az, bx, by, bz, cx, cy, cz),
                               (c1x * g, c1y * g, c1z * g, c2x * g, c2y * g, c2z * g, c3x * g, c3y * g, c3z * g),
                               (w1 * coef_t[2, t] + w2 * qs[0, k], w1 * coef_t[3, t] + w2 * qs[1, k],

@@ -33,7 +33,7 @@ class TetSubset(NamedTuple):
     :class:`~heml_gym.kernel_data.HemlBody` and :class:`~heml_gym.kernel_data.WorldLaw`)."""
 
     tets: np.ndarray  #: (k, 4) int64
-    coef_t: np.ndarray  #: (8, k)
+    coef_t: np.ndarray  #: (9, k)
     q_t: np.ndarray  #: (21, k) when the law reads I2, else (21, 1)
     weights: np.ndarray  #: (6, k) when the law is split, else (6, 1)
     inv_det: np.ndarray  #: (k,)
