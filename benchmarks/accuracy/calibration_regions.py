@@ -23,7 +23,6 @@ import argparse
 import copy
 
 import numba
-import numpy as np
 
 from heml_gym.benchmarks.accuracy.calibration import FORCE_NOISE, POINT_NOISE, SEED, TRUTH, fit_case, observe
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
