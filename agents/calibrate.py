@@ -17,6 +17,10 @@ import numpy as np
 
 __all__ = ["observe", "calibrate", "physics_overrides"]
 
+#: The residual scales a fit starts from when none is given: about a tracker's noise (m)
+#: and a jaw force sensor's (N).
+DEFAULT_POINT_SCALE, DEFAULT_FORCE_SCALE = 1e-3, 0.05
+
 
 def physics_overrides(young_modulus=None, poisson=None, law=None) -> dict:
     """``physics=`` keyword arguments for an env whose tissue is given exactly."""
@@ -116,15 +120,18 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
 
 
 def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_modulus", "poisson_ratio"),
-              law: str | None = None, env_kwargs: str | None = None, starts: int = 1, point_scale: float = 1e-3,
-              force_scale: float = 0.05, progress: bool = True, wrist_reach: float | None = None,
+              law: str | None = None, env_kwargs: str | None = None, starts: int = 1,
+              point_scale: float | None = None, force_scale: float | None = None, progress: bool = True,
+              wrist_reach: float | None = None,
               regions: str | None = None) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. ``wrist_reach`` (m):
     the jaws hold the tissue within that distance of what the scene's jaws take, on a free
     wrist (:func:`heml_gym.envs.observations.control_log`); ``regions`` (``"NXxNYxNZ"``):
     Young's modulus fitted per box of that grid over the tissue's rest bounding box.
-    Returns the fit's record."""
+    ``point_scale`` (m) and ``force_scale`` (N): the residual scales (the sensors' noise);
+    neither given: 1 mm and 0.05 N to start, then each quantity weighed by its own residual
+    (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
     from heml_gym.calibration import embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
     from heml_gym.envs.observations import calibration_problem, fit_parameter, load_observation
@@ -141,13 +148,19 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         raise ValueError(f"--starts: must be >= 1, got {starts}")
     _check_wrist_reach(wrist_reach)
     grid = parse_regions(regions)
+    weigh = point_scale is None and force_scale is None
+    point_scale = DEFAULT_POINT_SCALE if point_scale is None else point_scale
+    force_scale = DEFAULT_FORCE_SCALE if force_scale is None else force_scale
+    for name, value in (("--point-scale", point_scale), ("--force-scale", force_scale)):
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name}: must be a positive number, got {value}")
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
     selection = None
     if law == "auto":
         law, selection = select_law(env_id, obs, tuple(fit_names), parse_json_mapping(env_kwargs), point_scale, force_scale,
-                                    progress, wrist_reach, grid)
+                                    progress, wrist_reach, grid, weigh)
     env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
                                                                  force_scale, wrist_reach=wrist_reach, regions=grid)
@@ -174,7 +187,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
 
     t0 = time.perf_counter()
     try:
-        result = fit(replay, observed, names, start_list, bounds, progress=report)
+        result = fit(replay, observed, names, start_list, bounds, progress=report, weigh_by_residuals=weigh)
     finally:
         if bar is not None:
             bar.close()
@@ -192,7 +205,9 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "law_selection": selection,
         "regions": None if grid is None else _regions_record(replay.model.mesh, grid),
         "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
-                     "fit": names, "bounds": bounds, "point_scale_m": point_scale, "force_scale_N": force_scale,
+                     "fit": names, "bounds": bounds, "point_scale_m": result.scales["point_scale_m"],
+                     "force_scale_N": result.scales["force_scale_N"],
+                     "scales": "weighed by the residuals" if weigh else "given",
                      "regions": regions,
                      "wrist_reach_m": wrist_reach,
                      "observed": [k for k in ("points", "force", "depth") if getattr(obs, k) is not None],
@@ -268,7 +283,8 @@ def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
 
 
 def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,
-               progress: bool = True, wrist_reach: float | None = None, regions=None) -> tuple[str, list[dict]]:
+               progress: bool = True, wrist_reach: float | None = None, regions=None,
+               weigh_by_residuals: bool = False) -> tuple[str, list[dict]]:
     """``--law auto``: fit each law of :mod:`heml_gym.materials` to half the tracked points
     (and the force) and keep the one that predicts the other half best (held-out RMS, m).
     Returns the law's name and every law's record."""
@@ -302,7 +318,7 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
         try:
             replay, observed, names, bounds, start = calibration_problem(env, part, fit_names, point_scale, force_scale,
                                                                          wrist_reach=wrist_reach, regions=regions)
-            result = fit(replay, observed, names, [start], bounds)
+            result = fit(replay, observed, names, [start], bounds, weigh_by_residuals=weigh_by_residuals)
             predicted = replay.run(result.theta)
         except ReplayError as exc:
             records.append({"law": name, "error": str(exc)})

@@ -427,8 +427,10 @@ def main(argv=None) -> int:
                                  "'auto': the one that predicts held-out tracked points best")
     c.add_argument("--env-kwargs", help="JSON gym.make keyword arguments of the fitted scene")
     c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
-    c.add_argument("--point-scale", type=float, default=1e-3, help="tracked points' residual scale, m")
-    c.add_argument("--force-scale", type=float, default=0.05, help="force residual scale, N")
+    c.add_argument("--point-scale", type=float, default=None,
+                   help="tracked points' residual scale (their noise), m; neither scale given: 1 mm and 0.05 N to "
+                        "start, then points and force each weighed by their own residual")
+    c.add_argument("--force-scale", type=float, default=None, help="force residual scale (its noise), N")
     c.add_argument("--wrist-reach", type=float, default=None,
                    help="the jaws hold the tissue within this distance (m) of what the scene's jaws take, rigidly, "
                         "on a free wrist (it turns about the jaws' axis); default: the scene's grasp")

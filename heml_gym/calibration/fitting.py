@@ -17,6 +17,7 @@ residuals' variance. Units: m, N, Pa.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -127,7 +128,8 @@ class FitResult:
     ``loss``, ``converged`` with ``message``, ``history`` (loss per iteration of the best
     start), ``starts`` (each start's theta, loss and iterations), ``residual_rms`` (each
     observed quantity's RMS residual in its unit: ``points_m``, ``force_N``),
-    ``wall_s``."""
+    ``wall_s``, ``scales`` (the residual scales of the last fit: ``point_scale_m``,
+    ``force_scale_N``)."""
 
     names: list[str]
     theta: np.ndarray
@@ -140,11 +142,18 @@ class FitResult:
     residual_rms: dict = field(default_factory=dict)
     wall_s: float = 0.0
     failed_trials: int = 0
+    scales: dict = field(default_factory=dict)
+
+
+#: Weighing by the residuals: at most this many fits, and they stop when no scale changes
+#: by more than :data:`SCALE_TOLERANCE` (relative).
+SCALE_ROUNDS = 4
+SCALE_TOLERANCE = 0.05
 
 
 def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequence[Sequence[float]],
         bounds: Sequence[tuple[float, float]], max_iter: int = 40, gtol: float = 1e-7, ftol: float = 1e-8,
-        progress: Callable[[int, float], None] | None = None) -> FitResult:
+        progress: Callable[[int, float], None] | None = None, weigh_by_residuals: bool = False) -> FitResult:
     """Fit the constants ``names`` (what ``replay.material_of`` takes) to ``observed``,
     from each of ``starts`` within ``bounds``; the best start wins. A start stops when the
     projected gradient is below ``gtol`` or an iteration lowers the loss by less than
@@ -152,7 +161,34 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     enters or leaves contact with the support, next to which L-BFGS would otherwise
     bounce between both sides. ``progress(i, loss)`` is called after each iteration (a
     progress bar). Raises :class:`ReplayError` when no start's replay can be followed
-    (a fit that starts but stops short says so in its ``converged`` and ``message``)."""
+    (a fit that starts but stops short says so in its ``converged`` and ``message``).
+
+    ``weigh_by_residuals``: with both points and force observed and neither's noise known,
+    each is weighed by its own residual: after a fit, ``point_scale`` and ``force_scale``
+    become the RMS residuals it left and the fit is repeated from its optimum, until no
+    scale changes by more than 5 % (at most :data:`SCALE_ROUNDS` fits). That is maximum
+    likelihood with an unknown noise level per sensor, and it keeps a quantity the model
+    cannot follow (a model error) from outweighing one it can. The scales used are in the
+    result's ``scales``."""
+    result = _fit(replay, observed, names, starts, bounds, max_iter, gtol, ftol, progress)
+    if not (weigh_by_residuals and observed.points is not None and observed.force is not None):
+        return result
+    history, wall, failed = list(result.history), result.wall_s, result.failed_trials
+    for _ in range(SCALE_ROUNDS - 1):
+        scales = (max(result.residual_rms["points_m"], 1e-6), max(result.residual_rms["force_N"], 1e-6))
+        if all(abs(new / old - 1.0) <= SCALE_TOLERANCE
+               for new, old in zip(scales, (observed.point_scale, observed.force_scale))):
+            break
+        observed = dataclasses.replace(observed, point_scale=scales[0], force_scale=scales[1])
+        result = _fit(replay, observed, names, [result.theta], bounds, max_iter, gtol, ftol, progress)
+        history += result.history
+        wall += result.wall_s
+        failed += result.failed_trials
+    return dataclasses.replace(result, history=history, wall_s=wall, failed_trials=failed)
+
+
+def _fit(replay: Replay, observed: Observed, names, starts, bounds, max_iter, gtol, ftol, progress) -> FitResult:
+    """One fit of :func:`fit` at ``observed``'s scales."""
     t0 = time.perf_counter()
     embedding = None
     if observed.points is not None:
@@ -231,7 +267,8 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     return FitResult(list(names), theta, std, float(loss), converged, message, history,
                      [{"start": s.tolist(), "theta": transform.theta(r.x).tolist(), "loss": float(r.fun),
                        "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
-                     rms, time.perf_counter() - t0, failures[0])
+                     rms, time.perf_counter() - t0, failures[0],
+                     {"point_scale_m": observed.point_scale, "force_scale_N": observed.force_scale})
 
 
 #: A fit whose search stopped without its convergence test goes on by changing each
