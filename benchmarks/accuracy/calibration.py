@@ -10,7 +10,9 @@ E and nu) to
 
 * ``points``: 10 tracked points on the upper surface, 0.5 mm Gaussian noise per coordinate;
 * ``force``: the jaws' force, 0.01 N noise per component (E only: the force barely
-  depends on nu).
+  depends on nu);
+* ``points and force``: both (E and nu), each weighed by its own residual, as ``heml-gym
+  calibrate`` does when no scale is given (``fit(..., weigh_by_residuals=True)``);
 
 Prediction: the points fit, replayed on another retraction of the same tissue (another
 seed: another gripper start and grasp place), against that retraction's noise-free
@@ -90,9 +92,9 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reac
     from heml_gym.calibration import fit
     from heml_gym.envs.observations import calibration_problem
 
-    if use != "force":
+    if use not in ("force", "points and force"):
         obs.force = None
-    if use != "points":
+    if use not in ("points", "points and force"):
         obs.points = obs.rest_points = None
     if use != "depth":
         obs.depth = obs.intrinsics = obs.camera_pose = None
@@ -102,7 +104,7 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reac
     replay.gradient(start, warm_up, np.zeros_like(warm_up.x))  # compiles the kernels
     replay.forget()  # (the fit's first replay starts cold, as a user's does)
     t0 = time.perf_counter()
-    result = fit(replay, observed, names, [start], bounds)
+    result = fit(replay, observed, names, [start], bounds, weigh_by_residuals=use == "points and force")
     return replay, result, time.perf_counter() - t0
 
 
@@ -133,7 +135,7 @@ def measure() -> dict:
     for env_id, case in CASES.items():
         obs = observe(env_id, case["fine"], SEED, POINT_NOISE, FORCE_NOISE, DEPTH_NOISE)
         for use, names in (("points", ("young_modulus", "poisson_ratio")), ("force", ("young_modulus",)),
-                           ("depth", ("young_modulus",))):
+                           ("points and force", ("young_modulus", "poisson_ratio")), ("depth", ("young_modulus",))):
             replay, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use)
             row = {"env": env_id, "observed": use, "fine_model": case["fine_label"], "fitted_model": case["model_label"],
                    "fit": list(names), "converged": result.converged, "message": result.message,
