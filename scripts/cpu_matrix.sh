@@ -20,7 +20,7 @@ set -euo pipefail
 
 targets=("$@")
 [ ${#targets[@]} -eq 0 ] && targets=(haswell znver3 x86-64 skylake-avx512)
-tests="${CPU_MATRIX_TESTS:-tests/test_quasi_newton.py tests/test_wrist.py tests/test_model_solvers.py tests/test_simulation.py tests/test_forces.py tests/test_hessian.py tests/test_contact.py tests/test_envs.py tests/test_nothing_silent.py}"
+tests="${CPU_MATRIX_TESTS:-tests/test_quasi_newton.py tests/test_wrist.py tests/test_stiffness_map.py tests/test_model_solvers.py tests/test_simulation.py tests/test_forces.py tests/test_hessian.py tests/test_contact.py tests/test_envs.py tests/test_nothing_silent.py}"
 [ "$tests" = "all" ] && tests=""
 soak_steps="${CPU_MATRIX_SOAK:-2000}"
 out="${CPU_MATRIX_OUT:-.numba-cache/cpu_matrix}"
