@@ -17,10 +17,6 @@ import numpy as np
 
 __all__ = ["observe", "calibrate", "physics_overrides"]
 
-#: The residual scales a fit starts from when none is given: about a tracker's noise (m)
-#: and a jaw force sensor's (N).
-DEFAULT_POINT_SCALE, DEFAULT_FORCE_SCALE = 1e-3, 0.05
-
 
 def physics_overrides(young_modulus=None, poisson=None, law=None) -> dict:
     """``physics=`` keyword arguments for an env whose tissue is given exactly."""
@@ -132,7 +128,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     ``point_scale`` (m) and ``force_scale`` (N): the residual scales (the sensors' noise);
     neither given: 1 mm and 0.05 N to start, then each quantity weighed by its own residual
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
-    from heml_gym.calibration import embed_points, fit
+    from heml_gym.calibration import DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
     from heml_gym.envs.observations import calibration_problem, fit_parameter, load_observation
 

@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from heml_gym.calibration import ControlLog, Observed, Replay, ReplayResult, embed_points
+from heml_gym.calibration import (DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, ControlLog, Observed, Replay,
+                                  ReplayResult, embed_points)
 from heml_gym.mesh import box_regions, check_region_grid
 
 __all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
@@ -487,7 +488,8 @@ class _WristGrasp:
 
 
 def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_modulus", "poisson_ratio"),
-                        point_scale: float = 1e-3, force_scale: float = 0.05, depth_scale: float = 1e-3,
+                        point_scale: float = DEFAULT_POINT_SCALE, force_scale: float = DEFAULT_FORCE_SCALE,
+                        depth_scale: float = 1e-3,
                         wrist_reach: float | None = None, regions=None):
     """``(replay, observed, names, bounds, start)`` for :func:`heml_gym.calibration.fit`:
     the scene of ``env`` replaying ``obs``, the constants ``fit`` (the others kept at the
@@ -519,8 +521,9 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         if empty.size:
             raise ValueError(f"regions: box {int(empty[0])} of {'x'.join(map(str, grid))} holds no tet's centre on this "
                              "mesh (use fewer boxes)")
-        at = names.index("young_modulus")
-        names[at:at + 1] = region_names(int(np.prod(grid)))
+        at, count = names.index("young_modulus"), int(np.prod(grid))
+        names[at:at + 1] = region_names(count)
+        regional = slice(at, at + count)  # where the regions' moduli are in theta
     log = control_log(env, obs, wrist_reach=wrist_reach)
     E0 = float(np.mean(ph.young_modulus))
     defaults = {"young_modulus": E0, "poisson_ratio": float(ph.poisson), "density": float(ph.density),
@@ -543,8 +546,7 @@ def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_mo
         return values["density"], values["damping"]
 
     def stiffness_of(theta):  # each tet's region's modulus over the material's (E0)
-        values = dict(zip(names, theta))
-        return np.array([values[name] for name in region_names(int(region_of.max()) + 1)])[region_of] / E0
+        return np.asarray(theta[regional], dtype=np.float64)[region_of] / E0
 
     # the replay's own one-world model: the env's, whose world 0 it re-materialises
     replay = Replay(task.model, log, material_of, contact_stiffness=getattr(task.solver, "contact_stiffness", 1000.0),
@@ -594,8 +596,9 @@ def physics_from_fit(path, spread: float = 2.0) -> dict:
     regions = record.get("regions")
     if regions:  # E per region: its volume-weighted mean drawn, the regions' ratios kept
         try:
-            values = np.array([float(parameters[name]["value"]) for name in region_names(len(regions["volume_fraction"]))])
-            stds = [parameters[name]["std"] for name in region_names(len(values))]
+            named = region_names(len(regions["volume_fraction"]))
+            values = np.array([float(parameters[name]["value"]) for name in named])
+            stds = [parameters[name]["std"] for name in named]
             share = np.asarray(regions["volume_fraction"], dtype=np.float64)
             grid = list(regions["grid"])
         except (KeyError, TypeError, ValueError) as exc:

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from ..mesh import TetMesh
 from .replay import Replay, ReplayError, ReplayResult
 
-__all__ = ["Observed", "FitResult", "embed_points", "loss_terms", "fit"]
+__all__ = ["Observed", "FitResult", "embed_points", "loss_terms", "fit", "DEFAULT_POINT_SCALE", "DEFAULT_FORCE_SCALE"]
 
 
 def embed_points(mesh: TetMesh, points: np.ndarray) -> sp.csr_matrix:
@@ -56,6 +56,11 @@ def embed_points(mesh: TetMesh, points: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), mesh.n_vertices))
 
 
+#: The residual scales when none is given: about a tracker's noise (m) and a jaw force
+#: sensor's (N).
+DEFAULT_POINT_SCALE, DEFAULT_FORCE_SCALE = 1e-3, 0.05
+
+
 @dataclass
 class Observed:
     """What was observed at the control steps ``0..T`` (entry 0: the start), any of:
@@ -70,8 +75,8 @@ class Observed:
     points: np.ndarray | None = None
     rest_points: np.ndarray | None = None
     force: np.ndarray | None = None
-    point_scale: float = 1e-3
-    force_scale: float = 0.05
+    point_scale: float = DEFAULT_POINT_SCALE
+    force_scale: float = DEFAULT_FORCE_SCALE
     extra: tuple = ()
 
     def __post_init__(self):

@@ -82,6 +82,11 @@ def assembled_edge_weights(mesh, tet_edge_weights: np.ndarray):
     return edges, weights
 
 
+def _edge_weights(coef: np.ndarray) -> np.ndarray:
+    """``(6, m)`` ``2 s V0 a_k`` (m^3) from the per-tet constants ``coef`` (m, 9), edge-major."""
+    return np.ascontiguousarray((2.0 * coef[:, 0:1] * coef[:, 2:8]).T)
+
+
 class HemlRestData:
     """What HEML precomputes from the rest shape, for any material: shared by every
     :class:`HemlForce` of one mesh (see :meth:`HemlForce.with_material`).
@@ -108,7 +113,7 @@ class HemlRestData:
         small = mesh.n_vertices < np.iinfo(np.int32).max
         self.tets = np.ascontiguousarray(mesh.tets, dtype=np.int32 if small else np.int64)
         self.inv_det = np.ascontiguousarray(self.coef[:, 1])
-        self.edge_weights = np.ascontiguousarray((2.0 * self.coef[:, 0:1] * self.coef[:, 2:8]).T)
+        self.edge_weights = _edge_weights(self.coef)
         self.relative_stiffness = None
         self._q = None
         self._q_t = None
@@ -118,26 +123,20 @@ class HemlRestData:
         """The rest data of the same mesh with each tet's strain energy multiplied by
         ``relative`` ``(m,)`` (dimensionless, > 0): a Young's modulus that varies over the
         body, ``E_t = relative[t] E`` at a fixed Poisson ratio (every law's energy is
-        linear in its moduli). Shares the tets, ``Q`` and the Hessian pattern; None: the
-        unscaled data of the mesh."""
+        linear in its moduli). Shares the tets, ``Q`` and the Hessian pattern."""
+        relative = np.asarray(relative, dtype=np.float64)
+        if relative.shape != (self.mesh.n_tets,) or not np.all(np.isfinite(relative)) or np.any(relative <= 0):
+            raise ValueError(f"relative stiffness: must be ({self.mesh.n_tets},) finite numbers > 0, "
+                             f"got shape {relative.shape}")
         self.hessian_cache  # noqa: B018 - built once, shared by the copies
-        base = copy.copy(self)
-        if relative is None:
-            base.coef, base.relative_stiffness = self.coef.copy(), None
-            base.coef[:, 0] = self.mesh.volumes
-            base.coef[:, 8] = 1.0
-        else:
-            relative = np.asarray(relative, dtype=np.float64)
-            if relative.shape != (self.mesh.n_tets,) or not np.all(np.isfinite(relative)) or np.any(relative <= 0):
-                raise ValueError(f"relative stiffness: must be ({self.mesh.n_tets},) finite numbers > 0, "
-                                 f"got shape {relative.shape}")
-            base.coef = self.coef.copy()
-            base.coef[:, 0] = self.mesh.volumes * relative
-            base.coef[:, 8] = relative
-            base.relative_stiffness = relative.copy()
-        base.coef_t = np.ascontiguousarray(base.coef.T)
-        base.edge_weights = np.ascontiguousarray((2.0 * base.coef[:, 0:1] * base.coef[:, 2:8]).T)
-        return base
+        scaled = copy.copy(self)
+        scaled.coef = self.coef.copy()
+        scaled.coef[:, 0] = self.mesh.volumes * relative
+        scaled.coef[:, 8] = relative
+        scaled.coef_t = np.ascontiguousarray(scaled.coef.T)
+        scaled.edge_weights = _edge_weights(scaled.coef)
+        scaled.relative_stiffness = relative.copy()
+        return scaled
 
     @property
     def hessian_cache(self) -> HessianCache:
