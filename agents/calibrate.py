@@ -199,6 +199,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
         "law_selection": selection,
+        "law_ambiguity": law_ambiguity(selection, names),
         "regions": None if grid is None else _regions_record(replay.model.mesh, grid),
         "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": result.scales["point_scale_m"],
@@ -283,14 +284,15 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
                weigh_by_residuals: bool = False) -> tuple[str, list[dict]]:
     """``--law auto``: fit each law of :mod:`heml_gym.materials` to half the tracked points
     (and the force) and keep the one that predicts the other half best (held-out RMS, m).
-    Returns the law's name and every law's record."""
+    Returns the law's name and every law's record; each fitted law's record holds the 95 %
+    bootstrap interval (over the observed times) of its held-out RMS minus the winner's
+    (``difference_ci95_m``, :func:`heml_gym.calibration.paired_rms_interval`) and whether
+    that interval reaches 0 (``as_good_as_winner``: the data do not tell it from the winner)."""
     import copy
 
-    from heml_gym.calibration import ReplayError, embed_points, fit
-    from heml_gym.envs.observations import calibration_problem
+    from heml_gym.calibration import ReplayError, embed_points, fit, paired_rms_interval
+    from heml_gym.envs.observations import LAW_CONSTANTS, calibration_problem
     from heml_gym.envs.scene import LAWS
-
-    from heml_gym.envs.observations import LAW_CONSTANTS
 
     if obs.points is None or obs.points.shape[1] < 4:
         raise ValueError("--law auto: needs at least 4 tracked points (half fit, half held out)")
@@ -329,7 +331,27 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
     usable = [r for r in records if "heldout_rms_m" in r and r["converged"]]
     if not usable:
         raise ValueError("--law auto: no law could be fitted (see each law's record)")
-    return min(usable, key=lambda r: r["heldout_rms_m"])["law"], records
+    winner = min(usable, key=lambda r: r["heldout_rms_m"])
+    for r in usable:  # can the data tell this law from the winner? (the winner's own interval is 0 to 0)
+        lo, hi = paired_rms_interval(r["heldout_rms_per_time_m"], winner["heldout_rms_per_time_m"])
+        r["difference_ci95_m"] = [lo, hi]
+        r["as_good_as_winner"] = bool(lo <= 0.0)
+    return winner["law"], records
+
+
+def law_ambiguity(selection: list[dict] | None, names) -> dict | None:
+    """``--law auto``'s verdict when the data do not name one law: the laws whose held-out
+    RMS is within the 95 % interval of the winner's (:func:`select_law`), and the range of
+    each fitted constant across them (a constant's value depends on the law assumed, and
+    the data do not fix which). None when only the winner remains (or without a selection)."""
+    if not selection:
+        return None
+    tied = [r for r in selection if r.get("as_good_as_winner")]
+    if len(tied) < 2:
+        return None
+    return {"laws": [r["law"] for r in tied],
+            "ranges": {name: [min(r["theta"][name] for r in tied), max(r["theta"][name] for r in tied)]
+                       for name in names}}
 
 
 def _chart(path: Path, result, obs, final, fitted_points, extra=()) -> None:

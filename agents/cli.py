@@ -246,6 +246,13 @@ def _calibrate(args) -> int:
         print(f"law: {record['law']} (held-out RMS: " + ", ".join(
             f"{r['law']} {r['heldout_rms_m'] * 1e3:.3f} mm" if "heldout_rms_m" in r else f"{r['law']} failed"
             for r in record["law_selection"]) + ")")
+        tie = record["law_ambiguity"]
+        if tie:
+            spans = "; ".join(f"{name} {lo:.4g} to {hi:.4g} {record['parameters'][name]['unit']}".rstrip()
+                              for name, (lo, hi) in tie["ranges"].items())
+            print(f"warning: the data do not tell {', '.join(tie['laws'])} apart (each one's held-out RMS is within "
+                  f"the 95 % interval of {record['law']}'s); fitted with them: {spans}. The constants hold for the "
+                  "law assumed: give --law if you know it", file=sys.stderr)
     print(f"written: {Path(args.out) / 'fit.json'}, {Path(args.out) / 'fit.png'}")
     if not record["converged"]:
         print(f"the fit did NOT converge: {record['message']}", file=sys.stderr)

@@ -11,7 +11,7 @@ import pytest
 
 import heml_gym as hg
 from heml_gym.agents.cli import main
-from heml_gym.calibration import ControlLog, Observed, Replay, ReplayError, fit, loss_terms
+from heml_gym.calibration import ControlLog, Observed, Replay, ReplayError, fit, loss_terms, paired_rms_interval
 from heml_gym.contact import PlaneSupport
 from heml_gym.envs import ORGAN_RETRACTION, TISSUE_RETRACTION
 from heml_gym.envs.observations import (Observation, ObservationError, calibration_problem, load_observation, record,
@@ -401,6 +401,32 @@ def test_loss_terms_are_the_documented_means():
     assert residuals.size == 3 * 3 + 2 * 3
 
 
+def test_paired_rms_interval_covers_the_true_difference():
+    """The bootstrap interval of RMS(a) - RMS(b) over observed times holds the population's
+    difference, sqrt(E a^2) - sqrt(E b^2), in about 95 % of 400 seeded streams of 60 times
+    (two correlated error series whose true RMS are 1.00 and 1.05 mm); a prediction 10 %
+    worse at every time is told apart from the other (the interval is exactly 10 % of
+    the other's RMS, away from 0); identical predictions give 0 to 0."""
+    rng = np.random.default_rng(7)
+    truth = 1.00e-3 - 1.05e-3
+    covered = 0
+    streams = 400
+    for seed in range(streams):
+        common = rng.standard_normal(60)
+        # |N(0, s^2)| has mean square s^2: the per-time RMS of a prediction with s (m) error
+        a = 1.00e-3 * np.abs(0.8 * common + 0.6 * rng.standard_normal(60))
+        b = 1.05e-3 * np.abs(0.8 * common + 0.6 * rng.standard_normal(60))
+        lo, hi = paired_rms_interval(a, b, samples=1000, seed=seed)
+        covered += lo <= truth <= hi
+    assert 0.89 <= covered / streams <= 0.99, covered / streams
+    b = 1e-3 * (1.0 + rng.random(30))
+    lo, hi = paired_rms_interval(1.1 * b, b)
+    assert lo > 0.0 and 0.1 * np.sqrt((b ** 2).min()) <= lo <= hi <= 0.1 * np.sqrt((b ** 2).max())
+    assert paired_rms_interval(b, b) == (0.0, 0.0)
+    with pytest.raises(ValueError, match="one length"):
+        paired_rms_interval(b, b[:-1])
+
+
 def test_law_auto_keeps_the_law_that_predicts_held_out_points(tmp_path, capsys):
     """Noise-free points of a St Venant-Kirchhoff flap: every law of the package is fitted
     to half the points; the kept law predicts the other half at least about as well as the
@@ -417,3 +443,17 @@ def test_law_auto_keeps_the_law_that_predicts_held_out_points(tmp_path, capsys):
     truth = laws["StVenantKirchhoff"]["heldout_rms_m"]
     assert truth < 3e-4
     assert laws[record["law"]]["heldout_rms_m"] <= truth * 1.1 + 1e-6
+    # each law against the winner: an interval that reaches 0 is a law the data do not rule out
+    assert laws[record["law"]]["difference_ci95_m"] == [0.0, 0.0]
+    for r in laws.values():
+        lo, hi = r["difference_ci95_m"]
+        assert lo <= hi and r["as_good_as_winner"] == (lo <= 0.0)
+    tied = [r for r in laws.values() if r["as_good_as_winner"]]
+    err = capsys.readouterr().err
+    if len(tied) > 1:  # named on the console, with the spread of E across them
+        assert record["law_ambiguity"]["laws"] == [r["law"] for r in tied]
+        low, high = record["law_ambiguity"]["ranges"]["young_modulus"]
+        assert low == min(r["theta"]["young_modulus"] for r in tied) < high
+        assert "do not tell" in err and all(r["law"] in err for r in tied)
+    else:
+        assert record["law_ambiguity"] is None and "do not tell" not in err

@@ -7,8 +7,9 @@ those constants to observed points and forces. The physics only: no gymnasium, t
 SB3 (the envs turn an observation file and a scene into a log: ``heml_gym.envs.observations``).
 """
 
-from .fitting import DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, FitResult, Observed, embed_points, fit, loss_terms
+from .fitting import (DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, FitResult, Observed, embed_points, fit, loss_terms,
+                      paired_rms_interval)
 from .replay import ControlLog, Replay, ReplayError, ReplayResult
 
 __all__ = ["ControlLog", "Replay", "ReplayError", "ReplayResult", "Observed", "FitResult", "embed_points", "fit",
-           "loss_terms", "DEFAULT_POINT_SCALE", "DEFAULT_FORCE_SCALE"]
+           "loss_terms", "DEFAULT_POINT_SCALE", "DEFAULT_FORCE_SCALE", "paired_rms_interval"]

@@ -127,6 +127,22 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
     return loss, np.concatenate(residuals), x_bar, force_bar
 
 
+def paired_rms_interval(a: Sequence[float], b: Sequence[float], samples: int = 2000,
+                        seed: int = 0) -> tuple[float, float]:
+    """95 % bootstrap interval of ``RMS(a) - RMS(b)``, where ``a`` and ``b`` are two
+    predictions' RMS errors (m) at the same observed times: the times are resampled with
+    replacement, ``samples`` times, and each resample's difference of the RMS over its
+    times is kept (a pairs bootstrap: both predictions see the same resampled times). An
+    interval that holds 0 says the data do not tell the two predictions apart."""
+    a2, b2 = np.square(np.asarray(a, dtype=np.float64)), np.square(np.asarray(b, dtype=np.float64))
+    if a2.shape != b2.shape or a2.ndim != 1 or a2.size == 0:
+        raise ValueError(f"paired_rms_interval: a and b must be per-time RMS of one length, got shapes "
+                         f"{a2.shape} and {b2.shape}")
+    idx = np.random.default_rng(seed).integers(0, a2.size, size=(samples, a2.size))
+    diff = np.sqrt(a2[idx].mean(axis=1)) - np.sqrt(b2[idx].mean(axis=1))
+    return float(np.percentile(diff, 2.5)), float(np.percentile(diff, 97.5))
+
+
 @dataclass
 class FitResult:
     """A fit's outcome: ``theta`` (the constants), ``std`` (their standard errors),
