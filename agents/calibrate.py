@@ -73,7 +73,8 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
     ``young_modulus`` / ``poisson`` / ``law``, else drawn as the scene draws it); with
     ``wrist_reach`` (m), as the calibration's replay steps it with the jaws holding the
     tissue within that distance of what the scene's jaws take on a free wrist
-    (:func:`heml_gym.envs.observations.on_a_free_wrist`)."""
+    (:func:`heml_gym.envs.observations.on_a_free_wrist`). ``seed`` seeds the episode, the
+    tracked points' draw and the noise (so each seed's file has noise of its own)."""
     from heml_gym.envs.observations import on_a_free_wrist, record, save_observation
     from heml_gym.envs.scripted import scripted_policy
 
@@ -101,8 +102,8 @@ def observe(env_id: str, out: str, seed: int = 0, steps: int = 30, points: int =
     env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(young_modulus, poisson, law))
     if wrist_reach is None:
         obs = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points,
-                     point_noise=point_noise, force_noise=force_noise, env_id=env_id, depth_size=depth_size,
-                     depth_noise=depth_noise)
+                     point_noise=point_noise, force_noise=force_noise, noise_seed=seed, env_id=env_id,
+                     depth_size=depth_size, depth_noise=depth_noise)
     else:  # the env records the gripper's path; the replay, the tissue held on the wrist
         path = record(env, scripted_policy(env.unwrapped.scene), seed=seed, steps=steps, points=points, env_id=env_id)
         obs, _, _ = on_a_free_wrist(env, path, wrist_reach, point_noise, force_noise, noise_seed=seed)

@@ -405,7 +405,7 @@ def main(argv=None) -> int:
     o = sub.add_parser("observe", help="record an observation file (.npz) from a simulated scripted retraction")
     o.add_argument("env", metavar="ENV", help="environment id")
     o.add_argument("--out", required=True, help="the .npz file to write")
-    o.add_argument("--seed", type=int, default=0)
+    o.add_argument("--seed", type=int, default=0, help="the episode's seed, and the noise's and the tracked points' draw")
     o.add_argument("--steps", type=int, default=30, help="env steps (default 30: 3 s)")
     o.add_argument("--points", type=int, default=10, help="tracked points on the upper surface (default 10)")
     o.add_argument("--point-noise", type=float, default=0.0, help="Gaussian noise per coordinate, m")

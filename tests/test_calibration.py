@@ -357,6 +357,25 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
         gym.make(TISSUE_RETRACTION, physics={"fit": str(out), "young_modulus": [1e3, 2e3]})
 
 
+def test_each_observe_seed_draws_its_own_noise(tmp_path, capsys):
+    """`heml-gym observe --seed` seeds the noise and the tracked points too: the same seed
+    writes the same file, and two seeds' point noise (the observed minus the noise-free
+    points of the same run) are independent draws of the asked-for spread."""
+    files = {}
+    for name, seed, noise in (("a", 4, "0.001"), ("b", 4, "0.001"), ("c", 9, "0.001"), ("a0", 4, "0"), ("c0", 9, "0")):
+        files[name] = tmp_path / f"{name}.npz"
+        assert main(["observe", TISSUE_RETRACTION, "--out", str(files[name]), "--steps", "3", "--points", "40",
+                     "--seed", str(seed), "--point-noise", noise, "--young-modulus", "5000"]) == 0
+    capsys.readouterr()
+    obs = {k: load_observation(v) for k, v in files.items()}
+    assert np.array_equal(obs["a"].points, obs["b"].points)
+    assert not np.array_equal(obs["a"].rest_points, obs["c"].rest_points)
+    noise_a, noise_c = obs["a"].points - obs["a0"].points, obs["c"].points - obs["c0"].points
+    for noise in (noise_a, noise_c):
+        assert 0.9e-3 < noise.std() < 1.1e-3  # 40 points x 4 times x 3 axes
+    assert abs(np.corrcoef(noise_a.ravel(), noise_c.ravel())[0, 1]) < 0.15
+
+
 @pytest.mark.parametrize("argv, says", [
     (["calibrate", "-", "{tmp}/none.npz", "--out", "{tmp}/fit"], "not found"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "stiffness"], "fit: stiffness"),
