@@ -268,6 +268,30 @@ def test_weighing_by_the_residuals_finds_each_sensors_noise():
     assert weighed.theta[0] == pytest.approx(5200.0, rel=0.02)
 
 
+def test_standard_errors_describe_the_spread_of_fits_to_noisy_data():
+    """The reported standard error of E is the spread of E over fits of one flap observed
+    with 30 independent noise draws (20 points with 1 mm, the force with 0.02 N: the force's
+    10 samples weigh as much in the loss as the points' 220, more than their noise alone
+    would give them): the RMS of (E - E of the noise-free fit) / its standard error is
+    within 0.75-1.5 (it is 1 for a calibrated error; Gauss-Newton's s^2 (J^T J)^-1 of the
+    stacked residuals, which ignores the weights, gives about 1.9)."""
+    small = {"scene": {"tissue": {"cells": [6, 6, 1]}}}
+    env = gym.make(TISSUE_RETRACTION, physics={"young_modulus": [5000.0, 5000.0], "poisson": 0.43}, **small)
+    model = gym.make(TISSUE_RETRACTION, **small)
+
+    def fitted(point_noise, force_noise, noise_seed):
+        obs = record(env, scripted_policy(env.unwrapped.scene), seed=4, steps=10, points=20, point_noise=point_noise,
+                     force_noise=force_noise, noise_seed=noise_seed)
+        replay, observed, names, bounds, start = calibration_problem(model, obs, ("young_modulus",), 1e-3, 0.02)
+        result = fit(replay, observed, names, [start], bounds)
+        assert result.converged
+        return result.theta[0], result.std[0]
+
+    center, _ = fitted(0.0, 0.0, 0)
+    z = [(E - center) / std for E, std in (fitted(1e-3, 0.02, seed) for seed in range(30))]
+    assert 0.75 < np.sqrt(np.mean(np.square(z))) < 1.5
+
+
 def test_density_and_a_law_constant_are_recovered_too():
     """Noise-free points and force of a heavier flap (1,300 kg/m^3: it sags more under its
     weight, for the same force per displacement) give its E and density; a Demiray flap's

@@ -96,20 +96,24 @@ class Observed:
 
 
 def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matrix | None):
-    """``(loss, residuals, x_bar, force_bar)``: the loss of a replay against the observed,
-    the stacked residuals over their scales (for the Gauss-Newton curvature), and the
-    loss's derivatives in the replay's positions and forces."""
+    """``(loss, residuals, x_bar, force_bar, weights)``: the loss of a replay against the
+    observed, the stacked residuals over their scales (for the Gauss-Newton curvature), the
+    loss's derivatives in the replay's positions and forces, and each observed quantity's
+    ``(residual count, weight)`` in stacking order, so that the loss is the sum over the
+    quantities of ``weight * (their residuals ** 2).sum()`` (points' and force's weight is
+    one over their count: each quantity's loss is a mean)."""
     x = result.x
     T1 = x.shape[0]
     x_bar = np.zeros_like(x)
     force_bar = np.zeros_like(result.force)
-    loss, residuals = 0.0, []
+    loss, residuals, weights = 0.0, [], []
     if observed.points is not None:
         predicted = np.stack([embedding @ x[t] for t in range(T1)])  # (T + 1, K, 3)
         r = (predicted - observed.points) / observed.point_scale
         count = r[..., 0].size
         loss += float((r ** 2).sum() / count)
         residuals.append(r.reshape(-1))
+        weights.append((r.size, 1.0 / count))
         rb = 2.0 * r / (count * observed.point_scale)  # dL/dpredicted
         for t in range(T1):
             x_bar[t] += embedding.T @ rb[t]
@@ -118,13 +122,17 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
         count = r.shape[0]
         loss += float((r ** 2).sum() / count)
         residuals.append(r.reshape(-1))
+        weights.append((r.size, 1.0 / count))
         force_bar += 2.0 * r / (count * observed.force_scale)
     for term in observed.extra:
         value, r, bar = term(x)
+        r = np.asarray(r, dtype=np.float64).reshape(-1)
         loss += float(value)
-        residuals.append(np.asarray(r, dtype=np.float64).reshape(-1))
+        residuals.append(r)
+        squares = float(r @ r)  # (a term's loss is a weighted sum of its residuals' squares)
+        weights.append((r.size, float(value) / squares if squares > 0.0 else 0.0))
         x_bar += bar
-    return loss, np.concatenate(residuals), x_bar, force_bar
+    return loss, np.concatenate(residuals), x_bar, force_bar, weights
 
 
 def paired_rms_interval(a: Sequence[float], b: Sequence[float], samples: int = 2000,
@@ -239,7 +247,7 @@ def _fit(replay: Replay, observed: Observed, names, starts, bounds, max_iter, gt
         theta = transform.theta(u)
         try:
             result = replay.run(theta)
-            loss, _, x_bar, force_bar = loss_terms(result, observed, embedding)
+            loss, _, x_bar, force_bar, _ = loss_terms(result, observed, embedding)
             grad = replay.gradient(theta, result, x_bar, force_bar) * transform.dtheta_du(u)
         except ReplayError as exc:
             failures[0] += 1
@@ -275,8 +283,8 @@ def _fit(replay: Replay, observed: Observed, names, starts, bounds, max_iter, gt
                                                 message, progress, history)
     theta = transform.theta(u)
     result = replay.run(theta)
-    loss, residuals, _, _ = loss_terms(result, observed, embedding)
-    std = _standard_errors(replay, observed, embedding, theta, residuals)
+    loss, residuals, _, _, weights = loss_terms(result, observed, embedding)
+    std = _standard_errors(replay, observed, embedding, theta, residuals, weights)
     rms = {}
     if observed.points is not None:
         predicted = np.stack([embedding @ x for x in result.x])
@@ -359,9 +367,16 @@ class _Units:
         return np.where(self.log, self.theta(u) / 10.0, self.span / 10.0)
 
 
-def _standard_errors(replay, observed, embedding, theta, residuals) -> np.ndarray:
-    """Each constant's standard error from ``s^2 (J^T J)^-1`` (``J`` the residuals'
-    Jacobian by central differences of the replay, ``s^2`` their variance)."""
+def _standard_errors(replay, observed, embedding, theta, residuals, weights) -> np.ndarray:
+    """Each constant's standard error from the sandwich ``H^-1 M H^-1`` of the loss the fit
+    minimises, ``sum_q w_q |r_q|^2`` over the observed quantities q (``weights``: each one's
+    residual count and weight ``w_q``): ``H = sum_q w_q J_q^T J_q`` and ``M = sum_q w_q^2
+    s_q^2 J_q^T J_q`` (``J_q`` the quantity's residual Jacobian by central differences of
+    the replay, ``s_q^2`` the variance of its residuals, a quantity's residuals taken as
+    independent). One quantity: ``s^2 (J^T J)^-1``, Gauss-Newton's. Each quantity's loss
+    being a mean, a sparse one (30 force samples beside 300 point positions) weighs more per
+    residual than its noise alone would give it, and ``s^2 (J^T J)^-1`` of the stacked
+    residuals would understate the spread of the estimate."""
     p = len(theta)
     J = np.zeros((residuals.size, p))
     for j in range(p):
@@ -376,9 +391,25 @@ def _standard_errors(replay, observed, embedding, theta, residuals) -> np.ndarra
         switched = (cols[0] == 0.0) != (cols[1] == 0.0)
         J[:, j] = np.where(switched, 0.0, (cols[0] - cols[1]) / (2.0 * step))
     replay.run(theta)  # (the model's material back to theta)
-    variance = float(residuals @ residuals) / max(residuals.size - p, 1)
+    # (the residuals' degrees of freedom: p constants were fitted to them; a residual that
+    # is exactly 0, a depth pixel that does not count, is not one)
+    counted = max(int(np.count_nonzero(residuals)), p + 1)
+    dof = counted / (counted - p)
+    H = np.zeros((p, p))
+    M = np.zeros((p, p))
+    start = 0
+    for size, weight in weights:
+        part = slice(start, start + size)
+        start += size
+        r = residuals[part]
+        n = max(int(np.count_nonzero(r)), 1)
+        variance = float(r @ r) / n * dof
+        JtJ = J[part].T @ J[part]
+        H += weight * JtJ
+        M += weight ** 2 * variance * JtJ
     try:
-        covariance = np.linalg.inv(J.T @ J) * variance
+        Hinv = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return np.full(p, math.inf)
+    covariance = Hinv @ M @ Hinv
     return np.sqrt(np.clip(np.diag(covariance), 0.0, None))
