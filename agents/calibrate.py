@@ -199,6 +199,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "converged": result.converged, "message": result.message, "loss": result.loss,
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
+        "loosely_determined": None,  # (filled below, from the parameters)
         "law_selection": selection,
         "law_ambiguity": law_ambiguity(selection, names),
         "regions": None if grid is None else _regions_record(replay.model.mesh, grid),
@@ -213,6 +214,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
                                                    "tets": int(replay.model.mesh.n_tets)}},
         "wall_s": time.perf_counter() - t0,
     }
+    record["loosely_determined"] = loosely_determined(record["parameters"])
     fitted_points = None  # the tracked points where the fitted tissue puts them, (T + 1, K, 3) m
     if obs.points is not None:
         B = embed_points(replay.model.mesh, obs.rest_points)
@@ -221,6 +223,25 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+#: A fitted constant whose standard error is above its limit here (absolute) or above
+#: :data:`LOOSE_RELATIVE` of its value (the others) is reported as loosely determined: nu's
+#: limit is issue 34's bar for it, Mooney-Rivlin's c01 share a tenth of its range.
+LOOSE_ABSOLUTE = {"poisson_ratio": 0.02, "c01_fraction": 0.1}
+LOOSE_RELATIVE = 0.10
+
+
+def loosely_determined(parameters: dict) -> list[str]:
+    """The names in fit.json's ``parameters`` whose standard error the data leave above
+    their limit (:data:`LOOSE_ABSOLUTE`, :data:`LOOSE_RELATIVE`), or undetermined (None)."""
+    loose = []
+    for name, p in parameters.items():
+        std = p["std"]
+        limit = LOOSE_ABSOLUTE.get(name, LOOSE_RELATIVE * abs(p["value"]))
+        if std is None or std > limit:
+            loose.append(name)
+    return loose
 
 
 def parse_regions(regions: str | None) -> tuple[int, int, int] | None:

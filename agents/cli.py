@@ -242,6 +242,10 @@ def _calibrate(args) -> int:
         std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
         print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
     print("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in record["residual_rms"].items()))
+    if record["loosely_determined"]:
+        print(f"warning: the data determine {', '.join(record['loosely_determined'])} only loosely (standard error "
+              "above 10 % of the value; nu's above 0.02): more or other observations (points and force, a longer or "
+              "larger retraction) would pin them down", file=sys.stderr)
     if record["law_selection"]:
         print(f"law: {record['law']} (held-out RMS: " + ", ".join(
             f"{r['law']} {r['heldout_rms_m'] * 1e3:.3f} mm" if "heldout_rms_m" in r else f"{r['law']} failed"
