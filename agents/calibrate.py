@@ -220,7 +220,12 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         B = embed_points(replay.model.mesh, obs.rest_points)
         fitted_points = np.stack([B @ x for x in final.x])
     _chart(out / "fit.png", result, obs, final, fitted_points, observed.extra)
-    record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces)
+    colours = None  # (with regions: each vertex by its regions' fitted moduli)
+    if grid is not None:
+        colours = region_colours(replay.model.mesh, grid, [result.theta[names.index(n)] for n in names
+                                                           if n.startswith("young_modulus_")])
+    record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces,
+                                  colours)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
 
@@ -272,10 +277,31 @@ def _regions_record(mesh, grid) -> dict:
             "volume_fraction": (volume / volume.sum()).tolist()}
 
 
-def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
-    """``fit.rrd``: the fitted tissue (its surface mesh), the observed and the fitted tracked
-    points, and the observed and fitted jaw force, at each control step (timeline
-    ``sim_time``, s). None (and nothing written) without the rerun SDK."""
+def region_colours(mesh, grid, moduli) -> np.ndarray:
+    """(n, 3) uint8: each vertex coloured by the mean fitted modulus of the regions of the
+    tets around it (``moduli``, Pa, one per box of ``grid``), blue the softest region's,
+    red the stiffest's (one colour when they are equal)."""
+    import matplotlib
+
+    from heml_gym.mesh import box_regions
+
+    moduli = np.asarray(moduli, dtype=np.float64)
+    per_tet = moduli[box_regions(mesh, grid)]
+    total = np.zeros(mesh.n_vertices)
+    count = np.zeros(mesh.n_vertices)
+    for corner in range(4):
+        np.add.at(total, mesh.tets[:, corner], per_tet)
+        np.add.at(count, mesh.tets[:, corner], 1.0)
+    span = moduli.max() - moduli.min()
+    level = (total / np.maximum(count, 1.0) - moduli.min()) / span if span > 0 else np.full(mesh.n_vertices, 0.5)
+    return (255 * matplotlib.colormaps["coolwarm"](level)[:, :3]).astype(np.uint8)
+
+
+def _record(path: Path, obs, final, fitted_points, faces, colours=None) -> str | None:
+    """``fit.rrd``: the fitted tissue (its surface mesh; ``colours`` (n, 3) per vertex,
+    default the tissue's), the observed and the fitted tracked points, and the observed and
+    fitted jaw force, at each control step (timeline ``sim_time``, s). None (and nothing
+    written) without the rerun SDK."""
     try:
         import rerun as rr
     except ImportError:
@@ -285,10 +311,12 @@ def _record(path: Path, obs, final, fitted_points, faces) -> str | None:
     rec = rr.RecordingStream("heml_gym_calibration")
     rec.set_log_time_enabled(False)
     rec.save(str(path))
+    if colours is None:
+        colours = np.tile(palette.TISSUE, (final.x.shape[1], 1))
     for k, t in enumerate(obs.t):
         rec.set_time("sim_time", duration=float(t))
         rec.log("world/fitted_tissue", rr.Mesh3D(vertex_positions=final.x[k], triangle_indices=faces,
-                                                 vertex_colors=np.tile(palette.TISSUE, (final.x.shape[1], 1))))
+                                                 vertex_colors=colours))
         if fitted_points is not None:
             rec.log("world/observed_points", rr.Points3D(obs.points[k], radii=0.0015, colors=[[220, 40, 40]]))
             rec.log("world/fitted_points", rr.Points3D(fitted_points[k], radii=0.0015, colors=[[40, 160, 60]]))

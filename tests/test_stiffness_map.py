@@ -129,6 +129,21 @@ def test_regions_are_places_not_vertices():
         assert np.all((centre[:, 1] >= 0.03) == (region >= 2))
 
 
+def test_a_region_fit_colours_the_recorded_tissue_by_its_moduli():
+    """fit.rrd's tissue colours: on a slab whose left half is fitted soft and right half
+    stiff, vertices left of the middle are bluer than red, right of it redder than blue,
+    and with equal moduli every vertex has one colour."""
+    from heml_gym.agents.calibrate import region_colours
+
+    mesh = hg.box_mesh((0.08, 0.06, 0.01), (8, 6, 1))
+    colours = region_colours(mesh, (2, 1, 1), [3000.0, 7500.0]).astype(int)
+    x = mesh.vertices[:, 0]
+    left, right = x < 0.04 - 1e-9, x > 0.04 + 1e-9
+    assert np.all(colours[left, 2] > colours[left, 0]) and np.all(colours[right, 0] > colours[right, 2])
+    same = region_colours(mesh, (2, 1, 1), [5000.0, 5000.0])
+    assert np.all(same == same[0])
+
+
 @pytest.mark.parametrize("env_id, grid", [(TISSUE_RETRACTION, (2, 1, 1)), (ORGAN_RETRACTION, (1, 2, 1))])
 def test_adjoint_gradients_in_each_regions_modulus(env_id, grid):
     """d/dE of each region and d/dnu of a loss on positions and jaw force, on both envs'
