@@ -146,6 +146,23 @@ def parse_arguments(doc: str, flags: dict[str, str] | None = None, argv=None):
     return ap.parse_args(argv)
 
 
+#: The ``--envs`` names of the accuracy studies that take some of the tasks' scenes.
+SHORT_ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v2"}
+
+
+def add_envs_option(ap, default: str) -> None:
+    """``--envs``: comma-separated :data:`SHORT_ENVS` names (read back by :func:`env_ids`)."""
+    ap.add_argument("--envs", default=default, help=f"comma-separated, of {', '.join(SHORT_ENVS)}")
+
+
+def env_ids(ap, value: str) -> list[str]:
+    """The env ids that ``--envs value`` names; a one-line ``ap.error`` for an unknown name."""
+    names = [e for e in value.split(",") if e]
+    if not names or any(e not in SHORT_ENVS for e in names):
+        ap.error(f"--envs: give names among {', '.join(SHORT_ENVS)}, got {value!r}")
+    return [SHORT_ENVS[e] for e in names]
+
+
 def current_tasks() -> dict[str, str]:
     """The registered version of each task, ``{"heml_gym/TissueRetraction": "v1", ...}``."""
     from heml_gym.envs import ENV_IDS

@@ -53,9 +53,9 @@ from heml_gym.benchmarks.accuracy.calibration_mesh import (LOBE_OBSERVED, LOBE_O
 from heml_gym.benchmarks.accuracy.calibration_wrist import OBSERVED as WRIST_OBSERVED
 from heml_gym.benchmarks.accuracy.calibration_wrist import OBSERVED_LABEL as WRIST_OBSERVED_LABEL
 from heml_gym.benchmarks.accuracy.calibration_wrist import REACH
-from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
+from heml_gym.benchmarks.common import (SHORT_ENVS, add_envs_option, env_ids, machine_info, markdown_table,
+                                        store_and_report)
 
-ENVS = {"tissue": "heml_gym/TissueRetraction-v1", "organ": "heml_gym/OrganRetraction-v2"}
 #: (observer, fitted model): env keyword arguments, and their labels
 MODELS = {"linear": (None, {}, "the finer model of calibration.md", "the default model"),
           "quadratic": (QUADRATIC_OBSERVED, {"cells": [6, 6, 1], "physics": QUADRATIC},
@@ -121,7 +121,7 @@ def measure(envs: list[str], stretch: float, model: str = "linear") -> dict:
 
 def _envs_option(data: dict) -> str:
     """The ``--envs`` (and ``--name``) that measured ``data``'s rows, where not the default."""
-    envs = [key for key, env_id in ENVS.items() if any(r["env"] == env_id for r in data["rows"])]
+    envs = [key for key, env_id in SHORT_ENVS.items() if any(r["env"] == env_id for r in data["rows"])]
     if envs == ["tissue"]:
         return ""
     named = data.get("model", "linear") == "linear"  # (another model names the file after itself)
@@ -165,7 +165,7 @@ def report(data: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--envs", default="tissue", help=f"comma-separated, of {', '.join(ENVS)}")
+    add_envs_option(ap, "tissue")
     ap.add_argument("--stretch", type=float, default=1.2, help="the fold's arc radius over the grasp's distance "
                     "from the hinge (1: the scripted fold; 1.2: gauge strains about 0.3 on the flap)")
     ap.add_argument("--model", choices=sorted(MODELS), default="linear",
@@ -177,15 +177,14 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     data = None
     if not args.from_json:
+        ids = env_ids(ap, args.envs)
         names = [e for e in args.envs.split(",") if e]
-        if not names or any(e not in ENVS for e in names):
-            ap.error(f"--envs: give names among {', '.join(ENVS)}, got {args.envs!r}")
         if not (1.0 <= args.stretch <= 1.5):
             ap.error(f"--stretch: between 1 (the scripted fold) and 1.5 (tears soft tissue), got {args.stretch}")
         if args.model in MODEL_ENVS and names != [MODEL_ENVS[args.model]]:
             ap.error(f"--model {args.model}: the {'flap' if MODEL_ENVS[args.model] == 'tissue' else 'lobe'} only "
                      f"(--envs {MODEL_ENVS[args.model]})")
-        data = measure([ENVS[e] for e in names], args.stretch, args.model)
+        data = measure(ids, args.stretch, args.model)
     store_and_report(args.name, data, report)
     return 0
 
