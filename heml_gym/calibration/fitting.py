@@ -129,8 +129,10 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
         r = np.asarray(r, dtype=np.float64).reshape(-1)
         loss += float(value)
         residuals.append(r)
-        squares = float(r @ r)  # (a term's loss is a weighted sum of its residuals' squares)
-        weights.append((r.size, float(value) / squares if squares > 0.0 else 0.0))
+        # (a term's loss is a weighted sum of its residuals' squares; with every residual 0
+        # any weight will do: their variance, and so the standard errors, are then 0)
+        squares = float(r @ r)
+        weights.append((r.size, float(value) / squares if squares > 0.0 else 1.0))
         x_bar += bar
     return loss, np.concatenate(residuals), x_bar, force_bar, weights
 
