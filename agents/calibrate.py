@@ -120,12 +120,13 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
               law: str | None = None, env_kwargs: str | None = None, starts: int = 1,
               point_scale: float | None = None, force_scale: float | None = None, progress: bool = True,
               wrist_reach: float | None = None,
-              regions: str | None = None) -> dict:
+              regions: str | None = None, use: str | None = None) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. ``wrist_reach`` (m):
     the jaws hold the tissue within that distance of what the scene's jaws take, on a free
     wrist (:func:`heml_gym.envs.observations.control_log`); ``regions`` (``"NXxNYxNZ"``):
-    Young's modulus fitted per box of that grid over the tissue's rest bounding box.
+    Young's modulus fitted per box of that grid over the tissue's rest bounding box; ``use``
+    (``"points,force"``, ...): the observed quantities fitted (default: every one the file has).
     ``point_scale`` (m) and ``force_scale`` (N): the residual scales (the sensors' noise);
     neither given: 1 mm and 0.05 N to start, then each quantity weighed by its own residual
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
@@ -136,6 +137,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     import gymnasium as gym
 
     obs = load_observation(observation)
+    _keep_only(obs, use)
     env_id = env_id or SAME_STATE_TASK.get(obs.env_id, obs.env_id)  # (a retired id of the same scene: its successor)
     if env_id is None:
         raise ValueError("ENV: the observation names no env: give one")
@@ -228,6 +230,30 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
                                   colours)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+#: The observed quantities ``--use`` can name.
+QUANTITIES = ("points", "force", "depth")
+
+
+def _keep_only(obs, use: str | None) -> None:
+    """Drop from ``obs`` the observed quantities ``use`` (comma-separated, of
+    :data:`QUANTITIES`) does not name; None keeps all."""
+    if use is None:
+        return
+    names = [n.strip() for n in str(use).split(",") if n.strip()]
+    if not names or any(n not in QUANTITIES for n in names):
+        raise ValueError(f"--use: comma-separated names among {', '.join(QUANTITIES)}, got {use!r}")
+    missing = [n for n in names if getattr(obs, n) is None]
+    if missing:
+        has = [n for n in QUANTITIES if getattr(obs, n) is not None]
+        raise ValueError(f"--use: the observation has no {missing[0]} (it has {', '.join(has)})")
+    if "points" not in names:
+        obs.points = obs.rest_points = None
+    if "force" not in names:
+        obs.force = None
+    if "depth" not in names:
+        obs.depth = obs.intrinsics = obs.camera_pose = None
 
 
 #: A fitted constant whose standard error is above its limit here (absolute) or above

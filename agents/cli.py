@@ -237,7 +237,7 @@ def _calibrate(args) -> int:
     record = calibrate(None if args.env == "-" else args.env, args.observation, args.out, names, law=args.law,
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
                        force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach,
-                       regions=args.regions)
+                       regions=args.regions, use=args.use)
     for name, p in record["parameters"].items():
         std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
         print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
@@ -448,6 +448,9 @@ def main(argv=None) -> int:
     c.add_argument("--regions", default=None,
                    help="fit Young's modulus in each box of an NXxNYxNZ grid over the tissue's rest bounding box "
                         "(e.g. 2x1x1: two halves along x); default: one E for the whole tissue")
+    c.add_argument("--use", default=None,
+                   help="the observed quantities to fit, comma-separated: points, force, depth (default: all the "
+                        "file has); e.g. --use points where the force sensor's model error is the larger")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
 

@@ -369,6 +369,14 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
     assert record["parameters"]["young_modulus"]["value"] == pytest.approx(4500.0, rel=0.01)
     assert record["converged"] and (out / "fit.png").stat().st_size > 10_000
     assert record["loosely_determined"] == [] and "loosely" not in capsys.readouterr().err
+    assert record["settings"]["observed"] == ["points", "force"]
+    # --use: the force alone (the file has points too), which gives E by itself
+    out_force = tmp_path / "fit_force"
+    assert main(["calibrate", "-", str(obs), "--out", str(out_force), "--fit", "young_modulus", "--use", "force",
+                 "--no-progress"]) == 0
+    by_force = json.loads((out_force / "fit.json").read_text())
+    assert by_force["settings"]["observed"] == ["force"] and set(by_force["residual_rms"]) == {"force_N"}
+    assert by_force["parameters"]["young_modulus"]["value"] == pytest.approx(4500.0, rel=0.01)
     assert record["recording"] == str(out / "fit.rrd") and (out / "fit.rrd").stat().st_size > 10_000
     # an env whose tissue is the fit: E drawn within two standard errors of the fitted value
     fitted = record["parameters"]["young_modulus"]
@@ -422,6 +430,8 @@ def test_each_observe_seed_draws_its_own_noise(tmp_path, capsys):
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "stiffness"], "fit: stiffness"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--fit", "young_modulus,b"], "fit: b is a constant of Demiray"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--wrist-reach", "-0.01"], "--wrist-reach"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--use", "markers"], "--use: comma-separated names"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--use", "points,depth"], "--use: the observation has no depth"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.txt"], "--out"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--wrist-reach", "0"], "--wrist-reach"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--wrist-reach", "0.01", "--depth", "84x84"],
