@@ -129,6 +129,27 @@ def test_regions_are_places_not_vertices():
         assert np.all((centre[:, 1] >= 0.03) == (region >= 2))
 
 
+def test_law_auto_fits_every_law_per_region(tmp_path, capsys):
+    """`--law auto --regions 2x1x1` on a uniform 5,000 Pa flap (a small one: 6 x 6 x 1
+    cells, 8 steps, noise-free points and force): every law is fitted with E per half, and
+    the kept law puts both halves within 3 % of the truth."""
+    small = json.dumps({"scene": {"tissue": {"cells": [6, 6, 1]}}})
+    obs = tmp_path / "obs.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(obs), "--steps", "8", "--points", "8", "--seed", "3",
+                 "--young-modulus", "5000", "--env-kwargs", small]) == 0
+    out = tmp_path / "fit"
+    assert main(["calibrate", "-", str(obs), "--out", str(out), "--regions", "2x1x1", "--law", "auto",
+                 "--env-kwargs", small, "--no-progress"]) == 0
+    capsys.readouterr()
+    record = json.loads((out / "fit.json").read_text())
+    assert len(record["law_selection"]) == 5
+    for r in record["law_selection"]:
+        assert set(r["theta"]) == {"young_modulus_0", "young_modulus_1", "poisson_ratio"}
+    assert record["regions"]["grid"] == [2, 1, 1]
+    for name in ("young_modulus_0", "young_modulus_1"):
+        assert record["parameters"][name]["value"] == pytest.approx(5000.0, rel=0.03)
+
+
 def test_a_region_fit_colours_the_recorded_tissue_by_its_moduli():
     """fit.rrd's tissue colours: on a slab whose left half is fitted soft and right half
     stiff, vertices left of the middle are bluer than red, right of it redder than blue,
