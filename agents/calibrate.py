@@ -202,6 +202,9 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
         "loosely_determined": None,  # (filled below, from the parameters)
+        "by_quantity": {q: {"parameters": dict(zip(names, own["theta"])), "std": dict(zip(names, own["std"]))}
+                        for q, own in result.by_quantity.items()},
+        "disagreements": disagreements(result.by_quantity, names),
         "law_selection": selection,
         "law_ambiguity": law_ambiguity(selection, names),
         "regions": None if grid is None else _regions_record(replay.model.mesh, grid),
@@ -261,6 +264,33 @@ def _keep_only(obs, use: str | None) -> None:
 #: limit is issue 34's bar for it, Mooney-Rivlin's c01 share a tenth of its range.
 LOOSE_ABSOLUTE = {"poisson_ratio": 0.02, "c01_fraction": 0.1}
 LOOSE_RELATIVE = 0.10
+
+
+#: Two observed quantities disagree on a constant when their own estimates differ by more
+#: than this many of their combined standard errors and by more than 2 % (nu: 0.01).
+DISAGREEMENT_SIGMAS = 3.0
+
+
+def disagreements(by_quantity: dict, names) -> list[dict]:
+    """The constants on which two observed quantities' own estimates
+    (:class:`heml_gym.calibration.FitResult`'s ``by_quantity``) disagree beyond their errors
+    (:data:`DISAGREEMENT_SIGMAS`): ``[{"constant": name, "estimates": {quantity: value}}]``.
+    Noise cannot part them so far; a model error in one of them can (the lobe's force)."""
+    import itertools
+
+    found = []
+    for j, name in enumerate(names):
+        values = {q: own["theta"][j] for q, own in by_quantity.items()}
+
+        def apart(qa, qb):
+            gap = abs(values[qa] - values[qb])
+            sigma = math.hypot(by_quantity[qa]["std"][j], by_quantity[qb]["std"][j])
+            floor = 0.01 if name == "poisson_ratio" else 0.02 * max(abs(values[qa]), abs(values[qb]))
+            return gap > DISAGREEMENT_SIGMAS * sigma and gap > floor
+
+        if any(apart(qa, qb) for qa, qb in itertools.combinations(values, 2)):
+            found.append({"constant": name, "estimates": values})
+    return found
 
 
 def loosely_determined(parameters: dict) -> list[str]:

@@ -246,6 +246,13 @@ def _calibrate(args) -> int:
         print(f"warning: the data determine {', '.join(record['loosely_determined'])} only loosely (standard error "
               "above 10 % of the value; nu's above 0.02): more or other observations (points and force, a longer or "
               "larger retraction) would pin them down", file=sys.stderr)
+    for found in record["disagreements"]:
+        unit = record["parameters"][found["constant"]]["unit"]
+        print(f"warning: the observed quantities disagree on {found['constant']} (each alone, one Gauss-Newton step "
+              "from the joint fit: " + ", ".join(
+            f"{q} {v:.4g} {unit}".rstrip() for q, v in found["estimates"].items()) + "), more than their noise "
+            "allows: one of them carries a model error the joint fit averages in (--use keeps the one you trust)",
+            file=sys.stderr)
     if record["law_selection"]:
         print(f"law: {record['law']} (held-out RMS: " + ", ".join(
             f"{r['law']} {r['heldout_rms_m'] * 1e3:.3f} mm" if "heldout_rms_m" in r else f"{r['law']} failed"

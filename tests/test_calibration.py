@@ -406,6 +406,40 @@ def test_a_constant_the_data_barely_touch_is_reported_loose(tmp_path, capsys):
     assert "determine young_modulus only loosely" in capsys.readouterr().err
 
 
+def test_points_and_force_that_disagree_are_reported(tmp_path, capsys):
+    """Each observed quantity's own estimate of E (one Gauss-Newton step from the joint fit,
+    fit.json's by_quantity) is what fitting it alone gives (within 3 %) where they agree;
+    with a force sensor reading 30 % high (a gain error: the force says the flap is stiffer
+    than the points do) they disagree beyond their errors, on the sides the separate fits
+    take (points below the joint E, force above), and the console says so; with the gain
+    right nothing is said."""
+    obs = tmp_path / "obs.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(obs), "--young-modulus", "5000", "--steps", "10",
+                 "--points", "8", "--seed", "6", "--point-noise", "0.0005", "--force-noise", "0.01"]) == 0
+    observation = load_observation(obs)
+    observation.force = 1.3 * observation.force
+    save_observation(observation, tmp_path / "gain.npz")
+
+    def calibrate(name, *extra):
+        capsys.readouterr()
+        out = tmp_path / f"fit_{name}_{'_'.join(extra)}"
+        assert main(["calibrate", "-", str(tmp_path / f"{name}.npz"), "--out", str(out), "--fit", "young_modulus",
+                     "--no-progress", *extra]) == 0
+        return json.loads((out / "fit.json").read_text()), capsys.readouterr().err
+
+    for name, says in (("obs", False), ("gain", True)):
+        record, err = calibrate(name)
+        assert ("disagree on young_modulus" in err) == says and bool(record["disagreements"]) == says
+        joint = record["parameters"]["young_modulus"]["value"]
+        for quantity, side in (("points", -1), ("force", 1)):
+            own = record["by_quantity"][quantity]["parameters"]["young_modulus"]
+            alone = calibrate(name, "--use", quantity)[0]["parameters"]["young_modulus"]["value"]
+            if says:
+                assert np.sign(own - joint) == np.sign(alone - joint) == side
+            else:
+                assert own == pytest.approx(alone, rel=0.03)
+
+
 def test_each_observe_seed_draws_its_own_noise(tmp_path, capsys):
     """`heml-gym observe --seed` seeds the noise and the tracked points too: the same seed
     writes the same file, and two seeds' point noise (the observed minus the noise-free

@@ -99,7 +99,7 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
     """``(loss, residuals, x_bar, force_bar, weights)``: the loss of a replay against the
     observed, the stacked residuals over their scales (for the Gauss-Newton curvature), the
     loss's derivatives in the replay's positions and forces, and each observed quantity's
-    ``(residual count, weight)`` in stacking order, so that the loss is the sum over the
+    ``(name, residual count, weight)`` in stacking order, so that the loss is the sum over the
     quantities of ``weight * (their residuals ** 2).sum()`` (points' and force's weight is
     one over their count: each quantity's loss is a mean)."""
     x = result.x
@@ -113,7 +113,7 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
         count = r[..., 0].size
         loss += float((r ** 2).sum() / count)
         residuals.append(r.reshape(-1))
-        weights.append((r.size, 1.0 / count))
+        weights.append(("points", r.size, 1.0 / count))
         rb = 2.0 * r / (count * observed.point_scale)  # dL/dpredicted
         for t in range(T1):
             x_bar[t] += embedding.T @ rb[t]
@@ -122,7 +122,7 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
         count = r.shape[0]
         loss += float((r ** 2).sum() / count)
         residuals.append(r.reshape(-1))
-        weights.append((r.size, 1.0 / count))
+        weights.append(("force", r.size, 1.0 / count))
         force_bar += 2.0 * r / (count * observed.force_scale)
     for term in observed.extra:
         value, r, bar = term(x)
@@ -132,7 +132,7 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
         # (a term's loss is a weighted sum of its residuals' squares; with every residual 0
         # any weight will do: their variance, and so the standard errors, are then 0)
         squares = float(r @ r)
-        weights.append((r.size, float(value) / squares if squares > 0.0 else 1.0))
+        weights.append((term.name, r.size, float(value) / squares if squares > 0.0 else 1.0))
         x_bar += bar
     return loss, np.concatenate(residuals), x_bar, force_bar, weights
 
@@ -159,7 +159,10 @@ class FitResult:
     ``loss``, ``converged`` with ``message``, ``history`` (loss per iteration of the best
     start), ``starts`` (each start's theta, loss and iterations), ``residual_rms`` (each
     observed quantity's RMS residual in its unit: ``points_m``, ``force_N``),
-    ``wall_s``, ``scales`` (the residual scales of the last fit: ``point_scale_m``,
+    ``wall_s``, ``by_quantity`` (with two or more observed quantities: each one's own
+    estimate, ``{name: {"theta": ..., "std": ...}}``, one Gauss-Newton step from ``theta``
+    on that quantity's residuals alone: its own fit's near ``theta``, its direction far off
+    it; where they disagree beyond their errors, one of them carries a model error), ``scales`` (the residual scales of the last fit: ``point_scale_m``,
     ``force_scale_N``)."""
 
     names: list[str]
@@ -174,6 +177,7 @@ class FitResult:
     wall_s: float = 0.0
     failed_trials: int = 0
     scales: dict = field(default_factory=dict)
+    by_quantity: dict = field(default_factory=dict)
 
 
 #: Weighing by the residuals: at most this many fits, and they stop when no scale changes
@@ -286,7 +290,7 @@ def _fit(replay: Replay, observed: Observed, names, starts, bounds, max_iter, gt
     theta = transform.theta(u)
     result = replay.run(theta)
     loss, residuals, _, _, weights = loss_terms(result, observed, embedding)
-    std = _standard_errors(replay, observed, embedding, theta, residuals, weights)
+    std, by_quantity = _standard_errors(replay, observed, embedding, theta, residuals, weights)
     rms = {}
     if observed.points is not None:
         predicted = np.stack([embedding @ x for x in result.x])
@@ -299,7 +303,7 @@ def _fit(replay: Replay, observed: Observed, names, starts, bounds, max_iter, gt
                      [{"start": s.tolist(), "theta": transform.theta(r.x).tolist(), "loss": float(r.fun),
                        "iterations": int(r.nit), "converged": bool(r.success)} for r, _, s in runs],
                      rms, time.perf_counter() - t0, failures[0],
-                     {"point_scale_m": observed.point_scale, "force_scale_N": observed.force_scale})
+                     {"point_scale_m": observed.point_scale, "force_scale_N": observed.force_scale}, by_quantity)
 
 
 #: A fit whose search stopped without its convergence test goes on by changing each
@@ -369,7 +373,7 @@ class _Units:
         return np.where(self.log, self.theta(u) / 10.0, self.span / 10.0)
 
 
-def _standard_errors(replay, observed, embedding, theta, residuals, weights) -> np.ndarray:
+def _standard_errors(replay, observed, embedding, theta, residuals, weights) -> tuple[np.ndarray, dict]:
     """Each constant's standard error from the sandwich ``H^-1 M H^-1`` of the loss the fit
     minimises, ``sum_q w_q |r_q|^2`` over the observed quantities q (``weights``: each one's
     residual count and weight ``w_q``): ``H = sum_q w_q J_q^T J_q`` and ``M = sum_q w_q^2
@@ -378,7 +382,10 @@ def _standard_errors(replay, observed, embedding, theta, residuals, weights) -> 
     independent). One quantity: ``s^2 (J^T J)^-1``, Gauss-Newton's. Each quantity's loss
     being a mean, a sparse one (30 force samples beside 300 point positions) weighs more per
     residual than its noise alone would give it, and ``s^2 (J^T J)^-1`` of the stacked
-    residuals would understate the spread of the estimate."""
+    residuals would understate the spread of the estimate. Also returns each quantity's own
+    estimate (with two or more): one Gauss-Newton step from ``theta`` on its residuals
+    alone, and its standard errors ``s_q (J_q^T J_q)^-1/2`` (:class:`FitResult`'s
+    ``by_quantity``)."""
     p = len(theta)
     J = np.zeros((residuals.size, p))
     for j in range(p):
@@ -400,7 +407,8 @@ def _standard_errors(replay, observed, embedding, theta, residuals, weights) -> 
     H = np.zeros((p, p))
     M = np.zeros((p, p))
     start = 0
-    for size, weight in weights:
+    by_quantity = {}
+    for name, size, weight in weights:
         part = slice(start, start + size)
         start += size
         r = residuals[part]
@@ -409,9 +417,17 @@ def _standard_errors(replay, observed, embedding, theta, residuals, weights) -> 
         JtJ = J[part].T @ J[part]
         H += weight * JtJ
         M += weight ** 2 * variance * JtJ
+        if len(weights) > 1:
+            try:  # (a quantity that cannot fix every constant alone: no estimate of its own)
+                own = np.linalg.inv(JtJ)
+            except np.linalg.LinAlgError:
+                continue
+            if np.all(np.isfinite(own)) and np.all(np.diag(own) > 0.0):
+                by_quantity[name] = {"theta": (np.asarray(theta) - own @ (J[part].T @ r)).tolist(),
+                                     "std": np.sqrt(np.diag(own) * variance).tolist()}
     try:
         Hinv = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        return np.full(p, math.inf)
+        return np.full(p, math.inf), by_quantity
     covariance = Hinv @ M @ Hinv
-    return np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    return np.sqrt(np.clip(np.diag(covariance), 0.0, None)), by_quantity
