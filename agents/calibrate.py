@@ -132,12 +132,14 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
     from heml_gym.calibration import DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
-    from heml_gym.envs.observations import calibration_problem, fit_parameter, load_observation
+    from heml_gym.envs.observations import calibration_problem, fit_parameter, keep_observed, load_observation
+    from heml_gym.mesh import box_regions
 
     import gymnasium as gym
 
     obs = load_observation(observation)
-    _keep_only(obs, use)
+    if use is not None:
+        keep_observed(obs, [n.strip() for n in str(use).split(",") if n.strip()], "--use")
     env_id = env_id or SAME_STATE_TASK.get(obs.env_id, obs.env_id)  # (a retired id of the same scene: its successor)
     if env_id is None:
         raise ValueError("ENV: the observation names no env: give one")
@@ -192,22 +194,24 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
             bar.close()
     final = replay.run(result.theta)
     out.mkdir(parents=True, exist_ok=True)
+    # (a standard error the data do not determine is null, not JSON's non-standard Infinity)
+    parameters = {name: {"value": float(v), "std": float(s) if math.isfinite(s) else None,
+                         "unit": fit_parameter(name)[0]}
+                  for name, v, s in zip(names, result.theta, result.std)}
+    region = None if grid is None else box_regions(replay.model.mesh, grid)  # each tet's box
     record = {
-        # (a standard error the data do not determine is null, not JSON's non-standard Infinity)
-        "parameters": {name: {"value": float(v), "std": float(s) if math.isfinite(s) else None,
-                              "unit": fit_parameter(name)[0]}
-                       for name, v, s in zip(names, result.theta, result.std)},
+        "parameters": parameters,
         "law": env.unwrapped.scene.physics.material,
         "converged": result.converged, "message": result.message, "loss": result.loss,
         "residual_rms": result.residual_rms, "history": result.history, "starts": result.starts,
         "failed_trials": result.failed_trials,
-        "loosely_determined": None,  # (filled below, from the parameters)
+        "loosely_determined": loosely_determined(parameters),
         "by_quantity": {q: {"parameters": dict(zip(names, own["theta"])), "std": dict(zip(names, own["std"]))}
                         for q, own in result.by_quantity.items()},
         "disagreements": disagreements(result.by_quantity, names),
         "law_selection": selection,
         "law_ambiguity": law_ambiguity(selection, names),
-        "regions": None if grid is None else _regions_record(replay.model.mesh, grid),
+        "regions": None if grid is None else _regions_record(replay.model.mesh, grid, region),
         "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": result.scales["point_scale_m"],
                      "force_scale_N": result.scales["force_scale_N"],
@@ -219,7 +223,6 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
                                                    "tets": int(replay.model.mesh.n_tets)}},
         "wall_s": time.perf_counter() - t0,
     }
-    record["loosely_determined"] = loosely_determined(record["parameters"])
     fitted_points = None  # the tracked points where the fitted tissue puts them, (T + 1, K, 3) m
     if obs.points is not None:
         B = embed_points(replay.model.mesh, obs.rest_points)
@@ -227,36 +230,12 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     _chart(out / "fit.png", result, obs, final, fitted_points, observed.extra)
     colours = None  # (with regions: each vertex by its regions' fitted moduli)
     if grid is not None:
-        colours = region_colours(replay.model.mesh, grid, [result.theta[names.index(n)] for n in names
-                                                           if n.startswith("young_modulus_")])
+        colours = region_colours(replay.model.mesh, region, [result.theta[names.index(n)] for n in names
+                                                             if n.startswith("young_modulus_")])
     record["recording"] = _record(out / "fit.rrd", obs, final, fitted_points, env.unwrapped.task.scene.surface_faces,
                                   colours)
     (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
-
-
-#: The observed quantities ``--use`` can name.
-QUANTITIES = ("points", "force", "depth")
-
-
-def _keep_only(obs, use: str | None) -> None:
-    """Drop from ``obs`` the observed quantities ``use`` (comma-separated, of
-    :data:`QUANTITIES`) does not name; None keeps all."""
-    if use is None:
-        return
-    names = [n.strip() for n in str(use).split(",") if n.strip()]
-    if not names or any(n not in QUANTITIES for n in names):
-        raise ValueError(f"--use: comma-separated names among {', '.join(QUANTITIES)}, got {use!r}")
-    missing = [n for n in names if getattr(obs, n) is None]
-    if missing:
-        has = [n for n in QUANTITIES if getattr(obs, n) is not None]
-        raise ValueError(f"--use: the observation has no {missing[0]} (it has {', '.join(has)})")
-    if "points" not in names:
-        obs.points = obs.rest_points = None
-    if "force" not in names:
-        obs.force = None
-    if "depth" not in names:
-        obs.depth = obs.intrinsics = obs.camera_pose = None
 
 
 #: A fitted constant whose standard error is above its limit here (absolute) or above
@@ -322,27 +301,24 @@ def parse_regions(regions: str | None) -> tuple[int, int, int] | None:
             from None
 
 
-def _regions_record(mesh, grid) -> dict:
+def _regions_record(mesh, grid, region) -> dict:
     """fit.json's ``regions``: the grid, the box it cuts (m) and each box's share of the
-    tissue's volume (:func:`heml_gym.envs.observations.physics_from_fit` reads them)."""
-    from heml_gym.mesh import box_regions
-
-    region = box_regions(mesh, grid)
+    tissue's volume (:func:`heml_gym.envs.observations.physics_from_fit` reads them);
+    ``region``: each tet's box (:func:`heml_gym.mesh.box_regions`)."""
     volume = np.bincount(region, weights=mesh.volumes, minlength=int(np.prod(grid)))
     return {"grid": list(grid), "box_m": [mesh.vertices.min(axis=0).tolist(), mesh.vertices.max(axis=0).tolist()],
             "volume_fraction": (volume / volume.sum()).tolist()}
 
 
-def region_colours(mesh, grid, moduli) -> np.ndarray:
+def region_colours(mesh, region, moduli) -> np.ndarray:
     """(n, 3) uint8: each vertex coloured by the mean fitted modulus of the regions of the
-    tets around it (``moduli``, Pa, one per box of ``grid``), blue the softest region's,
-    red the stiffest's (one colour when they are equal)."""
+    tets around it (``region``: each tet's box, :func:`heml_gym.mesh.box_regions`;
+    ``moduli``, Pa, one per box), blue the softest region's, red the stiffest's (one colour
+    when they are equal)."""
     import matplotlib
 
-    from heml_gym.mesh import box_regions
-
     moduli = np.asarray(moduli, dtype=np.float64)
-    per_tet = moduli[box_regions(mesh, grid)]
+    per_tet = moduli[region]
     total = np.zeros(mesh.n_vertices)
     count = np.zeros(mesh.n_vertices)
     for corner in range(4):

@@ -44,7 +44,7 @@ from heml_gym.mesh import box_regions, check_region_grid
 
 __all__ = ["Observation", "ObservationError", "load_observation", "save_observation", "record", "control_log",
            "on_a_free_wrist", "calibration_problem", "FIT_PARAMETERS", "LAW_CONSTANTS", "physics_from_fit",
-           "fit_parameter", "region_names"]
+           "fit_parameter", "region_names", "keep_observed", "QUANTITIES"]
 
 #: Constants a calibration can fit: name -> (unit, bounds).
 #: m: a depth image's value where the camera saw nothing
@@ -485,6 +485,28 @@ class _WristGrasp:
         if self.axis is None:
             raise ObservationError("wrist_reach: the jaws never close in the observation: nothing turns")
         return dict(wrist=np.array(self.masks), wrist_axis=self.axis, wrist_points=np.array(self.points))
+
+
+#: The observed quantities an observation can hold.
+QUANTITIES = ("points", "force", "depth")
+
+
+def keep_observed(obs: Observation, quantities, argument: str = "quantities") -> None:
+    """Drop from ``obs`` every observed quantity (:data:`QUANTITIES`) not in ``quantities``;
+    a one-line ``ValueError`` naming ``argument`` for an unknown name or one ``obs`` lacks."""
+    names = list(quantities)
+    if not names or any(n not in QUANTITIES for n in names):
+        raise ValueError(f"{argument}: comma-separated names among {', '.join(QUANTITIES)}, got {','.join(names)!r}")
+    missing = [n for n in names if getattr(obs, n) is None]
+    if missing:
+        has = [n for n in QUANTITIES if getattr(obs, n) is not None]
+        raise ValueError(f"{argument}: the observation has no {missing[0]} (it has {', '.join(has)})")
+    if "points" not in names:
+        obs.points = obs.rest_points = None
+    if "force" not in names:
+        obs.force = None
+    if "depth" not in names:
+        obs.depth = obs.intrinsics = obs.camera_pose = None
 
 
 def calibration_problem(env, obs: Observation, fit: tuple[str, ...] = ("young_modulus", "poisson_ratio"),

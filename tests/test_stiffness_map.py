@@ -157,11 +157,11 @@ def test_a_region_fit_colours_the_recorded_tissue_by_its_moduli():
     from heml_gym.agents.calibrate import region_colours
 
     mesh = hg.box_mesh((0.08, 0.06, 0.01), (8, 6, 1))
-    colours = region_colours(mesh, (2, 1, 1), [3000.0, 7500.0]).astype(int)
+    colours = region_colours(mesh, box_regions(mesh, (2, 1, 1)), [3000.0, 7500.0]).astype(int)
     x = mesh.vertices[:, 0]
     left, right = x < 0.04 - 1e-9, x > 0.04 + 1e-9
     assert np.all(colours[left, 2] > colours[left, 0]) and np.all(colours[right, 0] > colours[right, 2])
-    same = region_colours(mesh, (2, 1, 1), [5000.0, 5000.0])
+    same = region_colours(mesh, box_regions(mesh, (2, 1, 1)), [5000.0, 5000.0])
     assert np.all(same == same[0])
 
 

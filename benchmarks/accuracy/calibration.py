@@ -90,14 +90,9 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reac
     import gymnasium as gym
 
     from heml_gym.calibration import fit
-    from heml_gym.envs.observations import calibration_problem
+    from heml_gym.envs.observations import calibration_problem, keep_observed
 
-    if use not in ("force", "points and force"):
-        obs.force = None
-    if use not in ("points", "points and force"):
-        obs.points = obs.rest_points = None
-    if use != "depth":
-        obs.depth = obs.intrinsics = obs.camera_pose = None
+    keep_observed(obs, use.split(" and "), "use")
     replay, observed, names, bounds, start = calibration_problem(gym.make(env_id, **(model or {})), obs, names,
                                                                  wrist_reach=wrist_reach, regions=regions)
     warm_up = replay.run(start)

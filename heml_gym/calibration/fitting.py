@@ -137,7 +137,11 @@ def loss_terms(result: ReplayResult, observed: Observed, embedding: sp.csr_matri
     return loss, np.concatenate(residuals), x_bar, force_bar, weights
 
 
-def paired_rms_interval(a: Sequence[float], b: Sequence[float], samples: int = 2000,
+#: Resamples of :func:`paired_rms_interval`'s bootstrap.
+BOOTSTRAP_SAMPLES = 2000
+
+
+def paired_rms_interval(a: Sequence[float], b: Sequence[float], samples: int = BOOTSTRAP_SAMPLES,
                         seed: int = 0) -> tuple[float, float]:
     """95 % bootstrap interval of ``RMS(a) - RMS(b)``, where ``a`` and ``b`` are two
     predictions' RMS errors (m) at the same observed times: the times are resampled with
