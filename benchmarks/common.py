@@ -163,6 +163,18 @@ def env_ids(ap, value: str) -> list[str]:
     return [SHORT_ENVS[e] for e in names]
 
 
+def command_line(module: str, ap, args, leave_out=("from_json",)) -> str:
+    """The command that ran ``module`` (``python -m``) with ``args`` (parsed by ``ap``):
+    the options whose values differ from their defaults, for a stored result's header."""
+    parts = [f"python -m {module}"]
+    for key, value in vars(args).items():
+        if key in leave_out or value == ap.get_default(key):
+            continue
+        flag = "--" + key.replace("_", "-")
+        parts.append(flag if value is True else f"{flag} {value:g}" if isinstance(value, float) else f"{flag} {value}")
+    return " ".join(parts)
+
+
 def current_tasks() -> dict[str, str]:
     """The registered version of each task, ``{"heml_gym/TissueRetraction": "v1", ...}``."""
     from heml_gym.envs import ENV_IDS
