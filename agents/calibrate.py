@@ -132,19 +132,29 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
     from heml_gym.calibration import DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
-    from heml_gym.envs.observations import calibration_problem, fit_parameter, keep_observed, load_observation
+    from heml_gym.envs.calibration_models import calibration_model
+    from heml_gym.envs.observations import (QUANTITIES, calibration_problem, fit_parameter, keep_observed,
+                                            load_observation)
     from heml_gym.mesh import box_regions
 
     import gymnasium as gym
 
     obs = load_observation(observation)
-    if use is not None:
-        keep_observed(obs, [n.strip() for n in str(use).split(",") if n.strip()], "--use")
     env_id = env_id or SAME_STATE_TASK.get(obs.env_id, obs.env_id)  # (a retired id of the same scene: its successor)
     if env_id is None:
         raise ValueError("ENV: the observation names no env: give one")
     if env_id not in gym.registry:
         raise ValueError(f"ENV: {unknown_env_message(env_id)}")
+    model = calibration_model(env_id)
+    kwargs = model.env_kwargs if env_kwargs is None else parse_json_mapping(env_kwargs)
+    model_label = model.label if env_kwargs is None else "the model of --env-kwargs"
+    present = [k for k in QUANTITIES if getattr(obs, k) is not None]
+    if use is not None:
+        keep_observed(obs, [n.strip() for n in str(use).split(",") if n.strip()], "--use")
+    else:
+        keep_observed(obs, model.quantities(present), "the calibration model's quantities")
+    fitted = [k for k in QUANTITIES if getattr(obs, k) is not None]
+    caveats = model.warnings(fitted)
     if starts < 1:
         raise ValueError(f"--starts: must be >= 1, got {starts}")
     _check_wrist_reach(wrist_reach)
@@ -160,9 +170,9 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         raise ValueError(f"--out {out}: exists and is not empty (give a new folder)")
     selection = None
     if law == "auto":
-        law, selection = select_law(env_id, obs, tuple(fit_names), parse_json_mapping(env_kwargs), point_scale, force_scale,
+        law, selection = select_law(env_id, obs, tuple(fit_names), kwargs, point_scale, force_scale,
                                     progress, wrist_reach, grid, weigh)
-    env = _make(env_id, parse_json_mapping(env_kwargs), physics_overrides(law=law))
+    env = _make(env_id, kwargs, physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
                                                                  force_scale, wrist_reach=wrist_reach, regions=grid)
     first = np.array(start, dtype=np.float64)
@@ -212,13 +222,14 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "law_selection": selection,
         "law_ambiguity": law_ambiguity(selection, names),
         "regions": None if grid is None else _regions_record(replay.model.mesh, grid, region),
-        "settings": {"env_id": env_id, "env_kwargs": parse_json_mapping(env_kwargs), "observation": str(observation),
+        "caveats": caveats,
+        "settings": {"env_id": env_id, "env_kwargs": kwargs, "model": model_label, "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": result.scales["point_scale_m"],
                      "force_scale_N": result.scales["force_scale_N"],
                      "scales": "weighed by the residuals" if weigh else "given",
                      "regions": regions,
                      "wrist_reach_m": wrist_reach,
-                     "observed": [k for k in ("points", "force", "depth") if getattr(obs, k) is not None],
+                     "observed": fitted, "in_the_file": present,
                      "steps": obs.steps, "mesh": {"vertices": int(replay.model.n_vertices),
                                                    "tets": int(replay.model.mesh.n_tets)}},
         "wall_s": time.perf_counter() - t0,

@@ -238,6 +238,12 @@ def _calibrate(args) -> int:
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
                        force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach,
                        regions=args.regions, use=args.use)
+    settings = record["settings"]
+    left = [q for q in settings["in_the_file"] if q not in settings["observed"]]
+    print(f"fitted on {settings['model']}, to the {', '.join(settings['observed'])}"
+          + (f" (not the file's {', '.join(left)}: --use to choose)" if left and args.use is None else ""))
+    for caveat in record["caveats"]:
+        print(f"warning: {caveat}", file=sys.stderr)
     for name, p in record["parameters"].items():
         std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
         print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
@@ -443,7 +449,9 @@ def main(argv=None) -> int:
                         "c01_fraction (MooneyRivlin), b (Demiray)")
     c.add_argument("--law", help="the law to fit (a heml_gym.materials class name; default: the scene's), or "
                                  "'auto': the one that predicts held-out tracked points best")
-    c.add_argument("--env-kwargs", help="JSON gym.make keyword arguments of the fitted scene")
+    c.add_argument("--env-kwargs", help="JSON gym.make keyword arguments of the fitted model (default: the task's "
+                                        "calibration model, heml_gym.envs.calibration_models: the lobe on a 7 mm "
+                                        "mesh; '{}': the env's own)")
     c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
     c.add_argument("--point-scale", type=float, default=None,
                    help="tracked points' residual scale (their noise), m; neither scale given: 1 mm and 0.05 N to "
@@ -457,7 +465,8 @@ def main(argv=None) -> int:
                         "(e.g. 2x1x1: two halves along x); default: one E for the whole tissue")
     c.add_argument("--use", default=None,
                    help="the observed quantities to fit, comma-separated: points, force, depth (default: all the "
-                        "file has); e.g. --use points where the force sensor's model error is the larger")
+                        "file has, but on the lobe its tracked points alone when it has them: its force carries "
+                        "the larger model error)")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
 

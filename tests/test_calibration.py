@@ -390,6 +390,49 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
         gym.make(TISSUE_RETRACTION, physics={"fit": str(out), "young_modulus": [1e3, 2e3]})
 
 
+def test_the_lobe_is_fitted_on_its_calibration_model(tmp_path, capsys):
+    """By default `heml-gym calibrate` fits the lobe on its calibration model (a 7 mm lobe,
+    heml_gym.envs.calibration_models) to the file's tracked points, not its force, and says
+    so. Truth: a tissue observed noise-free on a 7 mm lobe: the calibration model gives E
+    within 1 %; the task's own 10 mm lobe (``--env-kwargs '{}'``), stiffer in bending, fits
+    a softer tissue (more than 4 % low), which is why calibration does not fit on it."""
+    obs = tmp_path / "lobe.npz"
+    assert main(["observe", ORGAN_RETRACTION, "--out", str(obs), "--young-modulus", "5000", "--steps", "8",
+                 "--points", "6", "--seed", "3", "--env-kwargs", json.dumps({"mesh_size": 0.007})]) == 0
+    fits = {}
+    for name, extra in (("calibration", []), ("task", ["--env-kwargs", "{}"])):
+        capsys.readouterr()
+        out = tmp_path / name
+        assert main(["calibrate", "-", str(obs), "--out", str(out), "--fit", "young_modulus", "--no-progress",
+                     *extra]) == 0
+        fits[name] = json.loads((out / "fit.json").read_text())
+        assert "to the points (not the file's force" in capsys.readouterr().out
+        assert fits[name]["settings"]["observed"] == ["points"]
+        assert fits[name]["settings"]["in_the_file"] == ["points", "force"]
+    own = gym.make(ORGAN_RETRACTION, mesh_size=0.007).unwrapped.task.scene.mesh.n_vertices
+    assert fits["calibration"]["settings"]["mesh"]["vertices"] == own
+    assert fits["calibration"]["settings"]["env_kwargs"] == {"mesh_size": 0.007}
+    assert fits["calibration"]["parameters"]["young_modulus"]["value"] == pytest.approx(5000.0, rel=0.01)
+    assert fits["task"]["parameters"]["young_modulus"]["value"] < 0.96 * 5000.0
+
+
+def test_the_flaps_tracked_points_alone_are_flagged(tmp_path, capsys):
+    """A flap fitted to its tracked points alone gets the calibration model's caveat (the
+    points next to a held line have no mesh-converged truth) on the console and in fit.json;
+    with the jaws' force beside them nothing is said."""
+    obs = tmp_path / "obs.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(obs), "--young-modulus", "4500", "--steps", "6",
+                 "--points", "6", "--seed", "5"]) == 0
+    for name, extra, flagged in (("both", [], False), ("points", ["--use", "points"], True)):
+        capsys.readouterr()
+        out = tmp_path / name
+        assert main(["calibrate", "-", str(obs), "--out", str(out), "--fit", "young_modulus", "--no-progress",
+                     *extra]) == 0
+        record = json.loads((out / "fit.json").read_text())
+        assert bool(record["caveats"]) == flagged
+        assert ("tracked points alone fit E low" in capsys.readouterr().err) == flagged
+
+
 def test_a_constant_the_data_barely_touch_is_reported_loose(tmp_path, capsys):
     """Points with 5 mm noise over the first 0.3 s (the tissue has hardly moved) say little
     about E: its standard error is above 10 % of it (the spread of the fits over noise draws

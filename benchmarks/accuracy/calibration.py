@@ -3,10 +3,11 @@
 For each env, a tissue the scenes do not default to (E 5.5 kPa, nu 0.43) is observed
 (``heml_gym.envs.observations.record``) along the scripted retraction and hold (30 env
 steps, 3 s) on a **finer model** than the one fitted, as a real fit faces model error:
-the flap on 18 x 18 x 3 cells stepped in 0.025 s (the fitted default: 12 x 12 x 2, 0.05 s),
-the lobe meshed at 7 mm (the default: 10 mm, both 2.5 mm at the jaws). The default
-model is then fitted (``heml_gym.calibration.fit``: E and nu, from the scene's own mean
-E and nu) to
+the flap on 18 x 18 x 3 cells stepped in 0.025 s, the lobe meshed at 5 mm (2.5 mm at the
+jaws) stepped in 0.025 s. The model ``heml-gym calibrate`` fits by default
+(``heml_gym.envs.calibration_models``) is then fitted (``heml_gym.calibration.fit``: E and
+nu, from the scene's own mean E and nu): the flap's own 12 x 12 x 2 cells, a 7 mm lobe
+(the task's lobe: 10 mm), both in 0.05 s steps, to
 
 * ``points``: 10 tracked points on the upper surface, 0.5 mm Gaussian noise per coordinate;
 * ``force``: the jaws' force, 0.01 N noise per component (E only: the force barely
@@ -26,7 +27,7 @@ not started from a previous replay's, as a fit's are), medians of 3.
 
 Writes docs/benchmarks/calibration.{json,md}.
 
-    python benchmarks/accuracy/calibration.py     # ~12 min on one core
+    python benchmarks/accuracy/calibration.py     # ~25 min on one core
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import numba
 import numpy as np
 
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
+from heml_gym.envs.calibration_models import CALIBRATION_MODELS
 
 TRUTH = {"young_modulus": 5500.0, "poisson_ratio": 0.43}
 STEPS = 30
@@ -45,11 +47,13 @@ CASES = {
     "heml_gym/TissueRetraction-v1": {"fine": {"scene": {"tissue": {"cells": [18, 18, 3]}},
                                               "physics": {"max_dt": 0.025}},
                                      "fine_label": "18 x 18 x 3 cells, 0.025 s steps",
-                                     "model_label": "12 x 12 x 2 cells, 0.05 s steps (the default)"},
-    "heml_gym/OrganRetraction-v2": {"fine": {"mesh_size": 0.007, "physics": {"max_dt": 0.025}},
-                                    "fine_label": "7 mm mesh, 0.025 s steps",
-                                    "model_label": "10 mm mesh, 0.05 s steps (the default)"},
+                                     "model_label": "12 x 12 x 2 cells, 0.05 s steps (the task's)"},
+    "heml_gym/OrganRetraction-v2": {"fine": {"mesh_size": 0.005, "physics": {"max_dt": 0.025}},
+                                    "fine_label": "5 mm mesh, 0.025 s steps",
+                                    "model_label": "7 mm mesh, 0.05 s steps (calibrate's; the task's: 10 mm)"},
 }
+for _env_id, _case in CASES.items():  # (the fitted model: calibrate's default)
+    _case["model"] = CALIBRATION_MODELS[_env_id].env_kwargs
 SEED, PREDICT_SEED = 1, 7
 POINT_NOISE, FORCE_NOISE, DEPTH_NOISE = 5e-4, 0.01, 1e-3
 DEPTH_SIZE = (84, 84)
@@ -131,7 +135,7 @@ def measure() -> dict:
         obs = observe(env_id, case["fine"], SEED, POINT_NOISE, FORCE_NOISE, DEPTH_NOISE)
         for use, names in (("points", ("young_modulus", "poisson_ratio")), ("force", ("young_modulus",)),
                            ("points and force", ("young_modulus", "poisson_ratio")), ("depth", ("young_modulus",))):
-            replay, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use)
+            replay, result, wall = fit_case(env_id, copy.deepcopy(obs), names, use, model=case["model"])
             row = {"env": env_id, "observed": use, "fine_model": case["fine_label"], "fitted_model": case["model_label"],
                    "fit": list(names), "converged": result.converged, "message": result.message,
                    "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms,
@@ -140,7 +144,7 @@ def measure() -> dict:
             if use == "points":  # prediction of another retraction of the same tissue
                 other = observe(env_id, case["fine"], PREDICT_SEED, 0.0, 0.0)
                 other.force = None
-                replay2, *_ = calibration_problem(gym.make(env_id), other, names)
+                replay2, *_ = calibration_problem(gym.make(env_id, **case["model"]), other, names)
                 predicted = replay2.run(result.theta)
                 B = embed_points(replay2.model.mesh, other.rest_points)
                 pts = np.stack([B @ x for x in predicted.x])
