@@ -54,6 +54,14 @@ CASES = {
 }
 for _env_id, _case in CASES.items():  # (the fitted model: calibrate's default)
     _case["model"] = CALIBRATION_MODELS[_env_id].env_kwargs
+#: The law studies' pairing (calibration_laws and law_identification by default): observed on
+#: a mesh one step finer than the task's own, in 0.025 s steps, and fitted on the task's own
+TASK_MODEL_CASES = {
+    "heml_gym/TissueRetraction-v1": CASES["heml_gym/TissueRetraction-v1"],
+    "heml_gym/OrganRetraction-v2": {"fine": {"mesh_size": 0.007, "physics": {"max_dt": 0.025}},
+                                    "fine_label": "7 mm mesh, 0.025 s steps",
+                                    "model_label": "10 mm mesh, 0.05 s steps (the task's)", "model": {}},
+}
 SEED, PREDICT_SEED = 1, 7
 POINT_NOISE, FORCE_NOISE, DEPTH_NOISE = 5e-4, 0.01, 1e-3
 DEPTH_SIZE = (84, 84)
