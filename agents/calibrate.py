@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -120,13 +121,18 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
               law: str | None = None, env_kwargs: str | None = None, starts: int = 1,
               point_scale: float | None = None, force_scale: float | None = None, progress: bool = True,
               wrist_reach: float | None = None,
-              regions: str | None = None, use: str | None = None) -> dict:
+              regions: str | None = None, use: str | None = None, mesh_correction: bool = True) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. ``wrist_reach`` (m):
     the jaws hold the tissue within that distance of what the scene's jaws take, on a free
     wrist (:func:`heml_gym.envs.observations.control_log`); ``regions`` (``"NXxNYxNZ"``):
     Young's modulus fitted per box of that grid over the tissue's rest bounding box; ``use``
-    (``"points,force"``, ...): the observed quantities fitted (default: every one the file has).
+    (``"points,force"``, ...): the observed quantities fitted (default: the task's calibration
+    model's choice, :mod:`heml_gym.envs.calibration_models`, which also names the fitted model
+    unless ``env_kwargs`` does); ``mesh_correction``: take the fitted mesh's bias against the
+    calibration model's finer reference off the fitted constants
+    (:func:`~heml_gym.envs.calibration_models.correct_for_mesh`; the lobe's; the chart and
+    recording show the fitted model's own fit).
     ``point_scale`` (m) and ``force_scale`` (N): the residual scales (the sensors' noise);
     neither given: 1 mm and 0.05 N to start, then each quantity weighed by its own residual
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
@@ -203,11 +209,31 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         if bar is not None:
             bar.close()
     final = replay.run(result.theta)
+    values, stds = [float(v) for v in result.theta], [float(v) for v in result.std]
+    correction = None  # (the fitted mesh's bias against a finer model, taken off: envs.calibration_models)
+    if mesh_correction and model.reference is not None and env_kwargs is None and (obs.points is not None
+                                                                                   or obs.force is not None):
+        from heml_gym.calibration import ReplayError
+        from heml_gym.envs.calibration_models import correct_for_mesh
+
+        if progress:
+            print(f"correcting for the mesh: replaying the fit on {model.reference_label} and fitting that "
+                  "(a few minutes)", file=sys.stderr, flush=True)
+        try:
+            done = correct_for_mesh(_make(env_id, model.reference, physics_overrides(law=law)), obs, replay,
+                                    fit_names, names, result, bounds, model.reference_label, wrist_reach, grid)
+            correction = {"reference": done.reference, "reference_env_kwargs": model.reference, "raw": done.raw,
+                          "refit": done.refit, "corrected": done.corrected, "converged": done.converged,
+                          "wall_s": done.wall_s}
+            stds = [sd * c / r if name.startswith("young_modulus") else sd
+                    for name, sd, c, r in zip(names, stds, done.corrected, done.raw)]
+            values = done.corrected
+        except ReplayError as exc:
+            correction = {"reference": model.reference_label, "error": str(exc)}
     out.mkdir(parents=True, exist_ok=True)
     # (a standard error the data do not determine is null, not JSON's non-standard Infinity)
-    parameters = {name: {"value": float(v), "std": float(s) if math.isfinite(s) else None,
-                         "unit": fit_parameter(name)[0]}
-                  for name, v, s in zip(names, result.theta, result.std)}
+    parameters = {name: {"value": v, "std": sd if math.isfinite(sd) else None, "unit": fit_parameter(name)[0]}
+                  for name, v, sd in zip(names, values, stds)}
     region = None if grid is None else box_regions(replay.model.mesh, grid)  # each tet's box
     record = {
         "parameters": parameters,
@@ -223,6 +249,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
         "law_ambiguity": law_ambiguity(selection, names),
         "regions": None if grid is None else _regions_record(replay.model.mesh, grid, region),
         "caveats": caveats,
+        "mesh_correction": correction,
         "settings": {"env_id": env_id, "env_kwargs": kwargs, "model": model_label, "observation": str(observation),
                      "fit": names, "bounds": bounds, "point_scale_m": result.scales["point_scale_m"],
                      "force_scale_N": result.scales["force_scale_N"],

@@ -237,13 +237,23 @@ def _calibrate(args) -> int:
     record = calibrate(None if args.env == "-" else args.env, args.observation, args.out, names, law=args.law,
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
                        force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach,
-                       regions=args.regions, use=args.use)
+                       regions=args.regions, use=args.use, mesh_correction=not args.no_mesh_correction)
     settings = record["settings"]
     left = [q for q in settings["in_the_file"] if q not in settings["observed"]]
     print(f"fitted on {settings['model']}, to the {', '.join(settings['observed'])}"
           + (f" (not the file's {', '.join(left)}: --use to choose)" if left and args.use is None else ""))
     for caveat in record["caveats"]:
         print(f"warning: {caveat}", file=sys.stderr)
+    correction = record["mesh_correction"]
+    if correction and "error" in correction:
+        print(f"warning: no mesh correction (the fit on {settings['model']} is reported as it is): {correction['error']}",
+              file=sys.stderr)
+    elif correction:
+        print(f"corrected for the mesh against {correction['reference']} (its fit of that model's replay: "
+              + ", ".join(f"{n} {raw:.4g} -> {refit:.4g}" for n, raw, refit in
+                          zip(record["parameters"], correction["raw"], correction["refit"])) + ")")
+        if not correction["converged"]:
+            print("warning: the mesh correction's refit did not converge", file=sys.stderr)
     for name, p in record["parameters"].items():
         std = f"{p['std']:.2g}" if p["std"] is not None else "? (not determined by the data)"
         print(f"{name}: {p['value']:.6g} ± {std} {p['unit']}".rstrip())
@@ -467,6 +477,9 @@ def main(argv=None) -> int:
                    help="the observed quantities to fit, comma-separated: points, force, depth (default: all the "
                         "file has, but on the lobe its tracked points alone when it has them: its force carries "
                         "the larger model error)")
+    c.add_argument("--no-mesh-correction", action="store_true",
+                   help="report the fit on the calibration model as it is (by default the lobe's is corrected for "
+                        "its mesh's stiffness against a 5 mm lobe: one replay of that and one more fit)")
     c.add_argument("--no-progress", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
 

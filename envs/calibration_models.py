@@ -29,9 +29,13 @@ given, every quantity.
 
 from __future__ import annotations
 
+import copy
+import time
 from dataclasses import dataclass, field
 
-__all__ = ["CalibrationModel", "CALIBRATION_MODELS", "calibration_model"]
+import numpy as np
+
+__all__ = ["CalibrationModel", "CALIBRATION_MODELS", "MeshCorrection", "calibration_model", "correct_for_mesh"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,11 @@ class CalibrationModel:
     #: per observed quantity: why a fit of it on this model may miss the bar (a console warning
     #: when it is fitted without a quantity that meets it)
     caveats: dict = field(default_factory=dict)
+    #: ``gym.make`` keyword arguments of a finer model the fit is corrected towards
+    #: (:func:`correct_for_mesh`; None: no correction)
+    reference: dict | None = None
+    #: how the reference is named
+    reference_label: str = ""
 
     def quantities(self, present: list[str]) -> list[str]:
         """The quantities of ``present`` (those a file has) fitted by default."""
@@ -74,7 +83,9 @@ CALIBRATION_MODELS = {
                                                      caveats={"points": _FLAP_POINTS}),
     "heml_gym/OrganRetraction-v2": CalibrationModel(env_kwargs={"mesh_size": 0.007},
                                                     label="a 7 mm lobe (the task's: 10 mm)", prefer=("points",),
-                                                    caveats={"force": _LOBE_FORCE}),
+                                                    caveats={"force": _LOBE_FORCE},
+                                                    reference={"mesh_size": 0.005, "physics": {"max_dt": 0.025}},
+                                                    reference_label="a 5 mm lobe in 0.025 s steps"),
 }
 
 
@@ -82,3 +93,61 @@ def calibration_model(env_id: str) -> CalibrationModel:
     """The calibration model of ``env_id`` (a task's from :data:`CALIBRATION_MODELS`; any
     other id: the env as given, every quantity)."""
     return CALIBRATION_MODELS.get(env_id, CalibrationModel())
+
+
+@dataclass
+class MeshCorrection:
+    """A fit corrected for the fitted mesh's own stiffness (:func:`correct_for_mesh`)."""
+
+    reference: str  #: the finer model's name
+    raw: list  #: the fit on the fitted model
+    refit: list  #: the fitted model's fit to the reference's noise-free replay of ``raw``
+    corrected: list  #: ``raw`` less the fitted model's bias against the reference
+    converged: bool  #: whether the refit converged
+    wall_s: float  #: the reference's replay and the refit, s
+
+
+def correct_for_mesh(env_reference, obs, replay, fit_names, names, result, bounds, reference_label: str = "",
+                     wrist_reach: float | None = None, regions=None) -> MeshCorrection:
+    """Correct ``result`` (a :func:`heml_gym.calibration.fit` of ``names`` by ``replay``, the
+    fitted model, to ``obs``) for the fitted mesh's bias against a finer model, by
+    simulation: the tissue ``result.theta`` is replayed along ``obs``'s control log on
+    ``env_reference`` (the finer model, ``fit_names`` / ``regions`` as the fit was set up),
+    the fitted model is fitted to that replay's noise-free tracked points and force (the
+    quantities ``obs`` has, weighed by the scales ``result`` ended with), and each
+    constant's bias (the refit against ``theta``) is taken off: moduli by their ratio
+    (``E theta / E refit``: a mesh's stiffening scales with E), the others by their
+    difference, within ``bounds``. That is one replay of the finer model and one fit of
+    the fitted one, where a fit on the finer model replays it at every iteration. The
+    bias is taken at the fitted tissue, so it holds as far as it changes little between
+    there and the truth (it scales with E; docs/calibration.md measures what is left).
+    Depth is not corrected (its rendering is the fitted model's): ``obs`` must have points
+    or force."""
+    from heml_gym.calibration import Observed, embed_points, fit
+
+    from .observations import calibration_problem
+
+    if obs.points is None and obs.force is None:
+        raise ValueError("mesh correction: needs tracked points or the jaws' force (depth is not corrected)")
+    t0 = time.perf_counter()
+    theta = np.asarray(result.theta, dtype=np.float64)
+    reference, *_ = calibration_problem(env_reference, obs, tuple(fit_names), wrist_reach=wrist_reach, regions=regions)
+    ref = reference.run(theta)
+    synthetic = copy.copy(obs)
+    if obs.points is not None:
+        B = embed_points(reference.model.mesh, obs.rest_points)
+        synthetic.points = np.stack([B @ x for x in ref.x])
+    if obs.force is not None:
+        synthetic.force = np.concatenate([obs.force[:1] * 0.0, ref.force])
+    observed = Observed(points=synthetic.points if obs.points is not None else None,
+                        rest_points=obs.rest_points if obs.points is not None else None,
+                        force=synthetic.force if obs.force is not None else None,
+                        point_scale=result.scales["point_scale_m"], force_scale=result.scales["force_scale_N"])
+    refit = fit(replay, observed, names, [theta], bounds)
+    corrected = []
+    for name, raw, biased, (low, high) in zip(names, theta, refit.theta, bounds):
+        value = raw * raw / biased if name.startswith("young_modulus") else raw + (raw - biased)
+        corrected.append(float(np.clip(value, low, high)))
+    return MeshCorrection(reference=reference_label, raw=[float(v) for v in theta],
+                          refit=[float(v) for v in refit.theta], corrected=corrected, converged=bool(refit.converged),
+                          wall_s=time.perf_counter() - t0)

@@ -3,8 +3,8 @@
 The acceptance check of issue 34 calibrates a tissue, law and noise nobody has seen. For
 each of the five laws of :mod:`heml_gym.materials`, a tissue of that law (E 5.5 kPa, nu
 0.43, the law's other constants at their defaults) is observed along the scripted
-retraction and hold on the finer model of ``calibration.py`` (the flap on 18 x 18 x 3
-cells, the lobe meshed at 7 mm, both in 0.025 s steps), with 10 tracked points (0.5 mm
+retraction and hold on a mesh one step finer than the task's (``calibration.TASK_MODEL_CASES``:
+the flap on 18 x 18 x 3 cells, the lobe meshed at 7 mm, both in 0.025 s steps), with 10 tracked points (0.5 mm
 noise per coordinate) and the jaws' force (0.01 N per component), once per seed (each
 seed: another gripper start and grasp place, other tracked points, other noise). The
 env's default model with that law given is fitted to the points and the force, each
@@ -12,8 +12,9 @@ weighed by its own residual, as ``heml-gym calibrate --law LAW`` does. Reported 
 E's error, its standard error, and whether the truth is within two standard errors (the
 standard errors count the noise, not the model's error).
 
-``--points-only`` fits the points alone (a file without force). ``--model lobe`` (the lobe only) takes most of the lobe's model error away, as the
-calibration docs advise for E itself: observed on the 5 mm lobe of ``calibration_mesh.py``
+``--points-only`` fits the points alone (a file without force). ``--model lobe`` (the lobe
+only) takes most of the lobe's model error away, as ``heml-gym calibrate`` does by default
+(``heml_gym.envs.calibration_models``): observed on the 5 mm lobe of ``calibration_mesh.py``
 (0.025 s steps) and fitted on a 7 mm lobe (``--env-kwargs '{"mesh_size": 0.007}'``).
 
 Writes docs/benchmarks/NAME.{json,md} (default ``calibration_laws``).

@@ -4,8 +4,9 @@ For each of the five laws of :mod:`heml_gym.materials`, a tissue of that law (E 
 nu 0.43, the laws' other constants at their defaults) is observed along a taut scripted
 retraction and hold (the fold's arc ``--stretch`` times the grasp's distance from the
 hinge: 1.2 stretches the flap to gauge strains about 0.3, where the laws part; 30 env
-steps, 3 s; 10 tracked points, 0.5 mm noise) on the finer model of ``calibration.py``
-(the model error a real fit faces). ``select_law`` then fits
+steps, 3 s; 10 tracked points, 0.5 mm noise) on a mesh one step finer than the task's
+(``calibration.TASK_MODEL_CASES``: the flap on 18 x 18 x 3 cells, the lobe at 7 mm, in 0.025
+s steps; the model error a real fit faces), and fitted on the task's own mesh. ``select_law`` then fits
 E and nu with each law to half the points and ranks the laws by the RMS distance of the
 other half (held out) to their prediction. The bar (issue 34): the true law wins, or its
 held-out RMS is within the uncertainty of the winner's: the 95 % interval of the paired
