@@ -31,7 +31,7 @@ not started from a previous replay's, as a fit's are), medians of 3.
 
 Writes docs/benchmarks/calibration.{json,md}.
 
-    python benchmarks/accuracy/calibration.py     # ~25 min on one core
+    python benchmarks/accuracy/calibration.py     # ~35 min on one core
 """
 
 from __future__ import annotations
