@@ -211,8 +211,11 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     final = replay.run(result.theta)
     values, stds = [float(v) for v in result.theta], [float(v) for v in result.std]
     correction = None  # (the fitted mesh's bias against a finer model, taken off: envs.calibration_models)
-    if mesh_correction and model.reference is not None and env_kwargs is None and (obs.points is not None
-                                                                                   or obs.force is not None):
+    if mesh_correction and model.reference is not None and env_kwargs is None and obs.points is None \
+            and obs.force is None:
+        correction = {"reference": model.reference_label,
+                      "skipped": "depth is not corrected (the fit renders the fitted model's tissue)"}
+    elif mesh_correction and model.reference is not None and env_kwargs is None:
         from heml_gym.calibration import ReplayError
         from heml_gym.envs.calibration_models import correct_for_mesh
 

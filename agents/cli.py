@@ -245,7 +245,9 @@ def _calibrate(args) -> int:
     for caveat in record["caveats"]:
         print(f"warning: {caveat}", file=sys.stderr)
     correction = record["mesh_correction"]
-    if correction and "error" in correction:
+    if correction and "skipped" in correction:
+        print(f"warning: no mesh correction: {correction['skipped']}", file=sys.stderr)
+    elif correction and "error" in correction:
         print(f"warning: no mesh correction (the fit on {settings['model']} is reported as it is): {correction['error']}",
               file=sys.stderr)
     elif correction:

@@ -423,6 +423,20 @@ def test_the_lobe_is_fitted_on_its_calibration_model(tmp_path, capsys):
     assert fits["corrected"]["parameters"]["young_modulus"]["value"] > 1.01 * correction["raw"][0]
 
 
+def test_a_lobe_fit_to_depth_alone_says_it_is_not_corrected(tmp_path, capsys):
+    """The lobe's mesh correction replays points and force; a depth-only file is fitted
+    without it, and fit.json and the console say so (nothing silent)."""
+    obs = tmp_path / "depth.npz"
+    assert main(["observe", ORGAN_RETRACTION, "--out", str(obs), "--steps", "4", "--points", "0", "--no-force",
+                 "--depth", "32x32", "--seed", "2"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["calibrate", "-", str(obs), "--out", str(out), "--fit", "young_modulus", "--no-progress"]) == 0
+    record = json.loads((out / "fit.json").read_text())
+    assert record["mesh_correction"]["skipped"].startswith("depth is not corrected")
+    assert "no mesh correction: depth is not corrected" in capsys.readouterr().err
+
+
 def test_the_mesh_correction_takes_a_coarse_meshs_bias_off():
     """A lobe observed noise-free on a 7 mm mesh and fitted on the task's 10 mm one comes out soft
     (the coarse mesh is stiffer in bending); corrected towards the observer's mesh
