@@ -211,28 +211,26 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     final = replay.run(result.theta)
     values, stds = [float(v) for v in result.theta], [float(v) for v in result.std]
     correction = None  # (the fitted mesh's bias against a finer model, taken off: envs.calibration_models)
-    if mesh_correction and model.reference is not None and env_kwargs is None and obs.points is None \
-            and obs.force is None:
-        correction = {"reference": model.reference_label,
-                      "skipped": "depth is not corrected (the fit renders the fitted model's tissue)"}
-    elif mesh_correction and model.reference is not None and env_kwargs is None:
-        from heml_gym.calibration import ReplayError
-        from heml_gym.envs.calibration_models import correct_for_mesh
+    if mesh_correction and model.reference is not None and env_kwargs is None:
+        if obs.points is None and obs.force is None:
+            correction = {"reference": model.reference_label,
+                          "skipped": "depth is not corrected (the fit renders the fitted model's tissue)"}
+        else:
+            from heml_gym.calibration import ReplayError
+            from heml_gym.envs.calibration_models import correct_for_mesh
 
-        if progress:
-            print(f"correcting for the mesh: replaying the fit on {model.reference_label} and fitting that "
-                  "(a few minutes)", file=sys.stderr, flush=True)
-        try:
-            done = correct_for_mesh(_make(env_id, model.reference, physics_overrides(law=law)), obs, replay,
-                                    fit_names, names, result, bounds, model.reference_label, wrist_reach, grid)
-            correction = {"reference": done.reference, "reference_env_kwargs": model.reference, "raw": done.raw,
-                          "refit": done.refit, "corrected": done.corrected, "converged": done.converged,
-                          "wall_s": done.wall_s}
-            stds = [sd * c / r if name.startswith("young_modulus") else sd
-                    for name, sd, c, r in zip(names, stds, done.corrected, done.raw)]
-            values = done.corrected
-        except ReplayError as exc:
-            correction = {"reference": model.reference_label, "error": str(exc)}
+            if progress:
+                print(f"correcting for the mesh: replaying the fit on {model.reference_label} and fitting that "
+                      "(a few minutes)", file=sys.stderr, flush=True)
+            try:
+                done = correct_for_mesh(_make(env_id, model.reference, physics_overrides(law=law)), obs, replay,
+                                        fit_names, names, result, bounds, model.reference_label, wrist_reach, grid)
+                correction = {"reference": done.reference, "reference_env_kwargs": model.reference,
+                              "raw": done.raw, "refit": done.refit, "corrected": done.corrected,
+                              "converged": done.converged, "wall_s": done.wall_s}
+                values, stds = done.corrected, done.std
+            except ReplayError as exc:
+                correction = {"reference": model.reference_label, "error": str(exc)}
     out.mkdir(parents=True, exist_ok=True)
     # (a standard error the data do not determine is null, not JSON's non-standard Infinity)
     parameters = {name: {"value": v, "std": sd if math.isfinite(sd) else None, "unit": fit_parameter(name)[0]}

@@ -29,7 +29,6 @@ given, every quantity.
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, field
 
@@ -103,6 +102,7 @@ class MeshCorrection:
     raw: list  #: the fit on the fitted model
     refit: list  #: the fitted model's fit to the reference's noise-free replay of ``raw``
     corrected: list  #: ``raw`` less the fitted model's bias against the reference
+    std: list  #: the fit's standard errors, moduli's scaled as their values were
     converged: bool  #: whether the refit converged
     wall_s: float  #: the reference's replay and the refit, s
 
@@ -133,21 +133,20 @@ def correct_for_mesh(env_reference, obs, replay, fit_names, names, result, bound
     theta = np.asarray(result.theta, dtype=np.float64)
     reference, *_ = calibration_problem(env_reference, obs, tuple(fit_names), wrist_reach=wrist_reach, regions=regions)
     ref = reference.run(theta)
-    synthetic = copy.copy(obs)
+    points = None
     if obs.points is not None:
         B = embed_points(reference.model.mesh, obs.rest_points)
-        synthetic.points = np.stack([B @ x for x in ref.x])
-    if obs.force is not None:
-        synthetic.force = np.concatenate([obs.force[:1] * 0.0, ref.force])
-    observed = Observed(points=synthetic.points if obs.points is not None else None,
-                        rest_points=obs.rest_points if obs.points is not None else None,
-                        force=synthetic.force if obs.force is not None else None,
+        points = np.stack([B @ x for x in ref.x])
+    force = None if obs.force is None else np.concatenate([obs.force[:1] * 0.0, ref.force])
+    observed = Observed(points=points, rest_points=None if points is None else obs.rest_points, force=force,
                         point_scale=result.scales["point_scale_m"], force_scale=result.scales["force_scale_N"])
     refit = fit(replay, observed, names, [theta], bounds)
-    corrected = []
-    for name, raw, biased, (low, high) in zip(names, theta, refit.theta, bounds):
-        value = raw * raw / biased if name.startswith("young_modulus") else raw + (raw - biased)
-        corrected.append(float(np.clip(value, low, high)))
+    corrected, std = [], []
+    for name, raw, biased, sd, (low, high) in zip(names, theta, refit.theta, result.std, bounds):
+        modulus = name.startswith("young_modulus")
+        value = float(np.clip(raw * raw / biased if modulus else raw + (raw - biased), low, high))
+        corrected.append(value)
+        std.append(float(sd) * value / raw if modulus else float(sd))
     return MeshCorrection(reference=reference_label, raw=[float(v) for v in theta],
-                          refit=[float(v) for v in refit.theta], corrected=corrected, converged=bool(refit.converged),
-                          wall_s=time.perf_counter() - t0)
+                          refit=[float(v) for v in refit.theta], corrected=corrected, std=std,
+                          converged=bool(refit.converged), wall_s=time.perf_counter() - t0)

@@ -165,10 +165,7 @@ def measure() -> dict:
                 row.update({f"raw_{k}": v for k, v in fitted_constants(result, names).items()},
                            mesh_reference=done.reference, refit=done.refit, refit_converged=done.converged,
                            wall_s=wall)
-                corrected = SimpleNamespace(theta=np.array(done.corrected),
-                                            std=[sd * c / r if n == "young_modulus" else sd
-                                                 for n, sd, c, r in zip(names, result.std, done.corrected, done.raw)])
-                row.update(fitted_constants(corrected, names))
+                row.update(fitted_constants(SimpleNamespace(theta=done.corrected, std=done.std), names))
             if use == "points":  # prediction of another retraction of the same tissue, by the fitted model's fit
                 other = observe(env_id, case["fine"], PREDICT_SEED, 0.0, 0.0)
                 other.force = None

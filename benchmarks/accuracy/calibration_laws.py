@@ -90,11 +90,9 @@ def measure(envs: list[str], seeds, model: str = "default", use: str = "points a
                             [fit_parameter(n)[1] for n in NAMES], CALIBRATION_MODELS[env_id].reference_label)
                         wall += time.perf_counter() - t0
                         raw = {f"raw_{k}": v for k, v in fitted_constants(result, NAMES).items()}
-                        result = SimpleNamespace(theta=np.array(done.corrected), converged=result.converged
-                                                 and done.converged, message=result.message,
-                                                 residual_rms=result.residual_rms,
-                                                 std=[sd * c / r if n == "young_modulus" else sd for n, sd, c, r in
-                                                      zip(NAMES, result.std, done.corrected, done.raw)])
+                        result = SimpleNamespace(theta=done.corrected, std=done.std, message=result.message,
+                                                 converged=result.converged and done.converged,
+                                                 residual_rms=result.residual_rms)
                 except ReplayError as exc:  # (the default model cannot follow the log with this law)
                     rows.append({"env": env_id, "law": law, "seed": seed, "error": str(exc), "within_bar": False})
                     print(f"{env_id} {law} seed {seed}: no fit ({exc})", flush=True)
