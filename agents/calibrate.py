@@ -12,6 +12,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -121,7 +122,8 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
               law: str | None = None, env_kwargs: str | None = None, starts: int = 1,
               point_scale: float | None = None, force_scale: float | None = None, progress: bool = True,
               wrist_reach: float | None = None,
-              regions: str | None = None, use: str | None = None, mesh_correction: bool = True) -> dict:
+              regions: str | None = None, use: str | None = None, mesh_correction: bool = True,
+              jobs: int = 1) -> dict:
     """Fit the tissue of ``env_id``'s scene (default: the observation's env) to
     ``observation``; write ``fit.json`` and ``fit.png`` into ``out``. ``wrist_reach`` (m):
     the jaws hold the tissue within that distance of what the scene's jaws take, on a free
@@ -132,7 +134,8 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     unless ``env_kwargs`` does); ``mesh_correction``: take the fitted mesh's bias against the
     calibration model's finer reference off the fitted constants
     (:func:`~heml_gym.envs.calibration_models.correct_for_mesh`; the lobe's; the chart and
-    recording show the fitted model's own fit).
+    recording show the fitted model's own fit); ``jobs``: with ``law="auto"``, the laws
+    fitted in that many worker processes at once (:func:`select_law`).
     ``point_scale`` (m) and ``force_scale`` (N): the residual scales (the sensors' noise);
     neither given: 1 mm and 0.05 N to start, then each quantity weighed by its own residual
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
@@ -163,6 +166,8 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     caveats = model.warnings(fitted)
     if starts < 1:
         raise ValueError(f"--starts: must be >= 1, got {starts}")
+    if check_jobs(jobs) > 1 and law != "auto":
+        raise ValueError(f"--jobs: only --law auto fits in parallel (a law per worker), got --jobs {jobs} without it")
     _check_wrist_reach(wrist_reach)
     grid = parse_regions(regions)
     weigh = point_scale is None and force_scale is None
@@ -177,7 +182,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     selection = None
     if law == "auto":
         law, selection = select_law(env_id, obs, tuple(fit_names), kwargs, point_scale, force_scale,
-                                    progress, wrist_reach, grid, weigh)
+                                    progress, wrist_reach, grid, weigh, jobs)
     env = _make(env_id, kwargs, physics_overrides(law=law))
     replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
                                                                  force_scale, wrist_reach=wrist_reach, regions=grid)
@@ -400,21 +405,81 @@ def _record(path: Path, obs, final, fitted_points, faces, colours=None) -> str |
     return str(path)
 
 
+@dataclass
+class LawFitJob:
+    """One law's fit of ``--law auto`` (:func:`select_law`): what a worker process needs."""
+
+    law: str
+    env_id: str
+    env_kwargs: dict
+    part: object  # the observation with half the tracked points (envs.observations.Observation)
+    held_points: np.ndarray  # (T, K/2, 3) m, the other half
+    held_rest: np.ndarray  # (K/2, 3) m, their rest places
+    fit_names: tuple
+    point_scale: float
+    force_scale: float
+    wrist_reach: float | None
+    regions: tuple | None
+    weigh_by_residuals: bool
+
+
+def fit_law(job: LawFitJob) -> dict:
+    """Fit ``job.law`` to the fitted half of the tracked points (and the force) and predict
+    the held-out half: the law's record of :func:`select_law` (``error``: a replay that
+    could not be made). A module-level function: ``--jobs`` runs it in worker processes."""
+    from heml_gym.calibration import ReplayError, embed_points, fit
+    from heml_gym.envs.observations import calibration_problem
+
+    env = _make(job.env_id, job.env_kwargs, physics_overrides(law=job.law))
+    try:
+        replay, observed, names, bounds, start = calibration_problem(
+            env, job.part, job.fit_names, job.point_scale, job.force_scale, wrist_reach=job.wrist_reach,
+            regions=job.regions)
+        result = fit(replay, observed, names, [start], bounds, weigh_by_residuals=job.weigh_by_residuals)
+        predicted = replay.run(result.theta)
+    except ReplayError as exc:
+        return {"law": job.law, "error": str(exc)}
+    B = embed_points(replay.model.mesh, job.held_rest)
+    pts = np.stack([B @ x for x in predicted.x])
+    squared = ((pts - job.held_points) ** 2).sum(axis=-1).mean(axis=1)  # per observed time, m^2
+    return {"law": job.law, "theta": dict(zip(names, map(float, result.theta))),
+            "std": dict(zip(names, map(float, result.std))), "converged": result.converged,
+            "heldout_rms_m": float(np.sqrt(squared.mean())),
+            "heldout_rms_per_time_m": np.sqrt(squared).tolist(), "fit_loss": result.loss}
+
+
+def _worker_threads(threads: int) -> None:
+    """A ``--jobs`` worker's start: its share of the cores for Numba's threads."""
+    import numba
+
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+
+
+def check_jobs(jobs: int) -> int:
+    """``--jobs``: a whole number of worker processes, >= 1."""
+    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
+        raise ValueError(f"--jobs: must be a whole number >= 1 (worker processes), got {jobs!r}")
+    return int(jobs)
+
+
 def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,
                progress: bool = True, wrist_reach: float | None = None, regions=None,
-               weigh_by_residuals: bool = False) -> tuple[str, list[dict]]:
+               weigh_by_residuals: bool = False, jobs: int = 1) -> tuple[str, list[dict]]:
     """``--law auto``: fit each law of :mod:`heml_gym.materials` to half the tracked points
     (and the force) and keep the one that predicts the other half best (held-out RMS, m).
-    Returns the law's name and every law's record; each fitted law's record holds the 95 %
-    bootstrap interval (over the observed times) of its held-out RMS minus the winner's
-    (``difference_ci95_m``, :func:`heml_gym.calibration.paired_rms_interval`) and whether
-    that interval reaches 0 (``as_good_as_winner``: the data do not tell it from the winner)."""
+    Returns the law's name and every law's record (:func:`fit_law`); each fitted law's
+    record holds the 95 % bootstrap interval (over the observed times) of its held-out RMS
+    minus the winner's (``difference_ci95_m``, :func:`heml_gym.calibration.paired_rms_interval`)
+    and whether that interval reaches 0 (``as_good_as_winner``: the data do not tell it
+    from the winner). ``jobs`` > 1: the laws are fitted in that many worker processes at
+    once (spawned, each with its share of the cores for Numba's threads), the records the same."""
     import copy
 
-    from heml_gym.calibration import ReplayError, embed_points, fit, paired_rms_interval
-    from heml_gym.envs.observations import LAW_CONSTANTS, calibration_problem
+    from heml_gym.calibration import paired_rms_interval
+    from heml_gym.envs.observations import LAW_CONSTANTS
     from heml_gym.envs.scene import LAWS
 
+    jobs = check_jobs(jobs)
     if obs.points is None or obs.points.shape[1] < 4:
         raise ValueError("--law auto: needs at least 4 tracked points (half fit, half held out)")
     own = [name for name in fit_names if name in LAW_CONSTANTS]
@@ -425,30 +490,40 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
     train, held = np.arange(0, K, 2), np.arange(1, K, 2)
     part = copy.deepcopy(obs)
     part.points, part.rest_points = obs.points[:, train], obs.rest_points[train]
-    records = []
     laws = list(LAWS)
-    iterator = laws
+    work = [LawFitJob(name, env_id, env_kwargs, part, obs.points[:, held], obs.rest_points[held], tuple(fit_names),
+                      point_scale, force_scale, wrist_reach, regions, weigh_by_residuals) for name in laws]
+    bar = None
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(laws, desc="laws", unit="law")
-    for name in iterator:
-        env = _make(env_id, env_kwargs, physics_overrides(law=name))
-        try:
-            replay, observed, names, bounds, start = calibration_problem(env, part, fit_names, point_scale, force_scale,
-                                                                         wrist_reach=wrist_reach, regions=regions)
-            result = fit(replay, observed, names, [start], bounds, weigh_by_residuals=weigh_by_residuals)
-            predicted = replay.run(result.theta)
-        except ReplayError as exc:
-            records.append({"law": name, "error": str(exc)})
-            continue
-        B = embed_points(replay.model.mesh, obs.rest_points[held])
-        pts = np.stack([B @ x for x in predicted.x])
-        squared = ((pts - obs.points[:, held]) ** 2).sum(axis=-1).mean(axis=1)  # per observed time, m^2
-        records.append({"law": name, "theta": dict(zip(names, map(float, result.theta))),
-                        "std": dict(zip(names, map(float, result.std))), "converged": result.converged,
-                        "heldout_rms_m": float(np.sqrt(squared.mean())),
-                        "heldout_rms_per_time_m": np.sqrt(squared).tolist(), "fit_loss": result.loss})
+        bar = tqdm(total=len(laws), desc="laws" + (f" ({min(jobs, len(laws))} at once)" if jobs > 1 else ""),
+                   unit="law")
+    by_law = {}
+    try:
+        if jobs == 1:
+            for job in work:
+                by_law[job.law] = fit_law(job)
+                if bar is not None:
+                    bar.update(1)
+        else:
+            import multiprocessing
+            import os
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            workers = min(jobs, len(laws))
+            threads = max(1, len(os.sched_getaffinity(0)) // workers)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=_worker_threads, initargs=(threads,)) as pool:
+                pending = {pool.submit(fit_law, job): job.law for job in work}
+                for done in as_completed(pending):
+                    by_law[pending[done]] = done.result()
+                    if bar is not None:
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    records = [by_law[name] for name in laws]
     usable = [r for r in records if "heldout_rms_m" in r and r["converged"]]
     if not usable:
         raise ValueError("--law auto: no law could be fitted (see each law's record)")

@@ -237,7 +237,8 @@ def _calibrate(args) -> int:
     record = calibrate(None if args.env == "-" else args.env, args.observation, args.out, names, law=args.law,
                        env_kwargs=args.env_kwargs, starts=args.starts, point_scale=args.point_scale,
                        force_scale=args.force_scale, progress=not args.no_progress, wrist_reach=args.wrist_reach,
-                       regions=args.regions, use=args.use, mesh_correction=not args.no_mesh_correction)
+                       regions=args.regions, use=args.use, mesh_correction=not args.no_mesh_correction,
+                       jobs=args.jobs)
     settings = record["settings"]
     left = [q for q in settings["in_the_file"] if q not in settings["observed"]]
     print(f"fitted on {settings['model']}, to the {', '.join(settings['observed'])}"
@@ -465,6 +466,9 @@ def main(argv=None) -> int:
                                         "calibration model, heml_gym.envs.calibration_models: the lobe on a 7 mm "
                                         "mesh; '{}': the env's own)")
     c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
+    c.add_argument("--jobs", type=int, default=1,
+                   help="with --law auto: fit the laws in this many worker processes at once (each about 1.5 GB; "
+                        "the cores shared among them), default 1")
     c.add_argument("--point-scale", type=float, default=None,
                    help="tracked points' residual scale (their noise), m; neither scale given: 1 mm and 0.05 N to "
                         "start, then points and force each weighed by their own residual")

@@ -18,6 +18,7 @@ from heml_gym.envs.observations import (Observation, ObservationError, calibrati
                                         save_observation)
 from heml_gym.envs.scripted import scripted_policy
 from heml_gym.mesh import signed_volumes
+from heml_gym.envs.scene import LAWS
 
 
 def _random_loss_gradient_check(replay, theta, steps, rng):
@@ -553,6 +554,8 @@ def test_each_observe_seed_draws_its_own_noise(tmp_path, capsys):
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--wrist-reach", "-0.01"], "--wrist-reach"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--use", "markers"], "--use: comma-separated names"),
     (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--use", "points,depth"], "--use: the observation has no depth"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--law", "auto", "--jobs", "0"], "--jobs: must be"),
+    (["calibrate", "-", "{tmp}/obs.npz", "--out", "{tmp}/fit", "--jobs", "2"], "--jobs: only --law auto"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.txt"], "--out"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--wrist-reach", "0"], "--wrist-reach"),
     (["observe", TISSUE_RETRACTION, "--out", "{tmp}/o.npz", "--wrist-reach", "0.01", "--depth", "84x84"],
@@ -616,6 +619,32 @@ def test_paired_rms_interval_covers_the_true_difference():
     assert paired_rms_interval(b, b) == (0.0, 0.0)
     with pytest.raises(ValueError, match="one length"):
         paired_rms_interval(b, b[:-1])
+
+
+def test_law_auto_in_worker_processes_fits_each_law_as_one_process_does(tmp_path):
+    """``--jobs 2`` spreads ``--law auto``'s five fits over two spawned worker processes: each
+    law's record is the one the serial loop makes (the same fit in another process, with
+    its own share of Numba's threads: equal up to the fits' tolerance), in the same order,
+    and the same law is kept."""
+    from heml_gym.agents.calibrate import select_law
+
+    path = tmp_path / "obs.npz"
+    assert main(["observe", TISSUE_RETRACTION, "--out", str(path), "--law", "MooneyRivlin", "--steps", "6",
+                 "--points", "6", "--seed", "3", "--young-modulus", "6000", "--point-noise", "0.0003"]) == 0
+    obs = load_observation(path)
+    names = ("young_modulus", "poisson_ratio")
+    serial = select_law(TISSUE_RETRACTION, obs, names, {}, 1e-3, 0.05, progress=False, jobs=1)
+    parallel = select_law(TISSUE_RETRACTION, obs, names, {}, 1e-3, 0.05, progress=False, jobs=2)
+    assert parallel[0] == serial[0]
+    assert [r["law"] for r in parallel[1]] == [r["law"] for r in serial[1]] == list(LAWS)
+    for a, b in zip(serial[1], parallel[1]):
+        assert ("error" in a) == ("error" in b)
+        if "error" in a:
+            continue
+        for name in names:
+            assert b["theta"][name] == pytest.approx(a["theta"][name], rel=1e-4)
+        assert b["heldout_rms_m"] == pytest.approx(a["heldout_rms_m"], rel=1e-3, abs=1e-7)
+        assert b["as_good_as_winner"] == a["as_good_as_winner"] or abs(a["difference_ci95_m"][0]) < 1e-6
 
 
 def test_law_auto_keeps_the_law_that_predicts_held_out_points(tmp_path, capsys):
