@@ -120,6 +120,37 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reac
     return replay, result, time.perf_counter() - t0
 
 
+def fit_as_calibrate(env_id: str, obs, names, use: str, model: dict | None = None, law: str | None = None):
+    """Fit ``names`` to the ``use`` part of ``obs`` as ``heml-gym calibrate`` does by
+    default: on ``model`` (the env's keyword arguments; default its calibration model,
+    ``heml_gym.envs.calibration_models``), with ``law`` given, then, where that model has a
+    finer reference and points or force are fitted, corrected for its mesh
+    (``correct_for_mesh``). Returns ``(replay, result, raw, wall_s)``: ``result`` has the
+    corrected ``theta`` and ``std`` (the fit's ``converged`` and correction's together),
+    ``raw`` is the fit before the correction (None: not corrected)."""
+    import gymnasium as gym
+
+    from heml_gym.envs.calibration_models import correct_for_mesh
+    from heml_gym.envs.observations import fit_parameter
+
+    calibration = CALIBRATION_MODELS[env_id]
+    law_physics = {"material": law} if law else {}
+    model = calibration.env_kwargs if model is None else model
+    replay, result, wall = fit_case(env_id, obs, names, use,
+                                    {**model, "physics": {**model.get("physics", {}), **law_physics}})
+    if calibration.reference is None or use == "depth":
+        return replay, result, None, wall
+    t0 = time.perf_counter()
+    reference = calibration.reference
+    done = correct_for_mesh(gym.make(env_id, **{**reference, "physics": {**reference.get("physics", {}), **law_physics}}),
+                            obs, replay, names, names, result, [fit_parameter(n)[1] for n in names],
+                            calibration.reference_label)
+    corrected = SimpleNamespace(theta=done.corrected, std=done.std, message=result.message,
+                                converged=result.converged and done.converged, residual_rms=result.residual_rms,
+                                refit=done.refit, reference=done.reference, correction_converged=done.converged)
+    return replay, corrected, result, wall + time.perf_counter() - t0
+
+
 def fitted_constants(result, names) -> dict:
     """Each fitted constant of ``result`` (a :func:`heml_gym.calibration.fit` result of
     ``names``), its standard error (``NAME_std``) and its error against :data:`TRUTH`
@@ -140,8 +171,7 @@ def measure() -> dict:
     import gymnasium as gym
 
     from heml_gym.calibration import embed_points
-    from heml_gym.envs.calibration_models import correct_for_mesh
-    from heml_gym.envs.observations import calibration_problem, fit_parameter
+    from heml_gym.envs.observations import calibration_problem
 
     numba.set_num_threads(1)
     rows, timing = [], []
@@ -150,22 +180,19 @@ def measure() -> dict:
         for use, names in (("points", ("young_modulus", "poisson_ratio")), ("force", ("young_modulus",)),
                            ("points and force", ("young_modulus", "poisson_ratio")), ("depth", ("young_modulus",))):
             used = copy.deepcopy(obs)
-            replay, result, wall = fit_case(env_id, used, names, use, model=case["model"])
+            # as heml-gym calibrate: on the calibration model, the lobe's points and force corrected for its mesh
+            replay, fitted, raw, wall = fit_as_calibrate(env_id, used, names, use, model=case["model"])
+            result = fitted if raw is None else raw  # the fitted model's own fit
             row = {"env": env_id, "observed": use, "fine_model": case["fine_label"], "fitted_model": case["model_label"],
                    "fit": list(names), "converged": result.converged, "message": result.message,
                    "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms,
                    "failed_trials": result.failed_trials}
             row.update(fitted_constants(result, names))
-            calibration = CALIBRATION_MODELS[env_id]
-            if calibration.reference is not None and use != "depth":  # as heml-gym calibrate: the mesh's bias off
-                t0 = time.perf_counter()
-                done = correct_for_mesh(gym.make(env_id, **calibration.reference), used, replay, names, names,
-                                        result, [fit_parameter(n)[1] for n in names], calibration.reference_label)
-                wall += time.perf_counter() - t0
+            if raw is not None:
                 row.update({f"raw_{k}": v for k, v in fitted_constants(result, names).items()},
-                           mesh_reference=done.reference, refit=done.refit, refit_converged=done.converged,
-                           wall_s=wall)
-                row.update(fitted_constants(SimpleNamespace(theta=done.corrected, std=done.std), names))
+                           mesh_reference=fitted.reference, refit=fitted.refit,
+                           refit_converged=fitted.correction_converged)
+                row.update(fitted_constants(fitted, names))
             if use == "points":  # prediction of another retraction of the same tissue, by the fitted model's fit
                 other = observe(env_id, case["fine"], PREDICT_SEED, 0.0, 0.0)
                 other.force = None

@@ -35,13 +35,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from types import SimpleNamespace
 
 import numba
 import numpy as np
 
-from heml_gym.benchmarks.accuracy.calibration import (TASK_MODEL_CASES, FORCE_NOISE, POINT_NOISE, STEPS, TRUTH, fit_case,
-                                                      fitted_constants, observe)
+from heml_gym.benchmarks.accuracy.calibration import (TASK_MODEL_CASES, FORCE_NOISE, POINT_NOISE, STEPS, TRUTH, fit_as_calibrate,
+                                                      fit_case, fitted_constants, observe)
 from heml_gym.benchmarks.accuracy.calibration_mesh import LOBE_OBSERVED, LOBE_OBSERVED_LABEL
 from heml_gym.envs.calibration_models import CALIBRATION_MODELS
 from heml_gym.benchmarks.common import (SHORT_ENVS, add_envs_option, command_line, env_ids, machine_info,
@@ -64,11 +63,7 @@ CORRECTED = ("calibrate",)
 
 
 def measure(envs: list[str], seeds, model: str = "default", use: str = "points and force") -> dict:
-    import gymnasium as gym
-
     from heml_gym.calibration import ReplayError
-    from heml_gym.envs.calibration_models import correct_for_mesh
-    from heml_gym.envs.observations import fit_parameter
     from heml_gym.envs.scene import LAWS
 
     numba.set_num_threads(1)
@@ -79,20 +74,12 @@ def measure(envs: list[str], seeds, model: str = "default", use: str = "points a
             for seed in seeds:
                 obs = observe(env_id, observer, seed, POINT_NOISE, FORCE_NOISE, 0.0, law=law, depth_size=None)
                 try:
-                    replay, result, wall = fit_case(env_id, obs, NAMES, use,
-                                                    {**fitted, "physics": {"material": law}})
-                    raw = {}
                     if model in CORRECTED:  # the mesh's bias taken off, as heml-gym calibrate does
-                        t0 = time.perf_counter()
-                        reference = CALIBRATION_MODELS[env_id].reference
-                        done = correct_for_mesh(gym.make(env_id, **{**reference, "physics": {
-                            **reference.get("physics", {}), "material": law}}), obs, replay, NAMES, NAMES, result,
-                            [fit_parameter(n)[1] for n in NAMES], CALIBRATION_MODELS[env_id].reference_label)
-                        wall += time.perf_counter() - t0
-                        raw = {f"raw_{k}": v for k, v in fitted_constants(result, NAMES).items()}
-                        result = SimpleNamespace(theta=done.corrected, std=done.std, message=result.message,
-                                                 converged=result.converged and done.converged,
-                                                 residual_rms=result.residual_rms)
+                        _, result, raw_fit, wall = fit_as_calibrate(env_id, obs, NAMES, use, fitted, law)
+                        raw = {f"raw_{k}": v for k, v in fitted_constants(raw_fit, NAMES).items()}
+                    else:
+                        _, result, wall = fit_case(env_id, obs, NAMES, use, {**fitted, "physics": {"material": law}})
+                        raw = {}
                 except ReplayError as exc:  # (the default model cannot follow the log with this law)
                     rows.append({"env": env_id, "law": law, "seed": seed, "error": str(exc), "within_bar": False})
                     print(f"{env_id} {law} seed {seed}: no fit ({exc})", flush=True)
