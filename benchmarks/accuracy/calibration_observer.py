@@ -136,10 +136,23 @@ def report(data: dict) -> str:
                      "yes" if all(r["converged"] for r in mine) else "**no**",
                      f"{np.median([r['fit_s'] for r in mine]):.0f}"])
     seeds = ", ".join(str(s) for s in sorted({r["seed"] for r in data["rows"]}))
+    sizes = sorted({r["observer_mm"] for r in data["rows"]})
+    drift = []  # per seed: the corrected E's change from the coarsest observer to the finest, % per mm
+    for seed in sorted({r["seed"] for r in data["rows"]}):
+        by = {r["observer_mm"]: r["young_modulus_error"] for r in data["rows"] if r["seed"] == seed}
+        if sizes[0] in by and sizes[-1] in by and sizes[-1] > sizes[0]:
+            drift.append(100 * (by[sizes[0]] - by[sizes[-1]]) / (sizes[-1] - sizes[0]))  # (finest minus coarsest)
+    within = sum(abs(r["young_modulus_error"]) <= data["bar"] for r in data["rows"])
+    summary = (f"\n**E within {100 * data['bar']:g} % in {within} of {len(data['rows'])} fits; from the "
+               f"{sizes[-1]:g} mm observer to the {sizes[0]:g} mm one the corrected E moves by "
+               + ", ".join(f"{d * (sizes[-1] - sizes[0]):+.1f} %" for d in drift)
+               + f" (seeds {seeds})"
+               + (": it has not settled" if min(abs(d * (sizes[-1] - sizes[0])) for d in drift) > 1.0
+                  else "") + ".**\n" if drift else "")
     return (head + markdown_table(["observed on", "observer's vertices", f"E error, seeds {seeds} (%)",
                                    "before the correction (%)", "nu error", f"E within {100 * data['bar']:g} %",
                                    "converged", "median fit s"], rows)
-            + "\n![fitted E against the observer's mesh](../img/calibration_observer.png)\n")
+            + summary + "\n![fitted E against the observer's mesh](../img/calibration_observer.png)\n")
 
 
 def main(argv=None) -> int:
