@@ -120,6 +120,12 @@ def fit_case(env_id: str, obs, names, use, model: dict | None = None, wrist_reac
     return replay, result, time.perf_counter() - t0
 
 
+def with_law(kwargs: dict, law: str | None) -> dict:
+    """``gym.make`` keyword arguments ``kwargs`` with ``law`` merged into their physics
+    (None: ``kwargs`` as they are)."""
+    return kwargs if not law else {**kwargs, "physics": {**kwargs.get("physics", {}), "material": law}}
+
+
 def fit_as_calibrate(env_id: str, obs, names, use: str, model: dict | None = None, law: str | None = None):
     """Fit ``names`` to the ``use`` part of ``obs`` as ``heml-gym calibrate`` does by
     default: on ``model`` (the env's keyword arguments; default its calibration model,
@@ -134,17 +140,13 @@ def fit_as_calibrate(env_id: str, obs, names, use: str, model: dict | None = Non
     from heml_gym.envs.observations import fit_parameter
 
     calibration = CALIBRATION_MODELS[env_id]
-    law_physics = {"material": law} if law else {}
     model = calibration.env_kwargs if model is None else model
-    replay, result, wall = fit_case(env_id, obs, names, use,
-                                    {**model, "physics": {**model.get("physics", {}), **law_physics}})
+    replay, result, wall = fit_case(env_id, obs, names, use, with_law(model, law))
     if calibration.reference is None or use == "depth":
         return replay, result, None, wall
     t0 = time.perf_counter()
-    reference = calibration.reference
-    done = correct_for_mesh(gym.make(env_id, **{**reference, "physics": {**reference.get("physics", {}), **law_physics}}),
-                            obs, replay, names, names, result, [fit_parameter(n)[1] for n in names],
-                            calibration.reference_label)
+    done = correct_for_mesh(gym.make(env_id, **with_law(calibration.reference, law)), obs, replay, names, names,
+                            result, [fit_parameter(n)[1] for n in names], calibration.reference_label)
     corrected = SimpleNamespace(theta=done.corrected, std=done.std, message=result.message,
                                 converged=result.converged and done.converged, residual_rms=result.residual_rms,
                                 refit=done.refit, reference=done.reference, correction_converged=done.converged)
@@ -187,9 +189,10 @@ def measure() -> dict:
                    "fit": list(names), "converged": result.converged, "message": result.message,
                    "iterations": len(result.history), "wall_s": wall, "residual_rms": result.residual_rms,
                    "failed_trials": result.failed_trials}
-            row.update(fitted_constants(result, names))
+            own = fitted_constants(result, names)
+            row.update(own)
             if raw is not None:
-                row.update({f"raw_{k}": v for k, v in fitted_constants(result, names).items()},
+                row.update({f"raw_{k}": v for k, v in own.items()},
                            mesh_reference=fitted.reference, refit=fitted.refit,
                            refit_converged=fitted.correction_converged)
                 row.update(fitted_constants(fitted, names))

@@ -40,7 +40,7 @@ import numba
 import numpy as np
 
 from heml_gym.benchmarks.accuracy.calibration import (TASK_MODEL_CASES, FORCE_NOISE, POINT_NOISE, STEPS, TRUTH, fit_as_calibrate,
-                                                      fit_case, fitted_constants, observe)
+                                                      fit_case, fitted_constants, observe, with_law)
 from heml_gym.benchmarks.accuracy.calibration_mesh import LOBE_OBSERVED, LOBE_OBSERVED_LABEL
 from heml_gym.envs.calibration_models import CALIBRATION_MODELS
 from heml_gym.benchmarks.common import (SHORT_ENVS, add_envs_option, command_line, env_ids, machine_info,
@@ -78,7 +78,7 @@ def measure(envs: list[str], seeds, model: str = "default", use: str = "points a
                         _, result, raw_fit, wall = fit_as_calibrate(env_id, obs, NAMES, use, fitted, law)
                         raw = {f"raw_{k}": v for k, v in fitted_constants(raw_fit, NAMES).items()}
                     else:
-                        _, result, wall = fit_case(env_id, obs, NAMES, use, {**fitted, "physics": {"material": law}})
+                        _, result, wall = fit_case(env_id, obs, NAMES, use, with_law(fitted, law))
                         raw = {}
                 except ReplayError as exc:  # (the default model cannot follow the log with this law)
                     rows.append({"env": env_id, "law": law, "seed": seed, "error": str(exc), "within_bar": False})
