@@ -135,13 +135,27 @@ def pixels(data: dict) -> str:
 
 
 def rllib(data: dict) -> str:
-    first = data["first_eval_at_90_percent"]
-    reach = (f"passed 90 % at {first // 1000} k env steps" if first is not None
-             else "did not reach 90 %")
-    return (f"**RLlib.** RLlib PPO with {data['env_runners']} env runners of {data['scenes_per_runner']} scenes "
-            f"{reach} on TissueRetraction (seed {data['seed']}; final {data['final_success_rate']:.0%} at "
-            f"{data['env_steps'] // 1000} k steps, {data['wall_s'] / 60:.0f} min; {where(data)}; "
-            "[scale_out.md](../scale_out.md#measured)).")
+    """RLlib PPO on the flap: every seed's first evaluation at >= 90 % and final success,
+    with the final success's IQM when 3 or more seeds are on record."""
+    from heml_gym.agents.stats import iqm, iqm_interval
+
+    seeds = data["seeds"]
+    if not seeds:
+        return ""
+    finals = [s["final_success_rate"] for s in seeds]
+    per_seed = []
+    for s in seeds:
+        first = s["first_eval_at_90_percent"]
+        reach = f"passed 90 % at {first // 1000} k env steps" if first is not None else "never reached 90 %"
+        per_seed.append(f"seed {s['seed']} {reach}, final {s['final_success_rate']:.0%} in {s['wall_s'] / 60:.0f} min")
+    env = data["env"].split("/")[-1]
+    claim = f"{sum(f >= 0.9 for f in finals)} of {len(seeds)} seeds ended at >= 90 %"
+    if len(seeds) >= 3:
+        low, high = iqm_interval(finals)
+        claim += f" (final success IQM {iqm(finals):.0%}, 95 % CI {low:.0%}-{high:.0%})"
+    return (f"**RLlib ({env}).** RLlib PPO with {data['env_runners']} env runners of {data['scenes_per_runner']} "
+            f"scenes (`{data['config']}`, {max(s['env_steps'] for s in seeds) // 1000} k env steps): {claim}: "
+            f"{'; '.join(per_seed)} ({where(data)}; [scale_out.md](../scale_out.md#measured)).")
 
 
 TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"
