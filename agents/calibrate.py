@@ -135,7 +135,8 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     calibration model's finer reference off the fitted constants
     (:func:`~heml_gym.envs.calibration_models.correct_for_mesh`; the lobe's; the chart and
     recording show the fitted model's own fit); ``jobs``: with ``law="auto"``, the laws
-    fitted in that many worker processes at once (:func:`select_law`).
+    fitted in that many worker processes at once (:func:`select_law`); else, with ``starts``
+    > 1, the starts (:func:`fit_starts_in_parallel`).
     ``point_scale`` (m) and ``force_scale`` (N): the residual scales (the sensors' noise);
     neither given: 1 mm and 0.05 N to start, then each quantity weighed by its own residual
     (:func:`heml_gym.calibration.fit`'s ``weigh_by_residuals``). Returns the fit's record."""
@@ -166,8 +167,9 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     caveats = model.warnings(fitted)
     if starts < 1:
         raise ValueError(f"--starts: must be >= 1, got {starts}")
-    if check_jobs(jobs) > 1 and law != "auto":
-        raise ValueError(f"--jobs: only --law auto fits in parallel (a law per worker), got --jobs {jobs} without it")
+    if check_jobs(jobs) > 1 and law != "auto" and starts == 1:
+        raise ValueError(f"--jobs: runs the laws of --law auto or the starts of --starts N in parallel, got "
+                         f"--jobs {jobs} with neither")
     _check_wrist_reach(wrist_reach)
     grid = parse_regions(regions)
     weigh = point_scale is None and force_scale is None
@@ -209,7 +211,22 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
 
     t0 = time.perf_counter()
     try:
-        result = fit(replay, observed, names, start_list, bounds, progress=report, weigh_by_residuals=weigh)
+        if jobs > 1 and selection is None and starts > 1:  # (with --law auto, the laws ran in parallel)
+            template = StartFitJob(env_id, kwargs, law, obs, tuple(fit_names), point_scale, force_scale, wrist_reach,
+                                   grid, first)
+            starts_bar = None
+            if progress:
+                from tqdm import tqdm
+
+                starts_bar = tqdm(total=starts, desc=f"starts ({min(jobs, starts)} at once)", unit="start")
+            try:  # (then the best start is polished here: the "calibrating" bar's iterations)
+                result = fit_starts_in_parallel(replay, observed, names, bounds, start_list, jobs, template, weigh,
+                                                progress=report, bar=starts_bar)
+            finally:
+                if starts_bar is not None:
+                    starts_bar.close()
+        else:
+            result = fit(replay, observed, names, start_list, bounds, progress=report, weigh_by_residuals=weigh)
     finally:
         if bar is not None:
             bar.close()
@@ -462,6 +479,93 @@ def check_jobs(jobs: int) -> int:
     return int(jobs)
 
 
+def run_jobs(fn, work: list, jobs: int, bar=None) -> list:
+    """``[fn(w) for w in work]``, in ``jobs`` spawned worker processes when ``jobs`` > 1 (each
+    with its share of the cores for Numba's threads); ``bar`` (tqdm) counts each job done.
+    ``fn`` and the jobs must pickle (module-level function, dataclasses)."""
+    results = [None] * len(work)
+    if jobs == 1:
+        for i, job in enumerate(work):
+            results[i] = fn(job)
+            if bar is not None:
+                bar.update(1)
+        return results
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    workers = min(jobs, len(work))
+    threads = max(1, len(os.sched_getaffinity(0)) // workers)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_worker_threads, initargs=(threads,)) as pool:
+        pending = {pool.submit(fn, job): i for i, job in enumerate(work)}
+        for done in as_completed(pending):
+            results[pending[done]] = done.result()
+            if bar is not None:
+                bar.update(1)
+    return results
+
+
+@dataclass
+class StartFitJob:
+    """One start of a multi-start fit (``--starts N --jobs M``): what a worker process needs."""
+
+    env_id: str
+    env_kwargs: dict
+    law: str | None
+    observation: object  # envs.observations.Observation
+    fit_names: tuple
+    point_scale: float
+    force_scale: float
+    wrist_reach: float | None
+    regions: tuple | None
+    start: np.ndarray
+
+
+def fit_start(job: StartFitJob):
+    """The fit from ``job.start`` alone, at the given residual scales
+    (:class:`heml_gym.calibration.FitResult`), or ``{"error": why}`` where its replay cannot
+    be followed. A module-level function: ``--jobs`` runs it in worker processes."""
+    from heml_gym.calibration import ReplayError, fit
+    from heml_gym.envs.observations import calibration_problem
+
+    env = _make(job.env_id, job.env_kwargs, physics_overrides(law=job.law))
+    try:
+        replay, observed, names, bounds, _ = calibration_problem(
+            env, job.observation, job.fit_names, job.point_scale, job.force_scale, wrist_reach=job.wrist_reach,
+            regions=job.regions)
+        return fit(replay, observed, names, [job.start], bounds)
+    except ReplayError as exc:
+        return {"error": str(exc)}
+
+
+def fit_starts_in_parallel(replay, observed, names, bounds, start_list, jobs: int, job: StartFitJob,
+                           weigh_by_residuals: bool, progress=None, bar=None):
+    """:func:`heml_gym.calibration.fit` from each of ``start_list``, the starts in ``jobs``
+    worker processes (:func:`fit_start`, ``job`` a template whose ``start`` each takes), then,
+    in this process, the best start's fit polished from its optimum (and, with
+    ``weigh_by_residuals``, re-weighed as :func:`~heml_gym.calibration.fit` does): the result
+    of the serial multi-start up to the fits' tolerance, with every start's record."""
+    import dataclasses
+
+    from heml_gym.calibration import ReplayError, fit
+
+    runs = run_jobs(fit_start, [dataclasses.replace(job, start=np.asarray(s, dtype=np.float64)) for s in start_list],
+                    jobs, bar)
+    fitted = [r for r in runs if not isinstance(r, dict)]
+    if not fitted:
+        raise ReplayError(runs[0]["error"])
+    best = min(fitted, key=lambda r: r.loss)
+    result = fit(replay, observed, names, [best.theta], bounds, progress=progress,
+                 weigh_by_residuals=weigh_by_residuals)
+    starts = [record for r, s in zip(runs, start_list)  # (a start whose replay failed: why)
+              for record in ([{"start": np.asarray(s, dtype=np.float64).tolist(), "error": r["error"]}]
+                             if isinstance(r, dict) else r.starts)]
+    return dataclasses.replace(result, starts=starts, history=best.history + result.history,
+                               wall_s=sum(r.wall_s for r in fitted) + result.wall_s,
+                               failed_trials=sum(r.failed_trials for r in fitted) + result.failed_trials)
+
+
 def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float, force_scale: float,
                progress: bool = True, wrist_reach: float | None = None, regions=None,
                weigh_by_residuals: bool = False, jobs: int = 1) -> tuple[str, list[dict]]:
@@ -499,31 +603,11 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
 
         bar = tqdm(total=len(laws), desc="laws" + (f" ({min(jobs, len(laws))} at once)" if jobs > 1 else ""),
                    unit="law")
-    by_law = {}
     try:
-        if jobs == 1:
-            for job in work:
-                by_law[job.law] = fit_law(job)
-                if bar is not None:
-                    bar.update(1)
-        else:
-            import multiprocessing
-            import os
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            workers = min(jobs, len(laws))
-            threads = max(1, len(os.sched_getaffinity(0)) // workers)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=_worker_threads, initargs=(threads,)) as pool:
-                pending = {pool.submit(fit_law, job): job.law for job in work}
-                for done in as_completed(pending):
-                    by_law[pending[done]] = done.result()
-                    if bar is not None:
-                        bar.update(1)
+        records = run_jobs(fit_law, work, min(jobs, len(work)), bar)
     finally:
         if bar is not None:
             bar.close()
-    records = [by_law[name] for name in laws]
     usable = [r for r in records if "heldout_rms_m" in r and r["converged"]]
     if not usable:
         raise ValueError("--law auto: no law could be fitted (see each law's record)")

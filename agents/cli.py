@@ -467,8 +467,8 @@ def main(argv=None) -> int:
                                         "mesh; '{}': the env's own)")
     c.add_argument("--starts", type=int, default=1, help="L-BFGS starts (the scene's values, then random ones)")
     c.add_argument("--jobs", type=int, default=1,
-                   help="with --law auto: fit the laws in this many worker processes at once (each about 1.5 GB; "
-                        "the cores shared among them), default 1")
+                   help="with --law auto: fit the laws in this many worker processes at once; else with --starts "
+                        "N: the starts (each worker about 1.5 GB; the cores shared among them), default 1")
     c.add_argument("--point-scale", type=float, default=None,
                    help="tracked points' residual scale (their noise), m; neither scale given: 1 mm and 0.05 N to "
                         "start, then points and force each weighed by their own residual")

@@ -161,7 +161,8 @@ def paired_rms_interval(a: Sequence[float], b: Sequence[float], samples: int = B
 class FitResult:
     """A fit's outcome: ``theta`` (the constants), ``std`` (their standard errors),
     ``loss``, ``converged`` with ``message``, ``history`` (loss per iteration of the best
-    start), ``starts`` (each start's theta, loss and iterations), ``residual_rms`` (each
+    start), ``starts`` (each start's theta, loss and iterations; with the residual weights
+    re-fitted, those of the first fit, from every start), ``residual_rms`` (each
     observed quantity's RMS residual in its unit: ``points_m``, ``force_N``),
     ``wall_s``, ``by_quantity`` (with two or more observed quantities: each one's own
     estimate, ``{name: {"theta": ..., "std": ...}}``, one Gauss-Newton step from ``theta``
@@ -212,7 +213,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
     result = _fit(replay, observed, names, starts, bounds, max_iter, gtol, ftol, progress)
     if not (weigh_by_residuals and observed.points is not None and observed.force is not None):
         return result
-    history, wall, failed = list(result.history), result.wall_s, result.failed_trials
+    history, wall, failed, starts = list(result.history), result.wall_s, result.failed_trials, result.starts
     for _ in range(SCALE_ROUNDS - 1):
         scales = (max(result.residual_rms["points_m"], 1e-6), max(result.residual_rms["force_N"], 1e-6))
         if all(abs(new / old - 1.0) <= SCALE_TOLERANCE
@@ -223,7 +224,7 @@ def fit(replay: Replay, observed: Observed, names: Sequence[str], starts: Sequen
         history += result.history
         wall += result.wall_s
         failed += result.failed_trials
-    return dataclasses.replace(result, history=history, wall_s=wall, failed_trials=failed)
+    return dataclasses.replace(result, history=history, wall_s=wall, failed_trials=failed, starts=starts)
 
 
 def _fit(replay: Replay, observed: Observed, names, starts, bounds, max_iter, gtol, ftol, progress) -> FitResult:
