@@ -146,7 +146,7 @@ def rllib(data: dict) -> str:
     per_seed = []
     for s in seeds:
         first = s["first_eval_at_90_percent"]
-        reach = f"passed 90 % at {first // 1000} k env steps" if first is not None else "never reached 90 %"
+        reach = f"passed 90 % at {round(first / 1000)} k env steps" if first is not None else "never reached 90 %"
         per_seed.append(f"seed {s['seed']} {reach}, final {s['final_success_rate']:.0%} in {s['wall_s'] / 60:.0f} min")
     env = data["env"].split("/")[-1]
     claim = f"{sum(f >= 0.9 for f in finals)} of {len(seeds)} seeds ended at >= 90 %"
