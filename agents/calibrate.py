@@ -604,7 +604,7 @@ def select_law(env_id: str, obs, fit_names, env_kwargs: dict, point_scale: float
         bar = tqdm(total=len(laws), desc="laws" + (f" ({min(jobs, len(laws))} at once)" if jobs > 1 else ""),
                    unit="law")
     try:
-        records = run_jobs(fit_law, work, min(jobs, len(work)), bar)
+        records = run_jobs(fit_law, work, jobs, bar)
     finally:
         if bar is not None:
             bar.close()
