@@ -6,7 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["iqm", "iqm_interval"]
+__all__ = ["SEEDS_FOR_AN_IQM", "iqm", "iqm_interval"]
+
+#: The fewest runs (seeds) whose IQM the reports quote: with 1 or 2 the IQM is the mean of all
+#: of them and its interval says little, so reports list each seed instead.
+SEEDS_FOR_AN_IQM = 3
 
 
 def iqm(scores) -> float:

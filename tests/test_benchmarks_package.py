@@ -53,3 +53,26 @@ def test_bench_lists_runs_into_out_and_refuses_unknown_names(tmp_path, capsys):
     table = (tmp_path / "o" / "benchmarks" / "env_throughput_comparison.md").read_text()
     assert "| env | actions | N | threads |" in table
     assert (stored / "env_throughput_comparison.md").stat().st_mtime_ns == before  # the checkout's docs untouched
+
+
+def test_learning_reports_quote_an_iqm_only_from_enough_seeds():
+    """With fewer seeds than SEEDS_FOR_AN_IQM the reports list each seed and quote no IQM
+    (with 2 the IQM is their plain mean); with enough they quote it."""
+    import json
+
+    from heml_gym.agents.stats import SEEDS_FOR_AN_IQM
+    from heml_gym.benchmarks.common import RESULTS
+    from heml_gym.benchmarks.learning import quick_sweep, rllib_learning
+    from heml_gym.benchmarks.report import readme_results
+
+    assert SEEDS_FOR_AN_IQM == 3
+    stored = json.loads((RESULTS / "rllib_learning.json").read_text())
+    assert len(stored["seeds"]) >= SEEDS_FOR_AN_IQM
+    for n, quoted in [(SEEDS_FOR_AN_IQM - 1, False), (SEEDS_FOR_AN_IQM, True)]:
+        few = {**stored, "seeds": stored["seeds"][:n]}
+        assert ("IQM" in rllib_learning.report(few)) is quoted
+        assert ("IQM" in readme_results.rllib(few)) is quoted
+    sweep = json.loads((RESULTS / "quick_sweep.json").read_text())
+    for n, quoted in [(SEEDS_FOR_AN_IQM - 1, False), (SEEDS_FOR_AN_IQM, True)]:
+        few = {**sweep, "seeds": sweep["seeds"][:n], "seeds_finished": n}
+        assert ("IQM of the final success" in quick_sweep.table(few)) is quoted

@@ -56,6 +56,8 @@ def cpus(n: float) -> str:
 
 
 def table(result: dict, name: str = "quick_sweep") -> str:
+    from heml_gym.agents.stats import SEEDS_FOR_AN_IQM
+
     m = result["machine"]
     rows = []
     for s in result["seeds"]:
@@ -71,9 +73,11 @@ def table(result: dict, name: str = "quick_sweep") -> str:
             f"{m['date']}, {result['trials_at_once']} at a time with {cpus(result.get('cpus_per_trial', 1))} each "
             f"(`{result.get('command', 'python benchmarks/learning/quick_sweep.py')}`). Final success: 20 fresh seeded evaluation episodes, "
             "deterministic policy, 95 % Wilson interval." + (f" {result['note']}" if result.get("note") else "") + "\n\n")
-    summary = (f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**; IQM of the "
-               f"final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "
-               f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%}).\n" if "iqm" in result else "")
+    summary = f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**"
+    if "iqm" in result and result["seeds_finished"] >= SEEDS_FOR_AN_IQM:
+        summary += (f"; IQM of the final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "
+                    f"{result['iqm_ci95'][0]:.0%}-{result['iqm_ci95'][1]:.0%})")
+    summary += ".\n"
     chart = f"\n![success vs env steps, every seed and the IQM](../img/{name}.png)\n"
     return head + markdown_table(["seed", "final success", "first eval >= 90 % at (steps)",
                                   f"evaluations (every {result.get('evaluation_every_steps', 40000) // 1000} k steps)",

@@ -37,7 +37,7 @@ def seed_row(s: dict) -> list:
 
 
 def report(data: dict) -> str:
-    from heml_gym.agents.stats import iqm, iqm_interval
+    from heml_gym.agents.stats import SEEDS_FOR_AN_IQM, iqm, iqm_interval
 
     seeds = data["seeds"]
     head = (f"{generated_by(data)}: `{data['config']}`, {data['env_runners']} env runners of "
@@ -49,7 +49,7 @@ def report(data: dict) -> str:
     finals = [s["final_success_rate"] for s in seeds]
     reached = sum(f >= BAR for f in finals)
     text += f"\nFinal success >= 90 % on **{reached} of {len(seeds)}** seeds"
-    if len(finals) >= 2:
+    if len(finals) >= SEEDS_FOR_AN_IQM:
         lo, hi = iqm_interval(finals)
         text += f"; IQM {iqm(finals):.0%} (95 % bootstrap interval {lo:.0%}-{hi:.0%})"
     return text + ".\n\n![RLlib PPO success vs env steps, each seed](../img/rllib_learning.png)\n"

@@ -112,6 +112,8 @@ def pixels(data: dict) -> str:
     """The pixel baseline of one env: per seed when fewer than 3 finished (no claim), else
     how many seeds passed 80 % within the budget and the final success's IQM, every seed
     listed."""
+    from heml_gym.agents.stats import SEEDS_FOR_AN_IQM
+
     done = [s for s in data["seeds"] if s["status"] == "finished"]
     if not done:
         return ""
@@ -123,8 +125,9 @@ def pixels(data: dict) -> str:
         reach = f"passed 80 % at {first // 1000} k env steps" if first is not None else "never passed 80 %"
         per_seed.append(f"seed {s['seed']} {reach}, final {s['success_rate']:.0%} at {s['env_steps'] // 1000} k "
                         f"steps in {s['wall_s'] / 60:.0f} min")
-    if len(done) < 3:
-        claim = f"{len(done)} seed{'s' if len(done) > 1 else ''} on record, fewer than the 3 a claim needs: "
+    if len(done) < SEEDS_FOR_AN_IQM:
+        claim = (f"{len(done)} seed{'s' if len(done) > 1 else ''} on record, fewer than the {SEEDS_FOR_AN_IQM} a claim "
+                 "needs: ")
     else:
         low, high = data["iqm_ci95"]
         claim = (f"{passed} of {len(done)} seeds passed 80 % within {max(s['env_steps'] for s in done) // 1000} k env "
@@ -136,8 +139,8 @@ def pixels(data: dict) -> str:
 
 def rllib(data: dict) -> str:
     """RLlib PPO on the flap: every seed's first evaluation at >= 90 % and final success,
-    with the final success's IQM when 3 or more seeds are on record."""
-    from heml_gym.agents.stats import iqm, iqm_interval
+    with the final success's IQM when enough seeds are on record (``SEEDS_FOR_AN_IQM``)."""
+    from heml_gym.agents.stats import SEEDS_FOR_AN_IQM, iqm, iqm_interval
 
     seeds = data["seeds"]
     if not seeds:
@@ -150,7 +153,7 @@ def rllib(data: dict) -> str:
         per_seed.append(f"seed {s['seed']} {reach}, final {s['final_success_rate']:.0%} in {s['wall_s'] / 60:.0f} min")
     env = data["env"].split("/")[-1]
     claim = f"{sum(f >= 0.9 for f in finals)} of {len(seeds)} seeds ended at >= 90 %"
-    if len(seeds) >= 3:
+    if len(seeds) >= SEEDS_FOR_AN_IQM:
         low, high = iqm_interval(finals)
         claim += f" (final success IQM {iqm(finals):.0%}, 95 % CI {low:.0%}-{high:.0%})"
     return (f"**RLlib ({env}).** RLlib PPO with {data['env_runners']} env runners of {data['scenes_per_runner']} "
