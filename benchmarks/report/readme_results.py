@@ -70,14 +70,16 @@ def quickstart_elsewhere(data: dict) -> str:
     if not done:
         return ""
     wall = sorted(s["wall_s"] / 60 for s in done)
-    rates = ", ".join(f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done)
+    ended = ", ".join(f"seed {s['seed']} at {s['success_rate']:.0%}" for s in done)
     took = f"{wall[0]:.1f} min" if len(wall) == 1 else f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed"
     if data.get("trials_at_once", 1) == 1 and data.get("cpus_per_trial", 1) >= 2 and not data.get("machine_loaded"):
         how = "alone on the machine with both cores, as `scripts/main.sh` runs it"
     else:
         how = f"{data.get('trials_at_once', 1)} at a time{beside_other_work(data)}"
-    return (f" On an AVX2-only machine ({where(data)}; today's code) with a seed no config was tuned on, "
-            f"training took {took} ({how}) and ended at {rates} ([per seed](quick_sweep_avx2.md)).")
+    task = " and ".join(f"{name.split('/')[-1]}-{version}" for name, version in data.get("tasks", {}).items())
+    seeds = "a seed" if len(done) == 1 else "seeds"
+    return (f" On an AVX2-only machine ({where(data)}{f'; {task}' if task else ''}) with {seeds} no config was tuned "
+            f"on, training took {took} ({how}) and ended with {ended} ([per seed](quick_sweep_avx2.md)).")
 
 
 def quickstart_quiet(data: dict) -> str:
