@@ -22,6 +22,11 @@ def load(name: str) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
+def task_versions(data: dict) -> str:
+    """The tasks a stored result measured, e.g. "TissueRetraction-v1" ("" if it does not say)."""
+    return " and ".join(f"{name.split('/')[-1]}-{version}" for name, version in data.get("tasks", {}).items())
+
+
 def where(data: dict) -> str:
     m = data["machine"]
     isa = f", {m['vector_isa']}" if "vector_isa" in m else ""  # results stored before 2026-11-25 lack it
@@ -76,7 +81,7 @@ def quickstart_elsewhere(data: dict) -> str:
         how = "alone on the machine with both cores, as `scripts/main.sh` runs it"
     else:
         how = f"{data.get('trials_at_once', 1)} at a time{beside_other_work(data)}"
-    task = " and ".join(f"{name.split('/')[-1]}-{version}" for name, version in data.get("tasks", {}).items())
+    task = task_versions(data)
     seeds = "a seed" if len(done) == 1 else "seeds"
     return (f" On an AVX2-only machine ({where(data)}{f'; {task}' if task else ''}) with {seeds} no config was tuned "
             f"on, training took {took} ({how}) and ended with {ended} ([per seed](quick_sweep_avx2.md)).")
@@ -111,7 +116,7 @@ def avx2_slowdown() -> str:
 
 
 def pixels(data: dict) -> str:
-    """The pixel baseline of one env: per seed when fewer than 3 finished (no claim), else
+    """The pixel baseline of one env: per seed when fewer than ``SEEDS_FOR_AN_IQM`` finished (no claim), else
     how many seeds passed 80 % within the budget and the final success's IQM, every seed
     listed."""
     from heml_gym.agents.stats import SEEDS_FOR_AN_IQM
@@ -119,7 +124,7 @@ def pixels(data: dict) -> str:
     done = [s for s in data["seeds"] if s["status"] == "finished"]
     if not done:
         return ""
-    env = " and ".join(f"{name.split('/')[-1]}-{version}" for name, version in data.get("tasks", {}).items())
+    env = task_versions(data)
     per_seed, passed = [], 0
     for s in done:
         first = next((e["env_steps"] for e in s["evaluations"] if e["success_rate"] >= 0.8), None)
