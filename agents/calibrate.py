@@ -61,6 +61,18 @@ def _make(env_id: str, kwargs: dict, physics: dict | None = None):
     return gym.make(env_id, max_episode_steps=episode_steps(kwargs), **kwargs)
 
 
+def _problem(env_id: str, env_kwargs: dict, law: str | None, observation, fit_names, point_scale: float,
+             force_scale: float, wrist_reach: float | None, regions):
+    """The env of ``env_id`` (with ``law``, or the scene's) and its calibration problem for
+    ``observation``: ``(env, (replay, observed, names, bounds, start))``
+    (:func:`heml_gym.envs.observations.calibration_problem`)."""
+    from heml_gym.envs.observations import calibration_problem
+
+    env = _make(env_id, env_kwargs, physics_overrides(law=law))
+    return env, calibration_problem(env, observation, tuple(fit_names), point_scale, force_scale,
+                                    wrist_reach=wrist_reach, regions=regions)
+
+
 def _check_wrist_reach(wrist_reach: float | None) -> None:
     """``--wrist-reach``: None (the scene's grasp) or a positive distance in metres."""
     if wrist_reach is not None and not (math.isfinite(wrist_reach) and wrist_reach > 0):
@@ -143,8 +155,7 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     from heml_gym.calibration import DEFAULT_FORCE_SCALE, DEFAULT_POINT_SCALE, embed_points, fit
     from heml_gym.envs import SAME_STATE_TASK, unknown_env_message
     from heml_gym.envs.calibration_models import calibration_model
-    from heml_gym.envs.observations import (QUANTITIES, calibration_problem, fit_parameter, keep_observed,
-                                            load_observation)
+    from heml_gym.envs.observations import QUANTITIES, fit_parameter, keep_observed, load_observation
     from heml_gym.mesh import box_regions
 
     import gymnasium as gym
@@ -185,9 +196,8 @@ def calibrate(env_id: str | None, observation: str, out: str, fit_names=("young_
     if law == "auto":
         law, selection = select_law(env_id, obs, tuple(fit_names), kwargs, point_scale, force_scale,
                                     progress, wrist_reach, grid, weigh, jobs)
-    env = _make(env_id, kwargs, physics_overrides(law=law))
-    replay, observed, names, bounds, start = calibration_problem(env, obs, tuple(fit_names), point_scale,
-                                                                 force_scale, wrist_reach=wrist_reach, regions=grid)
+    env, (replay, observed, names, bounds, start) = _problem(env_id, kwargs, law, obs, fit_names, point_scale,
+                                                             force_scale, wrist_reach, grid)
     first = np.array(start, dtype=np.float64)
     start_list = [first]
     rng = np.random.default_rng(0)
@@ -445,13 +455,11 @@ def fit_law(job: LawFitJob) -> dict:
     the held-out half: the law's record of :func:`select_law` (``error``: a replay that
     could not be made). A module-level function: ``--jobs`` runs it in worker processes."""
     from heml_gym.calibration import ReplayError, embed_points, fit
-    from heml_gym.envs.observations import calibration_problem
 
-    env = _make(job.env_id, job.env_kwargs, physics_overrides(law=job.law))
     try:
-        replay, observed, names, bounds, start = calibration_problem(
-            env, job.part, job.fit_names, job.point_scale, job.force_scale, wrist_reach=job.wrist_reach,
-            regions=job.regions)
+        _, (replay, observed, names, bounds, start) = _problem(
+            job.env_id, job.env_kwargs, job.law, job.part, job.fit_names, job.point_scale, job.force_scale,
+            job.wrist_reach, job.regions)
         result = fit(replay, observed, names, [start], bounds, weigh_by_residuals=job.weigh_by_residuals)
         predicted = replay.run(result.theta)
     except ReplayError as exc:
@@ -527,13 +535,11 @@ def fit_start(job: StartFitJob):
     (:class:`heml_gym.calibration.FitResult`), or ``{"error": why}`` where its replay cannot
     be followed. A module-level function: ``--jobs`` runs it in worker processes."""
     from heml_gym.calibration import ReplayError, fit
-    from heml_gym.envs.observations import calibration_problem
 
-    env = _make(job.env_id, job.env_kwargs, physics_overrides(law=job.law))
     try:
-        replay, observed, names, bounds, _ = calibration_problem(
-            env, job.observation, job.fit_names, job.point_scale, job.force_scale, wrist_reach=job.wrist_reach,
-            regions=job.regions)
+        _, (replay, observed, names, bounds, _) = _problem(
+            job.env_id, job.env_kwargs, job.law, job.observation, job.fit_names, job.point_scale, job.force_scale,
+            job.wrist_reach, job.regions)
         return fit(replay, observed, names, [job.start], bounds)
     except ReplayError as exc:
         return {"error": str(exc)}
