@@ -1,6 +1,7 @@
-"""RLlib PPO learning on TissueRetraction-v1: the distributed-sampling path learns the task.
+"""RLlib PPO learning on either env: the distributed-sampling path learns the task.
 
-Trains ``configs/tissue_rllib_ppo.yaml`` (RLlib PPO, env runners each holding a batched
+Trains a run config (default ``configs/tissue_rllib_ppo.yaml`` on TissueRetraction-v1;
+``configs/organ_rllib_ppo.yaml`` on OrganRetraction-v2) (RLlib PPO, env runners each holding a batched
 vector env of 16 scenes) on a local Ray instance, once per seed, evaluating every 25 k
 env steps on 20 fresh seeded episodes (deterministic policy, the same evaluation as
 ``heml-gym eval``), and stores each seed's evaluation history, wall time, median
@@ -8,10 +9,11 @@ sampling+training env steps per second and first evaluation at >= 90 % success, 
 seed finishes (an interrupted study keeps the seeds it ran), then the IQM of the final
 success across seeds with its 95 % bootstrap interval.
 
-Writes docs/benchmarks/rllib_learning.{json,md} and docs/img/rllib_learning.png.
+Writes docs/benchmarks/NAME.{json,md} and docs/img/NAME.png (``--name``, default
+rllib_learning; the lobe's study is rllib_learning_organ).
 
     python -m heml_gym.benchmarks.learning.rllib_learning [--seeds 0,1,2] [--config configs/tissue_rllib_ppo.yaml]
-        [--out runs/rllib-learning] [--from-json]
+        [--name rllib_learning] [--out runs/rllib-learning] [--from-json]
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ def report(data: dict) -> str:
     if len(finals) >= SEEDS_FOR_AN_IQM:
         lo, hi = iqm_interval(finals)
         text += f"; IQM {iqm(finals):.0%} (95 % bootstrap interval {lo:.0%}-{hi:.0%})"
-    return text + ".\n\n![RLlib PPO success vs env steps, each seed](../img/rllib_learning.png)\n"
+    return text + f".\n\n![RLlib PPO success vs env steps, each seed](../img/{data.get('name', NAME)}.png)\n"
 
 
 def plot(data: dict, path: Path) -> None:
@@ -102,11 +104,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0,1,2", help="seeds, comma-separated, trained one after another")
     ap.add_argument("--config", default=str(ROOT / "configs" / "tissue_rllib_ppo.yaml"))
+    ap.add_argument("--name", default=NAME, help="the stored result's name (docs/benchmarks/NAME.json)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "rllib-learning"), help="folder of the runs (checkpoints)")
     ap.add_argument("--from-json", action="store_true", help="only rebuild the table and chart from the stored result")
     args = ap.parse_args(argv)
+    if not args.name.isidentifier():
+        ap.error(f"--name must be letters, digits and underscores (a file name), got {args.name!r}")
     if args.from_json:
-        data = store_and_report(NAME, None, report)
+        data = store_and_report(args.name, None, report)
     else:
         from heml_gym.agents.config import load_config
 
@@ -116,14 +121,14 @@ def main(argv=None) -> int:
             ap.error(f"--seeds must be integers separated by commas, got {args.seeds!r}")
         cfg = load_config(args.config, {})
         data = {"machine": machine_info(), "command": command_line(f"heml_gym.benchmarks.learning.{NAME}", ap, args),
-                "config": str(Path(args.config).resolve().relative_to(ROOT)), "env": cfg.env.id,
+                "name": args.name, "config": str(Path(args.config).resolve().relative_to(ROOT)), "env": cfg.env.id,
                 "env_runners": int(cfg.algorithm.hyperparameters.get("num_env_runners", 1)),
                 "scenes_per_runner": cfg.env.num_envs, "seeds": []}
         for seed in seeds:
             data["seeds"].append(run_seed(args.config, seed, Path(args.out).resolve()))
-            data = store_and_report(NAME, data, report, envs=[cfg.env.id])  # each seed stored as it finishes
+            data = store_and_report(args.name, data, report, envs=[cfg.env.id])  # each seed stored as it finishes
     IMAGES.mkdir(parents=True, exist_ok=True)
-    plot(data, IMAGES / f"{NAME}.png")
+    plot(data, IMAGES / f"{args.name}.png")
     return 0
 
 
