@@ -245,7 +245,7 @@ def test_one_factory_builds_every_solver_with_one_meaning_per_setting():
     assert make_solver(model, "quasi_newton").max_iter == 50 and make_solver(model, "implicit").max_newton == 20
     assert isinstance(make_solver(model, "explicit", safety=0.3), hg.ExplicitSolver)
     for args, argument in ((("rk4",), "integrator"), (("implicit", "heml", "bdf2"), "scheme"),
-                           (("quasi_newton", "fem"), "integrator"), (("explicit", "springs"), "field"),
+                           (("quasi_newton", "fem", "bdf2"), "scheme"), (("explicit", "springs"), "field"),
                            (("quasi_newton", "heml", "rk2"), "scheme")):
         with pytest.raises(SolverChoiceError) as err:
             check_solver_choice(*args)

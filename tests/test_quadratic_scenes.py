@@ -7,7 +7,6 @@ import pytest
 import heml_gym.envs  # noqa: F401  (registers the envs)
 from heml_gym import QuadraticFemForce, QuadraticTetMesh
 from heml_gym.envs import scripted
-from heml_gym.envs.spec import SpecError
 
 from env_checks import assert_random_steps_stay_finite
 
@@ -43,8 +42,3 @@ def test_the_scripted_fold_succeeds_on_quadratic_tets(seed):
         if terminated or truncated:
             break
     assert info["is_success"] and info["solver_converged"]
-
-
-def test_quadratic_tets_need_a_generic_integrator():
-    with pytest.raises(SpecError, match="integrator"):
-        gym.make(TISSUE, physics={"field": "quadratic", "integrator": "quasi_newton"})

@@ -8,6 +8,7 @@ meaning of every setting. Used by :class:`heml_gym.Simulation`, the environments
 
 from __future__ import annotations
 
+from ..forces.heml import HemlForce
 from ..model import FORCE_FIELDS, Model
 from .base import Solver
 from .explicit import ExplicitSolver
@@ -35,19 +36,20 @@ class SolverChoiceError(ValueError):
 def check_solver_choice(integrator: str, field: str | None = None, scheme: str = "backward_euler") -> None:
     """Raise :class:`SolverChoiceError` unless ``integrator`` (a name of
     :data:`INTEGRATORS`), the force ``field`` (a name of ``heml_gym.FORCE_FIELDS``, or None:
-    not known yet) and the time ``scheme`` go together: ``quasi_newton`` needs HEML,
-    ``bdf2`` needs ``quasi_newton``, ``implicit`` needs a field with a Hessian (all but
-    none: mass-spring has its own)."""
+    not known yet) and the time ``scheme`` go together: ``bdf2`` needs ``quasi_newton`` on
+    HEML; ``implicit`` and ``quasi_newton`` need a field with a Hessian (all have one:
+    mass-spring its own). ``quasi_newton`` steps HEML fields by
+    :class:`~heml_gym.QuasiNewtonSolver`, any other by the Newton solver's L-BFGS method."""
     if integrator not in INTEGRATORS:
         raise SolverChoiceError("integrator", f"must be one of {sorted(INTEGRATORS)}, got {integrator!r}")
     if field is not None and field not in FORCE_FIELDS:
         raise SolverChoiceError("field", f"must be one of {sorted(FORCE_FIELDS)}, got {field!r}")
     if scheme not in SCHEMES:
         raise SolverChoiceError("scheme", f"must be one of {sorted(SCHEMES)}, got {scheme!r}")
-    if integrator == "quasi_newton" and field not in (None, "heml"):
-        raise SolverChoiceError("integrator", f"'quasi_newton' needs field 'heml', got {field!r}")
     if scheme == "bdf2" and integrator != "quasi_newton":
         raise SolverChoiceError("scheme", f"'bdf2' needs integrator 'quasi_newton', got {integrator!r}")
+    if scheme == "bdf2" and field not in (None, "heml"):
+        raise SolverChoiceError("scheme", f"'bdf2' needs field 'heml', got {field!r}")
 
 
 def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str = "backward_euler",
@@ -60,15 +62,17 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
     * ``newton_tol``: an implicit (sub-)step stops at a force residual below this
       times the world's load (weight plus external forces);
     * ``max_iterations``: iterations per implicit (sub-)step at most: Newton's
-      (``implicit``, default 20) or L-BFGS's (``quasi_newton``, default 50); a solve that
-      stops above its tolerance is re-taken, then reported, never silent;
+      (``implicit``, default 20) or L-BFGS's (``quasi_newton``, default 50 on HEML, 200 on
+      other fields); a solve that stops above its tolerance is re-taken, then reported,
+      never silent;
     * ``refinements``: a (sub-)step that fails is taken again in this many times more
       (explicit) or shorter (implicit, quasi-Newton) sub-steps, in turn;
     * ``scheme``: ``"backward_euler"`` or (``quasi_newton`` only) ``"bdf2"``;
     * ``linear_solver``: Newton's linear solves (``implicit``): ``"pcg"`` or ``"direct"``;
     * ``hessian_scale``: the weight of the quasi-Newton initial Hessian's Laplacian in
       units of ``lambda + mu`` (``quasi_newton`` only; speed, not accuracy, see
-      :class:`~heml_gym.QuasiNewtonSolver`);
+      :class:`~heml_gym.QuasiNewtonSolver`; on other fields, of the rest stiffness, see
+      :class:`~heml_gym.ImplicitSolver`'s ``method="lbfgs"``);
     * ``max_speed`` (m/s): a vertex faster than this counts as exploded.
 
     Errors name the setting (:class:`SolverChoiceError`, or the solver's own ValueError
@@ -79,6 +83,13 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
         raise SolverChoiceError("hessian_scale", f"applies to integrator 'quasi_newton' only, got {integrator!r}")
     if integrator == "explicit":
         return ExplicitSolver(model, safety=safety, max_speed=max_speed, refinements=refinements)
+    heml = all(isinstance(f, HemlForce) for f in model.fields)
+    if integrator == "quasi_newton" and not heml:
+        if scheme != "backward_euler":
+            raise SolverChoiceError("scheme", f"{scheme!r} needs HEML force fields, got "
+                                              f"{type(next(f for f in model.fields if not isinstance(f, HemlForce))).__name__}")
+        return ImplicitSolver(model, newton_tol=newton_tol, max_newton=200 if max_iterations is None else max_iterations,
+                              method="lbfgs", hessian_scale=hessian_scale, max_speed=max_speed, refinements=refinements)
     if integrator == "quasi_newton":
         return QuasiNewtonSolver(model, newton_tol=newton_tol, max_iter=50 if max_iterations is None else max_iterations,
                                  refinements=refinements, max_speed=max_speed, scheme=scheme,

@@ -8,7 +8,13 @@ Per (sub-)step of length ``h``, each world's free positions minimise
 
 by Newton's method (:func:`heml_gym.solvers.newton.minimize`) with the field's analytic
 Hessian, a sparse linear solve (:class:`~heml_gym.linear_solvers.LaggedFactorPCG` or
-SuperLU) and a line search; then ``v = (x - x_n) / h``. Held vertices follow their
+SuperLU) and a line search, or (``method="lbfgs"``) by L-BFGS
+(:func:`heml_gym.solvers.newton.minimize_lbfgs`) from a scalar initial Hessian, axis by
+axis ``c M + s K_0 + diag(k_hold, contact)``: ``K_0`` the field's stiffness at rest summed
+over its three axis blocks (rest stiffness, so that it does not depend on how the tissue
+has turned; for linear tets a multiple of the P1 Laplacian, as
+:class:`~heml_gym.QuasiNewtonSolver`'s for HEML fields), ``s`` the ``hessian_scale``, the
+support penalty's diagonal on the vertices in contact; then ``v = (x - x_n) / h``. Held vertices follow their
 targets, fixed ones stay. A rigid support adds the penalty ``Phi_contact = sum_i k_i /2
 min(d_i, 0)^2`` (``d_i`` the vertex's signed distance, ``k_i = contact_stiffness * c m_i``),
 so that Newton sees the contact; the result is then projected onto the supports as in
@@ -21,14 +27,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..control import Control
-from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, FreeSubmatrix, LaggedFactorPCG
+from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeCholesky, FreeSubmatrix, LaggedFactorPCG
 from ..mesh import signed_volumes
 from ..model import Model
 from ..state import State
 from .base import Solver, StepStats, stiffness_damping
-from .newton import linear_response, minimize
+from .newton import linear_response, minimize, minimize_lbfgs
 from .quasi_newton import penalised_hessian
 
 __all__ = ["ImplicitSolver"]
@@ -76,13 +83,32 @@ class ImplicitSolver(Solver):
         steps, then the next number of them (``()``: never). Whether Newton finds a start
         can depend on the CPU's rounding: on the lobe with Demiray's law, one of 50 random
         steps had none when compiled for plain x86-64 (SSE2), and converged re-taken in 4.
+    method : {"newton", "lbfgs"}
+        How each sub-step's potential is minimised: Newton's method (the field's Hessian
+        at every iteration) or L-BFGS (one factorisation of the scalar initial Hessian,
+        kept while the held vertices, the step length, the hold springs and, to within
+        ``contact_refresh`` vertices, the vertices in contact stay the same; see the
+        module docstring). ``max_newton`` then counts L-BFGS iterations; Newton's
+        ``linear_solver`` and ``stall_limit`` do not apply.
+    history : int
+        L-BFGS's memory: the pairs of past steps and gradient changes it keeps (within a
+        sub-step).
+    hessian_scale : float
+        The weight ``s`` of the rest stiffness in L-BFGS's initial Hessian (speed, not
+        accuracy: it changes the iterations a sub-step takes, not where it converges).
+    contact_refresh : int
+        L-BFGS's initial Hessian is factorised again when the vertices in contact differ
+        from those it holds by more than this many.
     """
 
     takes_hold_springs = True
 
+    METHODS = ("newton", "lbfgs")
+
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_newton: int = 20,
                  linear_solver: str = "pcg", contact_stiffness: float = 100.0, stall_limit: int | None = 5,
-                 max_speed: float = 1e3, refinements=(4, 16)):
+                 max_speed: float = 1e3, refinements=(4, 16), method: str = "newton", history: int = 8,
+                 hessian_scale: float = 1.0, contact_refresh: int = 50):
         super().__init__(model, max_speed)
         for f in model.fields:
             if not f.has_hessian:
@@ -102,6 +128,18 @@ class ImplicitSolver(Solver):
             raise ValueError(f"refinements must be integers > 1 (sub-steps to split a failed one into), "
                              f"got {refinements!r}")
         self.refinements = tuple(int(r) for r in refinements)
+        if method not in self.METHODS:
+            raise ValueError(f"method must be one of {list(self.METHODS)}, got {method!r}")
+        for name, value, low in (("history", history, 1), ("contact_refresh", contact_refresh, 0)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        hessian_scale = float(hessian_scale)
+        if not (math.isfinite(hessian_scale) and hessian_scale > 0):
+            raise ValueError(f"hessian_scale must be a positive number, got {hessian_scale}")
+        self.method = method
+        self.history = int(history)
+        self.hessian_scale = hessian_scale
+        self.contact_refresh = int(contact_refresh)
         self.newton_tol = newton_tol
         self.max_newton = int(max_newton)
         self.linear_solver = linear_solver
@@ -112,11 +150,60 @@ class ImplicitSolver(Solver):
         self._submatrix = [FreeSubmatrix() for _ in range(n)]
         self._add_diagonal = DiagonalAdd()
         self._add_blocks = DiagonalBlockAdd()
+        self._rest_stiffness: list = [None] * n  # per world: (field, K_0 scalar CSR n x n, N/m)
+        self._initial_hessian: list = [None] * n  # per world: (key, touching mask, factors per axis)
 
     def forget(self, worlds) -> None:
         """Drop the lagged factorisations of ``worlds`` (see :meth:`Solver.forget`)."""
         for s in np.atleast_1d(worlds):
             self.pcg[int(s)].reset()
+            self._initial_hessian[int(s)] = None
+
+    def _scalar_rest_stiffness(self, s, field):
+        """World ``s``'s ``K_0`` (CSR, n x n, N/m): its field's stiffness at the rest
+        positions, the three axis blocks summed (cached while the world keeps its field)."""
+        cached = self._rest_stiffness[s]
+        if cached is None or cached[0] is not field:
+            k = field.hessian(field.mesh.vertices, project=True).tocsr()
+            cached = (field, (k[0::3, 0::3] + k[1::3, 1::3] + k[2::3, 2::3]).tocsr())
+            self._rest_stiffness[s] = cached
+        return cached[1]
+
+    def _lbfgs_preconditioner(self, s, field, c, free_v, k_hold, touching, normal, k_contact):
+        """``r -> A^-1 r`` on the free dofs, ``A`` axis by axis ``c M + s K_0 +
+        diag(k_hold) + diag(k_contact n_a^2 on the touching vertices)`` (see the module
+        docstring), its factors kept while nothing it holds changes (the vertices in
+        contact: to within ``contact_refresh``)."""
+        key = (free_v.tobytes(), float(c), k_hold.tobytes(), id(self._scalar_rest_stiffness(s, field)))
+        held = self._initial_hessian[s]
+        if (held is None or held[0] != key
+                or int(np.count_nonzero(held[1] != touching)) > self.contact_refresh):
+            m = self.model
+            free = np.flatnonzero(free_v)
+            base = (self.hessian_scale * self._scalar_rest_stiffness(s, field))[free][:, free].tocsr()
+            base.sort_indices()
+            diagonal = c * m.mass + k_hold
+            penalty = np.zeros((3, m.n_vertices))
+            if touching.any():
+                penalty[:, touching] = (k_contact[touching, None] * normal[touching] ** 2).T
+            factors, done = [], {}
+            for a in range(3):
+                d = (diagonal + penalty[a])[free]
+                tag = d.tobytes()
+                if tag not in done:
+                    done[tag] = EnvelopeCholesky((base + sp.diags(d)).tocsr())
+                factors.append(done[tag])
+            held = (key, touching.copy(), factors)
+            self._initial_hessian[s] = held
+        factors = held[2]
+
+        def precondition(r):
+            r = r.reshape(-1, 3)
+            z = np.empty_like(r)
+            for a in range(3):
+                z[:, a] = factors[a].solve(r[:, a])
+            return z.reshape(-1)
+        return precondition
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float,
              substeps: int = 1, active=None) -> StepStats:
@@ -272,9 +359,17 @@ class ImplicitSolver(Solver):
 
         x = self._feasible_start(s, field, x_n, v_n, h, control, targets, potential, hessian)
         free = np.repeat(free_v, 3)
-        pcg = self.pcg[s] if self.linear_solver == "pcg" else None
-        result = minimize(x, potential, gradient, hessian, free, tol, self.max_newton, self._submatrix[s],
-                          pcg, (free.tobytes(), h), self.stall_limit)
+        if self.method == "lbfgs":
+            touching, normal = np.zeros(m.n_vertices, dtype=bool), None
+            if len(supports):
+                pen, normal = contact(x)
+                touching = pen < 0
+            precondition = self._lbfgs_preconditioner(s, field, c, free_v, k_hold, touching, normal, k_contact)
+            result = minimize_lbfgs(x, potential, gradient, precondition, free, tol, self.max_newton, self.history)
+        else:
+            pcg = self.pcg[s] if self.linear_solver == "pcg" else None
+            result = minimize(x, potential, gradient, hessian, free, tol, self.max_newton, self._submatrix[s],
+                              pcg, (free.tobytes(), h), self.stall_limit)
         if not result.finite:
             raise _Diverged("Newton iterate went non-finite")
         x = result.x

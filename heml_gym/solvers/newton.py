@@ -1,5 +1,5 @@
-"""Newton's method on a potential over the free degrees of freedom, as the implicit and
-static solvers use it (one world at a time)."""
+"""Newton's method, and L-BFGS, on a potential over the free degrees of freedom, as the
+implicit and static solvers use them (one world at a time)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import scipy.sparse.linalg as spla
 
 from ..linear_solvers import FreeSubmatrix
 
-__all__ = ["NewtonResult", "minimize", "linear_response"]
+__all__ = ["NewtonResult", "minimize", "minimize_lbfgs", "linear_response"]
 
 
 class NewtonResult:
@@ -89,6 +89,71 @@ def minimize(x, potential, gradient, hessian, free, tol, max_iter, submatrix: Fr
         previous, gnorm = gnorm, float(np.linalg.norm(g[free]))
         # at the round-off floor the residual stops falling: stop after stall_limit such steps
         stalled = stalled + 1 if gnorm > 0.99 * previous else 0
+    return NewtonResult(x, it, gnorm, tol)
+
+
+def minimize_lbfgs(x, potential, gradient, precondition, free, tol, max_iter, history: int = 8) -> NewtonResult:
+    """Minimise ``potential`` over the free dofs (``free``: ``(3n,)`` mask) from ``x`` by L-BFGS.
+
+    The quasi-Newton method of :class:`~heml_gym.QuasiNewtonSolver` for any force field,
+    in Python: each iteration's direction is the two-loop recursion over the last
+    ``history`` pairs of steps and gradient changes, its initial inverse Hessian
+    ``precondition(r)`` (``r`` the gradient on the free dofs, returns an approximation of
+    the Hessian's inverse applied to it; it must be symmetric positive definite); a
+    backtracking line search accepts a step that satisfies the Armijo condition on the
+    potential or, near convergence where its round-off hides the decrease, that reduces
+    the residual, and halves steps to non-finite energies. A direction that is not one of
+    descent restarts the recursion from ``precondition``. It stops when the residual (N,
+    the gradient's norm on the free dofs) is below ``tol``, after ``max_iter`` iterations
+    or when the line search finds no progress; the result says whether it converged.
+    """
+    x = np.array(x, dtype=np.float64)
+    flat = x.reshape(-1)
+    g = gradient(x)[free]
+    phi = potential(x)
+    gnorm = float(np.linalg.norm(g))
+    pairs: list = []  # (s, y, 1 / s.y), oldest first
+    it = 0
+    while gnorm > tol and it < max_iter:
+        it += 1
+        q = g.copy()
+        alphas = []
+        for s_k, y_k, rho in reversed(pairs):
+            a = rho * float(s_k @ q)
+            alphas.append(a)
+            q -= a * y_k
+        d = precondition(q)
+        for (s_k, y_k, rho), a in zip(pairs, reversed(alphas)):
+            d += (a - rho * float(y_k @ d)) * s_k
+        d = -d
+        slope = float(g @ d)
+        if not slope < 0.0:  # not a descent direction: restart from the initial inverse Hessian
+            pairs.clear()
+            d = -precondition(g)
+            slope = float(g @ d)
+            if not slope < 0.0:
+                break
+        step = 1.0
+        trial = x.copy()
+        trial_flat = trial.reshape(-1)
+        for _ in range(40):
+            trial_flat[free] = flat[free] + step * d
+            phi_t = potential(trial)
+            if np.isfinite(phi_t):
+                g_t = gradient(trial)[free]
+                if phi_t <= phi + 1e-4 * step * slope or np.linalg.norm(g_t) < (1.0 - 1e-4 * step) * gnorm:
+                    break
+            step *= 0.5
+        else:
+            break  # no progress possible at this precision: keep the best iterate
+        s_k, y_k = step * d, g_t - g
+        sy = float(s_k @ y_k)
+        if sy > 1e-300:
+            pairs.append((s_k, y_k, 1.0 / sy))
+            if len(pairs) > history:
+                pairs.pop(0)
+        x, flat, g, phi = trial, trial_flat, g_t, phi_t
+        gnorm = float(np.linalg.norm(g))
     return NewtonResult(x, it, gnorm, tol)
 
 
