@@ -1,0 +1,198 @@
+"""Quadratic tets by Newton or by L-BFGS: the same backward Euler steps, their cost.
+
+Quadratic (10-node) tets drape the flap where its default linear ones are too stiff
+(docs/status.md), but until 2026-11-28 only Newton's backward Euler stepped them. Since
+then ``physics={"field": "quadratic", "integrator": "quasi_newton"}`` minimises the same
+incremental potential by L-BFGS (``heml_gym.ImplicitSolver(method="lbfgs")``: one
+factorised scalar initial Hessian per world instead of the field's Hessian assembled and
+solved at every iteration).
+
+Protocol, per case and seed: the scripted baseline's actions are recorded on the default
+(linear) flap and replayed on each quadratic model by Newton (``integrator="implicit"``)
+and by L-BFGS (``"quasi_newton"``), both to the same tolerance (``newton_tol`` 3e-3 of the
+weight), one after the other in one process on one thread, ignoring termination. Cases:
+the default task (jaws holding the whole grasp line) and 40 mm weighted jaws closed at the
+grasp region's end (``grasp_position.py``'s hardest place: the unheld side drapes).
+
+Reported per case and model: CPU ms per env step for each solver (median over the steps
+of every seed) and their ratio, iterations per env step (mean), how far apart the two
+runs are (the worst seed's largest grasp-force difference over the run, relative to the
+Newton run's largest force, and its largest exposure difference) and the steps either left
+unconverged. The two minimise the same potential, so they differ by their tolerance only.
+
+Writes docs/benchmarks/quadratic_solvers.{json,md} and docs/img/quadratic_solvers.png.
+
+    python benchmarks/speed/quadratic_solvers.py [--seeds 0,1,2] [--from-json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numba
+import numpy as np
+from heml_gym.benchmarks.common import (IMAGES, command_line, generated_by, machine_info, markdown_table,
+                                       store_and_report)
+
+NAME = "quadratic_solvers"
+SCENE = "TissueRetraction"
+ENV = "heml_gym/TissueRetraction-v1"
+#: the solvers compared: integrator, iterations at most per (sub-)step
+SOLVERS = {"Newton": ("implicit", 20), "L-BFGS": ("quasi_newton", 200)}
+#: quadratic models: cells, step (s)
+MODELS = [((6, 6, 1), 0.05), ((6, 6, 1), 0.025), ((8, 8, 1), 0.05), ((8, 8, 1), 0.025)]
+STEPS = 55
+TOL = 3e-3
+
+
+def cases():
+    """name -> (scene changes, the scripted baseline's maker)."""
+    from heml_gym.benchmarks.accuracy.grasp_position import SCENES, grasp_offset_policy, jaws
+    from heml_gym.envs import scripted
+
+    spec = SCENES[SCENE]
+    return {"default task": ({}, scripted.scripted_policy),
+            "40 mm weighted jaws at the region's end": (jaws(spec), grasp_offset_policy(spec["offsets"][-1]))}
+
+
+def model_label(cells, dt) -> str:
+    return f"{'x'.join(map(str, cells))} quadratic, {dt:g} s steps"
+
+
+def measure(seeds) -> dict:
+    from tqdm import tqdm
+
+    from heml_gym.benchmarks.accuracy.scene_convergence import QN, record, tissue
+
+    numba.set_num_threads(1)
+    out = {}
+    for case, (changes, policy_for) in cases().items():
+        out[case] = {}
+        for seed in tqdm(seeds, desc=case):
+            actions, _ = record(SCENE, tissue((12, 12, 2), **QN), seed, STEPS, changes or None, policy_for)
+            for cells, dt in MODELS:
+                cell = out[case].setdefault(model_label(cells, dt), {s: {"cpu_s": [], "iterations": [], "force": [],
+                                                                          "exposure": [], "unconverged": []}
+                                                                      for s in SOLVERS})
+                for solver, (integrator, max_newton) in SOLVERS.items():
+                    model = tissue(cells, field="quadratic", integrator=integrator, max_dt=dt, newton_tol=TOL,
+                                   max_newton=max_newton)
+                    run = replay(model.env(SCENE, changes or None), seed, actions)
+                    rec = cell[solver]
+                    for key in ("cpu_s", "iterations", "force", "exposure"):
+                        rec[key].append(run[key])
+                    rec["unconverged"].append(run["unconverged"])
+    return out
+
+
+def replay(env, seed: int, actions) -> dict:
+    """Per env step of ``actions`` from ``env.reset(seed)``: CPU s, solver iterations, grasp
+    force (N), exposure; and the steps left unconverged."""
+    env.reset(seed=seed)
+    run = {"cpu_s": [], "iterations": [], "force": [], "exposure": [], "unconverged": 0}
+    for a in actions:
+        started = time.thread_time()
+        _, _, _, _, info = env.step(a)
+        run["cpu_s"].append(time.thread_time() - started)
+        run["iterations"].append(int(info["newton_iterations"]))
+        run["force"].append(float(info["grasp_force"]))
+        run["exposure"].append(float(info["exposure"]))
+        run["unconverged"] += not bool(info["solver_converged"])
+    return run
+
+
+def summarise(results: dict) -> dict:
+    summary = {}
+    for case, models in results.items():
+        summary[case] = {}
+        for label, runs in models.items():
+            n, q = runs["Newton"], runs["L-BFGS"]
+            ms = {s: 1e3 * float(np.median(np.concatenate(r["cpu_s"]))) for s, r in runs.items()}
+            force_gap = max(float(np.max(np.abs(np.subtract(fq, fn))) / np.max(fn))
+                            for fn, fq in zip(n["force"], q["force"]))
+            exposure_gap = max(float(np.max(np.abs(np.subtract(eq, en)))) for en, eq in zip(n["exposure"], q["exposure"]))
+            summary[case][label] = {
+                "ms_per_step": ms, "speedup": ms["Newton"] / ms["L-BFGS"],
+                "iterations_per_step": {s: float(np.mean(np.concatenate(r["iterations"]))) for s, r in runs.items()},
+                "force_gap": force_gap, "exposure_gap": exposure_gap,
+                "unconverged_steps": {s: int(sum(r["unconverged"])) for s, r in runs.items()}}
+    return summary
+
+
+def report(data: dict) -> str:
+    text = (f"{generated_by(data)}: the flap (TissueRetraction-v1's scene) on quadratic tets, the scripted "
+            f"baseline's path (recorded on the default linear flap, {data['steps']} env steps) replayed by each "
+            f"solver to {data['newton_tol']:g} of the weight, seeds {data['seeds']}, one thread. "
+            "CPU ms: median over the env steps of every seed; gaps: the worst seed's largest difference "
+            "between the two runs (force relative to the Newton run's largest).\n\n")
+    for case, models in data["summary"].items():
+        rows = []
+        for label, s in models.items():
+            rows.append([label, f"{s['ms_per_step']['Newton']:.1f}", f"{s['ms_per_step']['L-BFGS']:.1f}",
+                         f"{s['speedup']:.1f}x", f"{s['iterations_per_step']['Newton']:.1f}",
+                         f"{s['iterations_per_step']['L-BFGS']:.1f}", f"{100 * s['force_gap']:.2f} %",
+                         f"{s['exposure_gap']:.3f}",
+                         f"{s['unconverged_steps']['Newton']} / {s['unconverged_steps']['L-BFGS']}"])
+        text += f"### {case}\n\n" + markdown_table(
+            ["model", "Newton CPU ms/step", "L-BFGS CPU ms/step", "L-BFGS faster", "Newton iterations/step",
+             "L-BFGS iterations/step", "force gap", "exposure gap", "unconverged steps (Newton / L-BFGS)"], rows) + "\n"
+    if data.get("note"):
+        text += f"{data['note']}\n\n"
+    return text + f"![CPU ms per env step, Newton and L-BFGS](../img/{NAME}.png)\n"
+
+
+def plot(data: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cases_ = list(data["summary"])
+    fig, axes = plt.subplots(1, len(cases_), figsize=(5.2 * len(cases_), 3.4), sharey=True)
+    for ax, case in zip(np.atleast_1d(axes), cases_):
+        models = data["summary"][case]
+        x = np.arange(len(models))
+        for k, solver in enumerate(SOLVERS):
+            ax.bar(x + (k - 0.5) * 0.38, [m["ms_per_step"][solver] for m in models.values()], 0.38,
+                   label=solver, color=f"C{k}")
+        ax.set_xticks(x, [lab.replace(" quadratic, ", "\n") for lab in models], fontsize=8)
+        ax.set_yscale("log")
+        ax.set_title(case, fontsize=9)
+        ax.grid(axis="y", alpha=0.3)
+    np.atleast_1d(axes)[0].set_ylabel("CPU ms per env step (one thread)")
+    np.atleast_1d(axes)[0].legend(fontsize=8)
+    m = data["machine"]
+    fig.suptitle(f"Quadratic-tet flap: Newton vs L-BFGS backward Euler ({m['cpu']}, {m.get('vector_isa', '?')})",
+                 fontsize=9)
+    fig.tight_layout()
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    fig.savefig(IMAGES / f"{NAME}.png", dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0,1,2", help="seeds, comma-separated")
+    ap.add_argument("--note", default="", help="a line stored with the result (e.g. what else ran on the machine)")
+    ap.add_argument("--from-json", action="store_true", help="only rebuild the table and chart from the stored result")
+    args = ap.parse_args(argv)
+    if args.from_json:
+        data = store_and_report(NAME, None, report)
+    else:
+        try:
+            seeds = [int(v) for v in args.seeds.split(",")]
+        except ValueError:
+            ap.error(f"--seeds must be integers separated by commas, got {args.seeds!r}")
+        started = time.perf_counter()
+        results = measure(seeds)
+        data = {"machine": machine_info(), "command": command_line(f"heml_gym.benchmarks.speed.{NAME}", ap, args),
+                "seeds": seeds, "steps": STEPS, "newton_tol": TOL, "wall_s": time.perf_counter() - started,
+                "note": args.note, "summary": summarise(results)}
+        data = store_and_report(NAME, data, report, envs=[ENV])
+    plot(data)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
