@@ -102,18 +102,21 @@ class PhysicsSpec:
     ``damping`` (mass-proportional, 1/s), ``gravity`` (m/s^2); ``field``: ``"heml"``,
     ``"fem"``, ``"mass_tensor"`` (StVK only), ``"mass_spring"`` or ``"quadratic"`` (10-node
     tets on the tissue's cells, :class:`heml_gym.QuadraticTetMesh`: they bend on a coarse
-    mesh; a node at the middle of every edge, which the scene's regions select as well;
-    ``"implicit"`` or ``"explicit"`` integrator); ``integrator``:
+    mesh; a node at the middle of every edge, which the scene's regions select as well);
+    ``integrator``:
     ``"explicit"`` (sub-steps at ``safety`` times the critical step of the stiffest
     tissue the scene can draw), ``"implicit"`` (backward Euler steps of at most
     ``max_dt`` s, Newton to ``newton_tol`` of the weight in at most ``max_newton``
     iterations) or ``"quasi_newton"`` (the same steps by L-BFGS from a constant
-    factorised Hessian, at most ``max_newton`` iterations; HEML fields only);
+    factorised Hessian, at most ``max_newton`` iterations: on HEML fields
+    :class:`heml_gym.QuasiNewtonSolver`, on the others, quadratic tets included, the
+    Newton solver's L-BFGS method, ``heml_gym.ImplicitSolver(method="lbfgs")``);
     ``scheme``: the implicit steps' time discretisation, ``"backward_euler"`` or, with
-    ``"quasi_newton"``, ``"bdf2"`` (second order, the same cost per step);
+    ``"quasi_newton"`` on HEML, ``"bdf2"`` (second order, the same cost per step);
     ``hessian_scale``: the weight of the quasi-Newton initial Hessian's Laplacian in units
-    of ``lambda + mu`` (iterations per step, not accuracy; the other integrators have no
-    initial Hessian and do not read it, see :class:`heml_gym.QuasiNewtonSolver`);
+    of ``lambda + mu`` (on other fields, of their rest stiffness; iterations per step, not
+    accuracy; the other integrators have no initial Hessian and do not read it, see
+    :class:`heml_gym.QuasiNewtonSolver`);
     ``stiffness_regions``: Young's modulus varying over the tissue, ``{"grid": [nx, ny,
     nz], "relative": [...]}``: the tissue's rest bounding box cut into ``nx x ny x nz``
     equal boxes, and each box's E relative to the episode's drawn E (``nx ny nz`` numbers,

@@ -17,8 +17,9 @@ grasp region's end (``grasp_position.py``'s hardest place: the unheld side drape
 Reported per case and model: CPU ms per env step for each solver (median over the steps
 of every seed) and their ratio, iterations per env step (mean), how far apart the two
 runs are (the worst seed's largest grasp-force difference over the run, relative to the
-Newton run's largest force, and its largest exposure difference) and the steps either left
-unconverged. The two minimise the same potential, so they differ by their tolerance only.
+Newton run's largest force, and its largest exposure difference), the steps either left
+unconverged and where either diverged (a run stops there). The two minimise the same
+potential, so they differ by their tolerance only.
 
 Writes docs/benchmarks/quadratic_solvers.{json,md} and docs/img/quadratic_solvers.png.
 
@@ -73,7 +74,8 @@ def measure(seeds) -> dict:
             actions, _ = record(SCENE, tissue((12, 12, 2), **QN), seed, STEPS, changes or None, policy_for)
             for cells, dt in MODELS:
                 cell = out[case].setdefault(model_label(cells, dt), {s: {"cpu_s": [], "iterations": [], "force": [],
-                                                                          "exposure": [], "unconverged": []}
+                                                                          "exposure": [], "unconverged": [],
+                                                                          "diverged_at": []}
                                                                       for s in SOLVERS})
                 for solver, (integrator, max_newton) in SOLVERS.items():
                     model = tissue(cells, field="quadratic", integrator=integrator, max_dt=dt, newton_tol=TOL,
@@ -83,17 +85,22 @@ def measure(seeds) -> dict:
                     for key in ("cpu_s", "iterations", "force", "exposure"):
                         rec[key].append(run[key])
                     rec["unconverged"].append(run["unconverged"])
+                    rec["diverged_at"].append(run["diverged_at"])
     return out
 
 
 def replay(env, seed: int, actions) -> dict:
     """Per env step of ``actions`` from ``env.reset(seed)``: CPU s, solver iterations, grasp
-    force (N), exposure; and the steps left unconverged."""
+    force (N), exposure; the steps left unconverged, and the step at which the simulation
+    diverged (the run stops there; None: it did not)."""
     env.reset(seed=seed)
-    run = {"cpu_s": [], "iterations": [], "force": [], "exposure": [], "unconverged": 0}
-    for a in actions:
+    run = {"cpu_s": [], "iterations": [], "force": [], "exposure": [], "unconverged": 0, "diverged_at": None}
+    for k, a in enumerate(actions):
         started = time.thread_time()
         _, _, _, _, info = env.step(a)
+        if info["simulation_diverged"]:
+            run["diverged_at"] = k
+            break
         run["cpu_s"].append(time.thread_time() - started)
         run["iterations"].append(int(info["newton_iterations"]))
         run["force"].append(float(info["grasp_force"]))
@@ -102,21 +109,25 @@ def replay(env, seed: int, actions) -> dict:
     return run
 
 
-def summarise(results: dict) -> dict:
+def summarise(results: dict, seeds) -> dict:
     summary = {}
     for case, models in results.items():
         summary[case] = {}
         for label, runs in models.items():
             n, q = runs["Newton"], runs["L-BFGS"]
             ms = {s: 1e3 * float(np.median(np.concatenate(r["cpu_s"]))) for s, r in runs.items()}
-            force_gap = max(float(np.max(np.abs(np.subtract(fq, fn))) / np.max(fn))
+            # (over the steps both ran: a run stops where it diverged)
+            force_gap = max(float(np.max(np.abs(np.subtract(fq[:len(fn)], fn[:len(fq)]))) / np.max(fn))
                             for fn, fq in zip(n["force"], q["force"]))
-            exposure_gap = max(float(np.max(np.abs(np.subtract(eq, en)))) for en, eq in zip(n["exposure"], q["exposure"]))
+            exposure_gap = max(float(np.max(np.abs(np.subtract(eq[:len(en)], en[:len(eq)]))))
+                               for en, eq in zip(n["exposure"], q["exposure"]))
             summary[case][label] = {
                 "ms_per_step": ms, "speedup": ms["Newton"] / ms["L-BFGS"],
                 "iterations_per_step": {s: float(np.mean(np.concatenate(r["iterations"]))) for s, r in runs.items()},
                 "force_gap": force_gap, "exposure_gap": exposure_gap,
-                "unconverged_steps": {s: int(sum(r["unconverged"])) for s, r in runs.items()}}
+                "unconverged_steps": {s: int(sum(r["unconverged"])) for s, r in runs.items()},
+                "diverged": {s: [f"seed {seed} step {k}" for seed, k in zip(seeds, r["diverged_at"]) if k is not None]
+                             for s, r in runs.items()}}
     return summary
 
 
@@ -133,10 +144,12 @@ def report(data: dict) -> str:
                          f"{s['speedup']:.1f}x", f"{s['iterations_per_step']['Newton']:.1f}",
                          f"{s['iterations_per_step']['L-BFGS']:.1f}", f"{100 * s['force_gap']:.2f} %",
                          f"{s['exposure_gap']:.3f}",
-                         f"{s['unconverged_steps']['Newton']} / {s['unconverged_steps']['L-BFGS']}"])
-        text += f"### {case}\n\n" + markdown_table(
+                         f"{s['unconverged_steps']['Newton']} / {s['unconverged_steps']['L-BFGS']}",
+                         " / ".join(", ".join(s["diverged"][k]) or "none" for k in SOLVERS)])
+        text += f"**{case[0].upper() + case[1:]}**\n\n" + markdown_table(
             ["model", "Newton CPU ms/step", "L-BFGS CPU ms/step", "L-BFGS faster", "Newton iterations/step",
-             "L-BFGS iterations/step", "force gap", "exposure gap", "unconverged steps (Newton / L-BFGS)"], rows) + "\n"
+             "L-BFGS iterations/step", "force gap", "exposure gap", "unconverged steps (Newton / L-BFGS)",
+             "diverged (Newton / L-BFGS)"], rows) + "\n"
     if data.get("note"):
         text += f"{data['note']}\n\n"
     return text + f"![CPU ms per env step, Newton and L-BFGS](../img/{NAME}.png)\n"
@@ -186,9 +199,10 @@ def main(argv=None) -> int:
             ap.error(f"--seeds must be integers separated by commas, got {args.seeds!r}")
         started = time.perf_counter()
         results = measure(seeds)
-        data = {"machine": machine_info(), "command": command_line(f"heml_gym.benchmarks.speed.{NAME}", ap, args),
+        data = {"machine": machine_info(), "command": command_line(f"heml_gym.benchmarks.speed.{NAME}", ap, args,
+                                                              leave_out=("from_json", "note")),
                 "seeds": seeds, "steps": STEPS, "newton_tol": TOL, "wall_s": time.perf_counter() - started,
-                "note": args.note, "summary": summarise(results)}
+                "note": args.note, "summary": summarise(results, seeds)}
         data = store_and_report(NAME, data, report, envs=[ENV])
     plot(data)
     return 0

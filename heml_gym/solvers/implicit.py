@@ -426,4 +426,8 @@ class ImplicitSolver(Solver):
                 if np.all(np.isfinite(x)) and np.isfinite(potential(x)):
                     return x
         inverted = np.flatnonzero(signed_volumes(x, self.model.mesh.tets) <= 0)
-        raise _Diverged("no feasible start: the driven vertices invert elements within one step", inverted)
+        if len(inverted):
+            raise _Diverged("no feasible start: the driven vertices invert elements within one step", inverted)
+        # (curved elements, quadratic tets: inverted at a quadrature point, no tet of the linear view)
+        raise _Diverged("no feasible start: the energy is not finite at any start (an element inverted at one of "
+                        "its quadrature points within one step)")
