@@ -54,7 +54,10 @@ def report(data: dict) -> str:
     if len(finals) >= SEEDS_FOR_AN_IQM:
         lo, hi = iqm_interval(finals)
         text += f"; IQM {iqm(finals):.0%} (95 % bootstrap interval {lo:.0%}-{hi:.0%})"
-    return text + f".\n\n![RLlib PPO success vs env steps, each seed](../img/{data.get('name', NAME)}.png)\n"
+    text += "."
+    if data.get("note"):  # (what else ran on the machine, added to the stored result)
+        text += f" {data['note']}"
+    return text + f"\n\n![RLlib PPO success vs env steps, each seed](../img/{data.get('name', NAME)}.png)\n"
 
 
 def plot(data: dict, path: Path) -> None:
