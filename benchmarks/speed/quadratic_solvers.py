@@ -7,12 +7,14 @@ incremental potential by L-BFGS (``heml_gym.ImplicitSolver(method="lbfgs")``: on
 factorised scalar initial Hessian per world instead of the field's Hessian assembled and
 solved at every iteration).
 
-Protocol, per case and seed: the scripted baseline's actions are recorded on the default
-(linear) flap and replayed on each quadratic model by Newton (``integrator="implicit"``)
-and by L-BFGS (``"quasi_newton"``), both to the same tolerance (``newton_tol`` 3e-3 of the
-weight), one after the other in one process on one thread, ignoring termination. Cases:
-the default task (jaws holding the whole grasp line) and 40 mm weighted jaws closed at the
-grasp region's end (``grasp_position.py``'s hardest place: the unheld side drapes).
+Protocol, per case and seed: the scripted baseline's actions are recorded on the scene's
+default (linear) mesh and replayed on each quadratic model by Newton
+(``integrator="implicit"``) and by L-BFGS (``"quasi_newton"``), both to the same tolerance
+(``newton_tol`` 3e-3 of the weight), one after the other in one process on one thread,
+ignoring termination. Cases: the flap's default task (jaws holding the whole grasp line),
+the flap with 40 mm weighted jaws closed at the grasp region's end (``grasp_position.py``'s
+hardest place: the unheld side drapes), and the lobe's default task on uniform quadratic
+meshes (16 and 12 mm).
 
 Reported per case and model: CPU ms per env step for each solver (median over the steps
 of every seed) and their ratio, iterations per env step (mean), how far apart the two
@@ -37,50 +39,61 @@ from heml_gym.benchmarks.common import (IMAGES, command_line, generated_by, mach
                                        store_and_report)
 
 NAME = "quadratic_solvers"
-SCENE = "TissueRetraction"
-ENV = "heml_gym/TissueRetraction-v1"
+ENVS = ["heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"]
 #: the solvers compared: integrator, iterations at most per (sub-)step
 SOLVERS = {"Newton": ("implicit", 20), "L-BFGS": ("quasi_newton", 200)}
-#: quadratic models: cells, step (s)
-MODELS = [((6, 6, 1), 0.05), ((6, 6, 1), 0.025), ((8, 8, 1), 0.05), ((8, 8, 1), 0.025)]
-STEPS = 55
+#: the flap's quadratic models: cells, step (s); the lobe's: mesh size (m, uniform), step (s)
+FLAP_MODELS = [((6, 6, 1), 0.05), ((6, 6, 1), 0.025), ((8, 8, 1), 0.05), ((8, 8, 1), 0.025)]
+LOBE_MODELS = [(0.016, 0.05), (0.012, 0.05)]
+#: env steps replayed per scene
+STEPS = {"TissueRetraction": 55, "OrganRetraction": 40}
 TOL = 3e-3
 
 
 def cases():
-    """name -> (scene changes, the scripted baseline's maker)."""
+    """name -> (scene, scene changes, the scripted baseline's maker, the default (linear)
+    model it is recorded on, the quadratic models: (label, maker of a model of an integrator))."""
     from heml_gym.benchmarks.accuracy.grasp_position import SCENES, grasp_offset_policy, jaws
+    from heml_gym.benchmarks.accuracy.scene_convergence import QN, organ, tissue
     from heml_gym.envs import scripted
+    from heml_gym.envs.organ_retraction import DEFAULT_JAW_SIZE
 
-    spec = SCENES[SCENE]
-    return {"default task": ({}, scripted.scripted_policy),
-            "40 mm weighted jaws at the region's end": (jaws(spec), grasp_offset_policy(spec["offsets"][-1]))}
+    def flap(cells, dt):
+        return lambda integrator, max_newton: tissue(cells, field="quadratic", integrator=integrator, max_dt=dt,
+                                                     newton_tol=TOL, max_newton=max_newton)
 
+    def lobe(size, dt):
+        return lambda integrator, max_newton: organ(size, field="quadratic", integrator=integrator, max_dt=dt,
+                                                    newton_tol=TOL, max_newton=max_newton)
 
-def model_label(cells, dt) -> str:
-    return f"{'x'.join(map(str, cells))} quadratic, {dt:g} s steps"
+    flaps = [(f"{'x'.join(map(str, c))} quadratic, {dt:g} s steps", flap(c, dt)) for c, dt in FLAP_MODELS]
+    lobes = [(f"{1e3 * s:g} mm quadratic (uniform), {dt:g} s steps", lobe(s, dt)) for s, dt in LOBE_MODELS]
+    spec = SCENES["TissueRetraction"]
+    flap_default = tissue((12, 12, 2), **QN)
+    return {"flap, default task": ("TissueRetraction", {}, scripted.scripted_policy, flap_default, flaps),
+            "flap, 40 mm weighted jaws at the region's end": ("TissueRetraction", jaws(spec),
+                                                              grasp_offset_policy(spec["offsets"][-1]), flap_default,
+                                                              flaps),
+            "lobe, default task": ("OrganRetraction", {}, scripted.scripted_policy,
+                                   organ(0.010, jaw=DEFAULT_JAW_SIZE, **QN), lobes)}
 
 
 def measure(seeds) -> dict:
     from tqdm import tqdm
 
-    from heml_gym.benchmarks.accuracy.scene_convergence import QN, record, tissue
+    from heml_gym.benchmarks.accuracy.scene_convergence import record
 
     numba.set_num_threads(1)
     out = {}
-    for case, (changes, policy_for) in cases().items():
+    for case, (scene, changes, policy_for, default, models) in cases().items():
         out[case] = {}
         for seed in tqdm(seeds, desc=case):
-            actions, _ = record(SCENE, tissue((12, 12, 2), **QN), seed, STEPS, changes or None, policy_for)
-            for cells, dt in MODELS:
-                cell = out[case].setdefault(model_label(cells, dt), {s: {"cpu_s": [], "iterations": [], "force": [],
-                                                                          "exposure": [], "unconverged": [],
-                                                                          "diverged_at": []}
-                                                                      for s in SOLVERS})
+            actions, _ = record(scene, default, seed, STEPS[scene], changes or None, policy_for)
+            for label, make in models:
+                cell = out[case].setdefault(label, {s: {"cpu_s": [], "iterations": [], "force": [], "exposure": [],
+                                                        "unconverged": [], "diverged_at": []} for s in SOLVERS})
                 for solver, (integrator, max_newton) in SOLVERS.items():
-                    model = tissue(cells, field="quadratic", integrator=integrator, max_dt=dt, newton_tol=TOL,
-                                   max_newton=max_newton)
-                    run = replay(model.env(SCENE, changes or None), seed, actions)
+                    run = replay(make(integrator, max_newton).env(scene, changes or None), seed, actions)
                     rec = cell[solver]
                     for key in ("cpu_s", "iterations", "force", "exposure"):
                         rec[key].append(run[key])
@@ -132,8 +145,9 @@ def summarise(results: dict, seeds) -> dict:
 
 
 def report(data: dict) -> str:
-    text = (f"{generated_by(data)}: the flap (TissueRetraction-v1's scene) on quadratic tets, the scripted "
-            f"baseline's path (recorded on the default linear flap, {data['steps']} env steps) replayed by each "
+    text = (f"{generated_by(data)}: the flap (TissueRetraction-v1's scene) and the lobe (OrganRetraction-v2's) on "
+            f"quadratic tets, the scripted baseline's path (recorded on the default linear mesh; env steps: "
+            f"{', '.join(f'{k} {v}' for k, v in data['steps'].items())}) replayed by each "
             f"solver to {data['newton_tol']:g} of the weight, seeds {data['seeds']}, one thread. "
             "CPU ms: median over the env steps of every seed; gaps: the worst seed's largest difference "
             "between the two runs (force relative to the Newton run's largest).\n\n")
@@ -162,21 +176,22 @@ def plot(data: dict) -> None:
     import matplotlib.pyplot as plt
 
     cases_ = list(data["summary"])
-    fig, axes = plt.subplots(1, len(cases_), figsize=(5.2 * len(cases_), 3.4), sharey=True)
+    fig, axes = plt.subplots(1, len(cases_), figsize=(4.6 * len(cases_), 3.6), sharey=True)
     for ax, case in zip(np.atleast_1d(axes), cases_):
         models = data["summary"][case]
         x = np.arange(len(models))
         for k, solver in enumerate(SOLVERS):
             ax.bar(x + (k - 0.5) * 0.38, [m["ms_per_step"][solver] for m in models.values()], 0.38,
                    label=solver, color=f"C{k}")
-        ax.set_xticks(x, [lab.replace(" quadratic, ", "\n") for lab in models], fontsize=8)
+        ax.set_xticks(x, [lab.replace(" quadratic, ", "\n").replace(" quadratic (uniform), ", "\n")
+                          for lab in models], fontsize=8)
         ax.set_yscale("log")
         ax.set_title(case, fontsize=9)
         ax.grid(axis="y", alpha=0.3)
     np.atleast_1d(axes)[0].set_ylabel("CPU ms per env step (one thread)")
     np.atleast_1d(axes)[0].legend(fontsize=8)
     m = data["machine"]
-    fig.suptitle(f"Quadratic-tet flap: Newton vs L-BFGS backward Euler ({m['cpu']}, {m.get('vector_isa', '?')})",
+    fig.suptitle(f"Quadratic tets: Newton vs L-BFGS backward Euler ({m['cpu']}, {m.get('vector_isa', '?')})",
                  fontsize=9)
     fig.tight_layout()
     IMAGES.mkdir(parents=True, exist_ok=True)
@@ -203,7 +218,7 @@ def main(argv=None) -> int:
                                                               leave_out=("from_json", "note")),
                 "seeds": seeds, "steps": STEPS, "newton_tol": TOL, "wall_s": time.perf_counter() - started,
                 "note": args.note, "summary": summarise(results, seeds)}
-        data = store_and_report(NAME, data, report, envs=[ENV])
+        data = store_and_report(NAME, data, report, envs=ENVS)
     plot(data)
     return 0
 
