@@ -75,7 +75,7 @@ def plot(data: dict, path: Path) -> None:
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("env steps")
     ax.set_ylabel("evaluated success rate (20 episodes)")
-    ax.set_title(f"RLlib PPO on {data['env'].split('/')[-1]} ({data['machine']['cpu']}, "
+    ax.set_title(f"RLlib PPO on {data['env'].split('/')[-1]}\n({data['machine']['cpu']}, "
                  f"{data['machine'].get('vector_isa', '?')})", fontsize=9)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()

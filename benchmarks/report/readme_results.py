@@ -1,7 +1,8 @@
 """The README's "Results" and its quick-start sentence, written from the stored results.
 
 Reads docs/benchmarks/{quick_sweep,env_throughput,force_throughput,simulation_speed,
-scene_convergence,agent_results,rllib_learning,pixel_learning,organ_pixel_learning}.json
+scene_convergence,agent_results,rllib_learning,rllib_learning_organ,pixel_learning,
+organ_pixel_learning}.json
 and writes docs/benchmarks/readme_results.md, one sentence per result with the CPU and
 date it was measured on (a result that is missing is left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
 gives across seeds). ``python benchmarks/report/update_docs.py`` then copies them into README.md.
@@ -145,7 +146,7 @@ def pixels(data: dict) -> str:
 
 
 def rllib(data: dict) -> str:
-    """RLlib PPO on the flap: every seed's first evaluation at >= 90 % and final success,
+    """RLlib PPO on either env: every seed's first evaluation at >= 90 % and final success,
     with the final success's IQM when enough seeds are on record (``SEEDS_FOR_AN_IQM``)."""
     from heml_gym.agents.stats import SEEDS_FOR_AN_IQM, iqm, iqm_interval
 
@@ -165,7 +166,7 @@ def rllib(data: dict) -> str:
         claim += f" (final success IQM {iqm(finals):.0%}, 95 % CI {low:.0%}-{high:.0%})"
     return (f"**RLlib ({env}).** RLlib PPO with {data['env_runners']} env runners of {data['scenes_per_runner']} "
             f"scenes (`{data['config']}`, {max(s['env_steps'] for s in seeds) // 1000} k env steps): {claim}: "
-            f"{'; '.join(per_seed)} ({where(data)}; [scale_out.md](../scale_out.md#measured)).")
+            f"{'; '.join(per_seed)} ({where(data)}{beside_other_work(data)}; [scale_out.md](../scale_out.md#measured)).")
 
 
 TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"
@@ -293,7 +294,7 @@ def convergence(data: dict) -> str:
 def main() -> int:
     sections = [("quick_sweep", learning), ("env_throughput", throughput), ("force_throughput", forces),
                 ("simulation_speed", implicit), ("scene_convergence", convergence), ("agent_results", agents),
-                ("rllib_learning", rllib), ("pixel_learning", pixels),
+                ("rllib_learning", rllib), ("rllib_learning_organ", rllib), ("pixel_learning", pixels),
                 ("organ_pixel_learning", pixels)]
     lines, missing, stale = [], [], []
     for name, write in sections:
