@@ -83,11 +83,10 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
         raise SolverChoiceError("hessian_scale", f"applies to integrator 'quasi_newton' only, got {integrator!r}")
     if integrator == "explicit":
         return ExplicitSolver(model, safety=safety, max_speed=max_speed, refinements=refinements)
-    heml = all(isinstance(f, HemlForce) for f in model.fields)
-    if integrator == "quasi_newton" and not heml:
+    other = next((f for f in model.fields if not isinstance(f, HemlForce)), None)
+    if integrator == "quasi_newton" and other is not None:
         if scheme != "backward_euler":
-            raise SolverChoiceError("scheme", f"{scheme!r} needs HEML force fields, got "
-                                              f"{type(next(f for f in model.fields if not isinstance(f, HemlForce))).__name__}")
+            raise SolverChoiceError("scheme", f"{scheme!r} needs HEML force fields, got {type(other).__name__}")
         return ImplicitSolver(model, newton_tol=newton_tol, max_newton=200 if max_iterations is None else max_iterations,
                               method="lbfgs", hessian_scale=hessian_scale, max_speed=max_speed, refinements=refinements)
     if integrator == "quasi_newton":

@@ -161,12 +161,14 @@ class ImplicitSolver(Solver):
 
     def _scalar_rest_stiffness(self, s, field):
         """World ``s``'s ``K_0`` (CSR, n x n, N/m): its field's stiffness at the rest
-        positions, the three axis blocks summed (cached while the world keeps its field)."""
+        positions, the three axis blocks summed (cached while the world keeps its field; a
+        new field drops the world's initial Hessian, which holds the old one)."""
         cached = self._rest_stiffness[s]
         if cached is None or cached[0] is not field:
             k = field.hessian(field.mesh.vertices, project=True).tocsr()
             cached = (field, (k[0::3, 0::3] + k[1::3, 1::3] + k[2::3, 2::3]).tocsr())
             self._rest_stiffness[s] = cached
+            self._initial_hessian[s] = None
         return cached[1]
 
     def _lbfgs_preconditioner(self, s, field, c, free_v, k_hold, touching, normal, k_contact):
@@ -174,14 +176,14 @@ class ImplicitSolver(Solver):
         diag(k_hold) + diag(k_contact n_a^2 on the touching vertices)`` (see the module
         docstring), its factors kept while nothing it holds changes (the vertices in
         contact: to within ``contact_refresh``)."""
-        key = (free_v.tobytes(), float(c), k_hold.tobytes(), id(self._scalar_rest_stiffness(s, field)))
+        rest = self._scalar_rest_stiffness(s, field)
+        key = (free_v.tobytes(), float(c), k_hold.tobytes())
         held = self._initial_hessian[s]
         if (held is None or held[0] != key
                 or int(np.count_nonzero(held[1] != touching)) > self.contact_refresh):
             m = self.model
             free = np.flatnonzero(free_v)
-            base = (self.hessian_scale * self._scalar_rest_stiffness(s, field))[free][:, free].tocsr()
-            base.sort_indices()
+            base = (self.hessian_scale * rest)[free][:, free].tocsr()
             diagonal = c * m.mass + k_hold
             penalty = np.zeros((3, m.n_vertices))
             if touching.any():
