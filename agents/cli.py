@@ -74,6 +74,10 @@ def _train(args) -> int:
                    address=args.address)
     ev = result["final_evaluation"]
     print(f"run folder: {result['run_dir']}  ({result['timesteps']} env steps)")
+    if result.get("stopped_early"):
+        e = cfg.evaluation
+        print(f"  stopped early: {e.stop_after} evaluations in a row reached {e.stop_at_success:.0%} success "
+              f"(cap: {cfg.algorithm.total_timesteps} env steps)")
     run_dir = Path(result["run_dir"])
     model_file = "rllib_checkpoint/" if (run_dir / "rllib_checkpoint").is_dir() else (
         "policy.pt" if (run_dir / "policy.pt").is_file() else "model.zip")

@@ -77,8 +77,14 @@ class AlgorithmConfig:
 
 @dataclass
 class EvaluationConfig:
+    """Every ``every_steps`` env steps, ``episodes`` fresh episodes with the deterministic
+    policy. ``stop_at_success`` (a fraction in (0, 1]; None: never) ends training early once
+    ``stop_after`` evaluations in a row reach it; ``algorithm.total_timesteps`` stays the cap."""
+
     every_steps: int = 20_000
     episodes: int = 20
+    stop_at_success: float | None = None
+    stop_after: int = 2
 
 
 @dataclass
@@ -193,12 +199,17 @@ def validate(cfg: RunConfig) -> RunConfig:
                 raise ConfigError(f"config key 'constraint.{key}' must be a finite number "
                                   f"{'>= 0' if low is not None else '> 0'}, got {value!r}")
     _check_demos(cfg)
+    stop = cfg.evaluation.stop_at_success
+    if stop is not None and not (isinstance(stop, (int, float)) and not isinstance(stop, bool) and 0 < stop <= 1):
+        raise ConfigError(f"config key 'evaluation.stop_at_success' must be a success rate in (0, 1] or null, "
+                          f"got {stop!r}")
     if cfg.env.obs_mode not in OBS_MODES:
         raise ConfigError(f"config key 'env.obs_mode' must be one of {OBS_MODES}, got {cfg.env.obs_mode!r}")
     for key, value in [("env.num_envs", cfg.env.num_envs),
                        ("algorithm.total_timesteps", cfg.algorithm.total_timesteps),
                        ("evaluation.every_steps", cfg.evaluation.every_steps),
                        ("evaluation.episodes", cfg.evaluation.episodes),
+                       ("evaluation.stop_after", cfg.evaluation.stop_after),
                        ("checkpoint.every_steps", cfg.checkpoint.every_steps)]:
         if value < 1:
             raise ConfigError(f"config key '{key}' must be >= 1, got {value}")

@@ -14,7 +14,7 @@ steps, every seed and the IQM across seeds with its 95 % bootstrap interval).
 Ray is an optional dependency: ``pip install -e ".[ray]"``. Without ``--address`` a local
 Ray instance is started (and stopped) for the sweep; with one (``auto``, ``HOST:PORT``),
 the trials go to that cluster, whose nodes must all see ``OUT`` (a shared file system)
-and have heml-gym installed (docs/scale_out.md).
+and have heml-gym installed (docs/studies/scale_out.md).
 """
 
 from __future__ import annotations
@@ -167,6 +167,7 @@ def _trial_main(param: dict) -> None:
         "node_id": ray.get_runtime_context().get_node_id(), "hostname": socket.gethostname(),
         "env_steps": result["timesteps"], "wall_s": time.time() - started,
         "success_rate": final["success_rate"], "success_ci95": final["success_ci95"],
+        "stopped_early": bool(result.get("stopped_early")),
     }
     Path(trial["run_dir"], RESULT_FILE).write_text(json.dumps(record, indent=1))
     tune.report({"success_rate": final["success_rate"], "env_steps": result["timesteps"]})

@@ -33,6 +33,11 @@ from .run_files import (NORMALIZER_FILE, UntrustedPickle, load_model, load_norma
 from .vec_env import RetractionSb3VecEnv
 
 
+# The periodic evaluations reset episodes with seeds 10,000, 10,001, ... (evaluate_policy's
+# default); a run stopped early is judged on episodes from this seed on, which they never saw.
+FRESH_EPISODES_SEED = 20_000
+
+
 def make_vec_env(cfg: RunConfig, num_envs: int | None = None) -> VecMonitor:
     """The SB3 VecEnv of a config: one batched Numba call for all envs, with episode stats."""
     vector_env = gym.make_vec(cfg.env.id, num_envs=num_envs or cfg.env.num_envs,
@@ -76,7 +81,9 @@ class Checkpoints(CheckpointCallback):
 
 
 class SuccessEvalCallback(BaseCallback):
-    """Every ``every_steps`` env steps: evaluate the policy, log and store the success rate."""
+    """Every ``every_steps`` env steps: evaluate the policy, log and store the success rate.
+    With ``evaluation.stop_at_success`` set, training stops once ``evaluation.stop_after``
+    evaluations in a row reach it (:attr:`stopped_early` is then True)."""
 
     def __init__(self, cfg: RunConfig, path: Path):
         super().__init__()
@@ -86,6 +93,7 @@ class SuccessEvalCallback(BaseCallback):
         # wall time (s) of the run so far, continued across resumes
         self._wall_before = self.history[-1].get("wall_s", 0.0) if self.history else 0.0
         self._started = time.perf_counter()
+        self.stopped_early = False
 
     def _on_training_start(self) -> None:
         self._started = time.perf_counter()
@@ -94,7 +102,17 @@ class SuccessEvalCallback(BaseCallback):
         if self.num_timesteps >= self._next:
             self._next += self.cfg.evaluation.every_steps
             self.evaluate()
+            if self.learned():
+                self.stopped_early = True
+                return False
         return True
+
+    def learned(self) -> bool:
+        """Whether the last ``stop_after`` evaluations all reached ``stop_at_success``."""
+        e = self.cfg.evaluation
+        recent = self.history[-e.stop_after:]
+        return (e.stop_at_success is not None and len(recent) == e.stop_after
+                and all(r["success_rate"] >= e.stop_at_success for r in recent))
 
     def evaluate(self):
         policy = model_policy(self.model, self.model.get_vec_normalize_env())
@@ -265,9 +283,19 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
     model.save(run_dir / "model.zip")
     if cfg.env.normalize_observations:
         save_normalizer(env, run_dir / NORMALIZER_FILE)
-    final = evaluator.evaluate() if not evaluator.history or evaluator.history[-1]["timesteps"] != model.num_timesteps else evaluator.history[-1]
+    if evaluator.stopped_early:  # judged on episodes the stopping rule never saw
+        final = evaluate_policy(model_policy(model, model.get_vec_normalize_env()), cfg.env.id,
+                                cfg.evaluation.episodes, seed=FRESH_EPISODES_SEED, obs_mode=cfg.env.obs_mode,
+                                env_kwargs=cfg.env.kwargs)
+        final["timesteps"] = int(model.num_timesteps)
+        final["seed"] = FRESH_EPISODES_SEED
+    elif not evaluator.history or evaluator.history[-1]["timesteps"] != model.num_timesteps:
+        final = evaluator.evaluate()
+    else:
+        final = evaluator.history[-1]
     env.close()
-    return {"run_dir": str(run_dir), "timesteps": int(model.num_timesteps), "final_evaluation": final}
+    return {"run_dir": str(run_dir), "timesteps": int(model.num_timesteps), "final_evaluation": final,
+            "stopped_early": evaluator.stopped_early}
 
 
 def load_policy(path: str | Path, trust_pickle: bool = False):

@@ -9,7 +9,10 @@ each with a batched implementation for ``gymnasium.make_vec(...,
 vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` 100 (the tasks'
 ``settings.max_steps``). The version changes whenever a task's behaviour does (each
 env's docstring keeps a version history); ``-v0`` named several former tasks and is
-no longer registered: asking for it is a one-line error naming ``-v1``.
+no longer registered, nor is ``OrganRetraction-v1`` (its camera images were turned 90
+degrees). Asking for a retired id is an error naming today's id (:data:`RETIRED_IDS`):
+``TissueRetraction-v1`` for the flap, ``OrganRetraction-v2`` for the lobe (gymnasium's
+``DeprecatedEnv`` from ``gym.make``; one line from the CLI and run configs).
 """
 
 from pathlib import Path as _Path

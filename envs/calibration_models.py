@@ -3,12 +3,12 @@ observation file's quantities.
 
 A fit's Young's modulus carries the fitted mesh's own stiffness: linear tetrahedra are
 too stiff in bending on coarse meshes, so a coarse model fits a softer tissue than the
-one observed (docs/calibration.md, "Limits"). The task's own mesh is chosen for the
+one observed (docs/studies/calibration.md, "Limits"). The task's own mesh is chosen for the
 task's quantities (grasp force and exposure within 5 % of a fine model,
-docs/scene_convergence.md), not for a modulus within 5 %; so each task names the
+docs/studies/scene_convergence.md), not for a modulus within 5 %; so each task names the
 cheapest model whose fit meets issue 34's bar (E within 5 %, nu within 0.02 of a tissue
 observed on a finer mesh) from the quantities that do, measured in
-docs/benchmarks/calibration_mesh.md and calibration.md:
+docs/benchmarks/calibration_mesh.md and docs/studies/calibration.md:
 
 * ``heml_gym/TissueRetraction-v1``: its own 12 x 12 x 2 mesh, every quantity the file
   has (points and force together, or the force, meet the bar there; the tracked points
@@ -72,9 +72,9 @@ class CalibrationModel:
 
 
 _FLAP_POINTS = ("the flap's tracked points alone fit E low on every affordable mesh (next to the jaws' held line "
-                "the tissue has no mesh-converged shape; docs/calibration.md#limits): record the jaws' force too")
+                "the tissue has no mesh-converged shape; docs/studies/calibration.md#limits): record the jaws' force too")
 _LOBE_FORCE = ("the lobe's jaws' force fits E low on the calibration's 7 mm lobe (its model error; "
-               "docs/calibration.md#limits): tracked points are the better witness")
+               "docs/studies/calibration.md#limits): tracked points are the better witness")
 
 #: Each task's calibration model (see the module docstring for the measurements).
 CALIBRATION_MODELS = {
@@ -120,7 +120,7 @@ def correct_for_mesh(env_reference, obs, replay, fit_names, names, result, bound
     difference, within ``bounds``. That is one replay of the finer model and one fit of
     the fitted one, where a fit on the finer model replays it at every iteration. The
     bias is taken at the fitted tissue, so it holds as far as it changes little between
-    there and the truth (it scales with E; docs/calibration.md measures what is left).
+    there and the truth (it scales with E; docs/studies/calibration.md measures what is left).
     Depth is not corrected (its rendering is the fitted model's): ``obs`` must have points
     or force."""
     from heml_gym.calibration import Observed, embed_points, fit

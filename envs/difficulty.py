@@ -5,7 +5,7 @@ damage strain). Level 1, the default since 2026-11-24, asks for what retraction 
 hold the target exposed, below damage strain, for 2 s of simulated time. Level 2 adds a wider tissue
 stiffness range per episode (half the scene's lowest Young's modulus to 1.5 times its
 highest) and hides the target deeper under the tissue: its region moves halfway towards
-the fold hinge (in x), so the tissue must be folded further back before it is exposed. ``docs/envs.md`` has the scripted baseline's success rate and episode length on
+the fold hinge (in x), so the tissue must be folded further back before it is exposed. ``docs/studies/envs.md`` has the scripted baseline's success rate and episode length on
 every level (``python benchmarks/learning/task_difficulty.py``).
 """
 

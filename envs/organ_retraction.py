@@ -18,7 +18,7 @@ in 4-8 kPa, nu = 0.45, 1060 kg/m^3) under gravity, integrated by backward Euler 
 (``physics={"integrator": "explicit"}``, at 0.5 of the critical step), for the same
 accuracy. The mesh (10 mm elements, refined to 2.5 mm around the jaws: about 4,400
 tets), the cheapest that keeps grasp force and exposure within 5 % of a converged fine
-mesh (docs/scene_convergence.md): lifting the lobe peels it off its support, and how
+mesh (docs/studies/scene_convergence.md): lifting the lobe peels it off its support, and how
 far it peels depends on its bending stiffness, which coarse linear tets overestimate,
 and on how compliant the tissue next to the jaws is, which only fine elements there
 resolve.
@@ -49,7 +49,7 @@ the 2.5 mm at the jaws, and ``scene=organ_scene(size, jaw_size=None)`` meshes un
 ``scene=organ_scene(grasp="line")`` holds only the 40 mm line through the footprint's
 middle (the former default): a line held in 3-D elasticity has no fine-mesh
 limit (the edge in front of it droops further on every finer mesh), a patch does
-(docs/scene_convergence.md, "Line and patch grasps"). Difficulty levels:
+(docs/studies/scene_convergence.md, "Line and patch grasps"). Difficulty levels:
 
 | difficulty | task | scripted success | scripted episode, median steps |
 |---|---|---|---|
@@ -114,7 +114,7 @@ JAW_WIDTH = 0.006
 #: the support over a width drawn per episode, 0-40 mm out from the base (the default)
 UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0], "tolerance": 1e-6}
 ADHESION_WIDTH = (0.0, 0.04)  # m
-#: per-episode variation that is not a default (changes to the scene; docs/envs.md): 20 mm
+#: per-episode variation that is not a default (changes to the scene; docs/studies/envs.md): 20 mm
 #: jaws (the middle half of the 40 mm footprint, where they close); with the default's adhesion
 JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.02},
                      "adhesion": {"region": UNDERSIDE, "width": list(ADHESION_WIDTH)}}
@@ -140,7 +140,7 @@ def organ_scene(mesh_size: float = DEFAULT_MESH_SIZE, edge_size: float | None = 
     so that the held tissue cannot turn about the line; ``"line"`` holds only the 40 mm
     grasp line. A line held in 3-D elasticity has no
     fine-mesh limit (the tissue next to it grows ever more compliant as the mesh refines);
-    a patch does (docs/scene_convergence.md, "Line and patch grasps").
+    a patch does (docs/studies/scene_convergence.md, "Line and patch grasps").
     """
     if grasp not in ("line", "patch"):
         raise ValueError(f"grasp must be 'line' or 'patch', got {grasp!r}")

@@ -266,6 +266,8 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+    #: the instruments in each world (kinds, in action order): one grasper today
+    instruments = ("grasper",)
 
     def __init__(self, obs_mode: str = "state", render_mode: str | None = None,
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,

@@ -14,7 +14,7 @@ frictionless plane at z = 0 (``Scene.support``). It is integrated by backward Eu
 (:class:`heml_gym.QuasiNewtonSolver`; any law, field and integrator with ``physics=``).
 The mesh is 12 x 12 x 2 hex cells of 6 tets (1,728 tets): with this integrator the
 cheapest model whose grasp force and exposure stay within 5 % of a fine one along the
-scripted retraction and its 2 s hold (docs/scene_convergence.md); the one-layer
+scripted retraction and its 2 s hold (docs/studies/scene_convergence.md); the one-layer
 12 x 12 x 1 mesh of earlier versions is 10 % off in the hold once the underside is stuck.
 
 ## Action Space
@@ -111,7 +111,7 @@ changes to this scene, or a scene YAML path: ``configs/scenes/tissue_retraction.
 ``fit``: a ``heml-gym calibrate`` folder or its fit.json, whose law, Poisson ratio and E,
 drawn within two standard errors of the fitted value, the tissue then has).
 ``difficulty`` (:mod:`heml_gym.envs.difficulty`; the scripted baseline's success rate
-and episode length on each level are measured in docs/envs.md):
+and episode length on each level are measured in docs/studies/envs.md):
 
 | difficulty | task | scripted success | scripted episode, median steps |
 |---|---|---|---|
@@ -156,7 +156,7 @@ HINGE = (0.0, FLAP_SIZE[2])  # m: (x, z) of the attached edge's top line, the fo
 UNDERSIDE = {"low": [None, None, 0.0], "high": [None, None, 0.0]}
 ADHESION_WIDTH = (0.0, 0.02)  # m
 #: per-episode variation that is not a default (changes to the scene, as
-#: configs/quick_jaws_adhesion.yaml; docs/envs.md): 40 mm jaws; with the default's adhesion
+#: configs/experiments/quick_jaws_adhesion.yaml; docs/studies/envs.md): 40 mm jaws; with the default's adhesion
 JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.04}, "adhesion": {"region": UNDERSIDE, "width": list(ADHESION_WIDTH)}}
 #: the scene before 2026-11-25 (changes to the default scene): one layer of cells and the
 #: underside free (a seed draws the same target place, stiffness and gripper start as then:

@@ -62,7 +62,7 @@ for line in "${summary[@]}"; do
   echo "  $line"
   case "$line" in *FAILED*) failed=1 ;; esac
 done
-# the record of this run, for docs/stability.md
+# the record of this run, for docs/studies/stability.md
 {
   echo "# CPU matrix"
   echo

@@ -15,7 +15,7 @@ for i in "${!args[@]}"; do
 done
 run="${RUN_DIR:-runs/quick-seed$seed}"
 heml-gym train configs/quick.yaml --run-dir "$run" "$@"
-heml-gym eval "$run" --episodes 20 --out "$run/eval.json"
+heml-gym eval "$run" --episodes 20 --seed 20000 --out "$run/eval.json"  # episodes training never evaluated on
 heml-gym rollout --policy "$run" --episodes 2 --rrd "$run/rollout.rrd"
 echo
 echo "everything is in $run/: model.zip, checkpoints/, tb/ (tensorboard --logdir $run/tb),"

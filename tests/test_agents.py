@@ -33,11 +33,43 @@ def tiny_config(tmp_path, **changes) -> Path:
     return path
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "configs").glob("*.yaml")))
+@pytest.mark.parametrize("name", sorted(p.relative_to(ROOT / "configs").with_suffix("").as_posix()
+                                         for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name != "scenes"))
 def test_shipped_configs_are_valid(name):
+    """The canonical configs and the experiments (configs/experiments/) load and validate."""
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     assert cfg.algorithm.total_timesteps > 0
-    assert cfg.name == name
+    assert cfg.name == Path(name).name
+
+
+@pytest.mark.parametrize("rates, stop_at", [
+    ([0.0, 0.5, 0.95, 1.0, 1.0], 3),      # two in a row at >= 95 %: stops at the fourth
+    ([1.0, 0.9, 1.0, 0.95], 3),           # a dip restarts the count
+    ([0.95, 0.94, 1.0, 0.9, 1.0], None),  # never two in a row
+])
+def test_training_stops_after_two_evaluations_in_a_row_reach_the_bar(tmp_path, rates, stop_at):
+    from heml_gym.agents.train import SuccessEvalCallback
+
+    cfg = config_from_dict({"evaluation": {"every_steps": 1000, "episodes": 20, "stop_at_success": 0.95,
+                                           "stop_after": 2}})
+    callback = SuccessEvalCallback(cfg, tmp_path / "evaluations.json")
+    stopped = []
+    for k, rate in enumerate(rates):
+        callback.history.append({"timesteps": 1000 * (k + 1), "success_rate": rate})
+        if callback.learned():
+            stopped.append(k)
+    assert (stopped[0] if stopped else None) == stop_at
+
+
+def test_the_main_job_stops_early_and_the_experiments_run_to_their_budget():
+    """configs/quick.yaml stops once learned (400 k env steps its cap); the ablations that
+    inherit it keep the schedule their stored results were measured with."""
+    quick = load_config(ROOT / "configs" / "quick.yaml")
+    assert quick.evaluation.stop_at_success == 0.95 and quick.evaluation.stop_after == 2
+    assert quick.algorithm.total_timesteps == 400_000
+    for name in ("quick_lift5", "quick_release0", "quick_stretch0", "quick_jaws40_weighted"):
+        cfg = load_config(ROOT / "configs" / "experiments" / f"{name}.yaml")
+        assert cfg.evaluation.stop_at_success is None and cfg.evaluation.every_steps == 40_000
 
 
 def test_a_config_based_on_another_changes_only_what_it_names(tmp_path):
@@ -78,6 +110,9 @@ def test_bad_config_bases_are_clear_errors(tmp_path, text, match):
     ({"env": {"id": "heml_gym/OrganRetraction-v0"}}, "is retired"),
     ({"algorithm": {"name": "DQN"}}, "algorithm.name"),
     ({"evaluation": {"episodes": 0}}, "evaluation.episodes"),
+    ({"evaluation": {"stop_at_success": 1.5}}, "evaluation.stop_at_success"),
+    ({"evaluation": {"stop_at_success": 0}}, "evaluation.stop_at_success"),
+    ({"evaluation": {"stop_after": 0}}, "evaluation.stop_after"),
     ({"seeed": 1}, "seeed"),
     ({"env": [1, 2]}, "env"),
 ])

@@ -47,12 +47,14 @@ def test_bench_lists_runs_into_out_and_refuses_unknown_names(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
     stored = ROOT / "docs" / "benchmarks"
-    before = (stored / "env_throughput_comparison.md").stat().st_mtime_ns
+    archived = stored / "archive" / "env_throughput_comparison.md"  # the stored comparison, of a former task
+    before = archived.stat().st_mtime_ns
     args = [str(stored / "env_throughput.json"), str(stored / "env_throughput_avx2.json")]
     assert main(["bench", "compare_env_throughput", "--out", str(tmp_path / "o"), "--extra", *args]) == 0
     table = (tmp_path / "o" / "benchmarks" / "env_throughput_comparison.md").read_text()
     assert "| env | actions | N | threads |" in table
-    assert (stored / "env_throughput_comparison.md").stat().st_mtime_ns == before  # the checkout's docs untouched
+    assert not (stored / "env_throughput_comparison.md").exists()  # the checkout's docs untouched
+    assert archived.stat().st_mtime_ns == before
 
 
 def test_learning_reports_quote_an_iqm_only_from_enough_seeds():

@@ -20,3 +20,43 @@ def test_the_check_finds_a_number_without_a_source_and_a_stale_block(tmp_path, m
     assert any("123,457.5 has no stored source" in f for f in failures)
     assert not any("1,000,001" in f for f in failures)  # written as approximate
     assert any("block env_throughput differs" in f for f in failures)
+
+
+def test_the_check_finds_a_sentence_over_sixty_words(tmp_path, monkeypatch):
+    """Sentences are counted in the prose: code, tables, headings and HTML comments aside,
+    split at . ! ? : ; before a capital, a backtick or a bracket."""
+    def sentence(n: int) -> str:
+        return "The " + " ".join(["tissue"] * (n - 2)) + " folds."
+
+    long_doc, short_doc = tmp_path / "long.md", tmp_path / "short.md"
+    long_doc.write_text("# A heading of a few words\n\nA short one. " + sentence(61) + "\n")
+    short_doc.write_text("A short one; " + sentence(60) + "\n\n| a table row | " + sentence(70) + " |\n\n"
+                         "```\n" + sentence(70) + "\n```\n\n<!-- " + sentence(70) + " -->\n\n- " + sentence(59) + "\n"
+                         "- " + sentence(59) + "\n")  # (a bullet's marker counts as a word)
+    monkeypatch.setattr(check_docs, "documents", lambda: [long_doc, short_doc])
+    failures = check_docs.check()
+    assert [f for f in failures if "words" in f] == [f"{long_doc}: line 3: a sentence of 61 words (at most 60): "
+                                                     "The tissue tissue tissue tissue tissue tissue tissue ..."]
+    assert [len(s.split()) for s in check_docs.sentences(short_doc.read_text())] == [3, 60, 60, 60]
+
+
+def test_relative_links_in_the_studies_and_stored_results_resolve():
+    """Every relative Markdown link (``[text](path)``, ``![chart](path)``) in the studies
+    (docs/studies/), the stored results (docs/benchmarks/, its archive included),
+    docs/development.md and CHANGELOG.md names a file or folder that exists."""
+    import re
+
+    from heml_gym.benchmarks.common import ROOT
+
+    docs = ROOT / "docs"
+    files = [*(docs / "studies").glob("*.md"), *(docs / "benchmarks").rglob("*.md"), docs / "development.md",
+             ROOT / "CHANGELOG.md"]
+    broken = []
+    for path in files:
+        text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)
+        for target in re.findall(r"\]\(\s*<?([^)\s>]+)", text):
+            if re.match(r"[a-z]+:|#", target):
+                continue
+            if not (path.parent / target.split("#")[0]).exists():
+                broken.append(f"{path.relative_to(ROOT)}: {target}")
+    assert broken == []

@@ -136,7 +136,7 @@ def test_the_scripted_fold_closes_its_partial_jaws_at_the_edge_middle():
 
 
 def test_the_scripted_fold_succeeds_with_partial_jaws_and_adhesion():
-    """With 40 mm jaws and 0-20 mm of adhesion (configs/quick_jaws_adhesion.yaml) the
+    """With 40 mm jaws and 0-20 mm of adhesion (configs/experiments/quick_jaws_adhesion.yaml) the
     scripted fold, grasping at the edge's middle on a 0.9x arc, exposes the target and
     holds it 2 s below damage strain in at least 9 of 10 seeded episodes (the earlier fold,
     closing where the gripper starts and folding taut, succeeded in 90 % with 40 mm jaws

@@ -226,10 +226,10 @@ def report(data: dict) -> str:
         checks = "; ".join(f"{c['finer']}: {1e3 * c['points_max_m']:.2f} mm and {c['force_max_N']:.3f} N"
                            for c in study.get("converged_check", []))
         out += (f"{study.get('env', data['env']).split('/')[-1]}, observed on {study['observed_on']} ({m['cpu']}, "
-                f"{m['vector_isa']}, one thread, {m['date']}"
-                + (f"; observed in finer models, the same tissue's noise-free tracked points and jaws' force "
+                f"{m['vector_isa']}, one thread, {m['date']})"
+                + (f". Observed in finer models, the same tissue's noise-free tracked points and jaws' force "
                    f"move by at most {checks} (the force peaks at "
-                   f"{study['converged_check'][0]['force_peak_N']:.2f} N)" if checks else "") + "):\n\n")
+                   f"{study['converged_check'][0]['force_peak_N']:.2f} N)" if checks else "") + ":\n\n")
         out += fit_table(study) + "\n"
     return out
 

@@ -105,7 +105,7 @@ def report(data: dict) -> str:
             f"{data['truth']['young_modulus']:,.0f} Pa, nu {data['truth']['poisson_ratio']}, along the scripted "
             f"retraction and hold (seed {data['seed']}; points: 10 tracked, {data['point_noise_m'] * 1e3:g} mm noise; "
             f"force: {data['force_noise_N']:g} N noise), observed on {study['observed_on']} by the calibration's "
-            f"replay; in finer models the same tissue's noise-free tracked points and jaws' force move by at most "
+            f"replay. In finer models the same tissue's noise-free tracked points and jaws' force move by at most "
             f"{checks} (the force peaks at {study['converged_check'][0]['force_peak_N']:.2f} N). Method: the "
             f"script's docstring.\n\n" + fit_table(study) + "\n")
 

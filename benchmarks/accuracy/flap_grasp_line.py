@@ -7,7 +7,7 @@ finer mesh, without limit (the displacement of a line load grows as the logarith
 distance from it), while the rest of the flap converges. The lobe moved to a held patch
 for this reason (grasp_convergence.py); this measures what the line does on the flap, and
 so why calibration from the flap's tracked points depends on the mesh whatever the
-element (docs/calibration.md).
+element (docs/studies/calibration.md).
 
 Protocol: the calibration benchmark's tissue (E 5.5 kPa, nu 0.43) along its scripted
 retraction and hold (30 steps, seed 1): the scripted policy runs on the default model

@@ -115,7 +115,7 @@ def markdown(results: dict, machine: dict, wall: float) -> str:
            f"{machine.get('cpu', 'this machine')}. Seeds {list(SEEDS)}, the scripted path of {STEPS} steps recorded "
            f"on each grasp's default (7 mm, quasi-Newton); hold = steps {HOLD_FROM + 1}-{STEPS}. Errors against "
            "each grasp's finest mesh (4 mm graded to 2 mm at the edge, explicit), over all steps, worst seed. "
-           "Method: docs/scene_convergence.md, \"Line and patch grasps\".", ""]
+           "Method: docs/studies/scene_convergence.md, \"Line and patch grasps\".", ""]
     for grasp, res in results.items():
         out += [f"### {grasp.capitalize()} grasp", ""]
         rows = [[("**" + r["model"] + "**" if r["default"] else r["model"]) + (" (reference)" if r["reference"] else ""),
@@ -161,6 +161,9 @@ def main(argv=None):
     ap.add_argument("--from-json", action="store_true", help="rebuild the table and chart from the stored runs")
     args = ap.parse_args(argv)
     if args.from_json:
+        if not (RESULTS / "grasp_convergence.json").is_file():  # the last run measured a former task: archived
+            ap.error(f"--from-json: nothing stored at {RESULTS / 'grasp_convergence.json'} (the run of a former task "
+                     "is kept in docs/benchmarks/archive/)")
         stored = json.loads((RESULTS / "grasp_convergence.json").read_text())
         machine, wall, results = stored["machine"], stored["wall_s"], stored["results"]
     else:

@@ -6,7 +6,7 @@ jaws close along the region decides what they hold: at the region's middle the t
 on both sides of them is folded back with it; at its end, only one side is. This
 measures how much that changes the force it takes to hold the tissue folded back, and
 whether the default mesh follows a fine one there (the 5 % rule of
-docs/scene_convergence.md, which the default jaws must meet at every place they close).
+docs/studies/scene_convergence.md, which the default jaws must meet at every place they close).
 
 Protocol, per scene and seed: the scripted baseline (``heml_gym.envs.scripted``), told to
 close the jaws ``offset`` from the region's middle along its long axis (from the middle
@@ -45,7 +45,7 @@ from heml_gym.envs import scripted
 
 #: the last env steps of each run over which the hold force and exposure are averaged
 HOLD_STEPS = 10
-#: per scene: the jaws' length (m; the jaw variation of each scene, docs/scene_convergence.md),
+#: per scene: the jaws' length (m; the jaw variation of each scene, docs/studies/scene_convergence.md),
 #: the offsets (m) of the jaws' centre from the grasp region's middle along its axis (the
 #: last puts the jaws' end at the region's end), the meshes (the default first, the finest
 #: last: the others' yardstick) and the env steps recorded
@@ -187,7 +187,7 @@ def verdict(scene: str, summary: dict) -> str:
     default, finest = summary[labels[0]], summary[labels[-1]]
     return (f"{scene}: the default mesh ({labels[0]}) is {'within' if default['within'] else 'NOT within'} 5 % "
             f"of the finest at every offset (force {100 * max(map(abs, default['force_error'])):.1f} %, exposure "
-            f"{max(default['exposure_error']):.3f} at worst); closing at the region's end changes the hold force "
+            f"{max(default['exposure_error']):.3f} at worst). Closing at the region's end changes the hold force "
             f"by {100 * finest['end_vs_middle']['median']:+.1f} % (median over seeds, finest mesh; default "
             f"{100 * default['end_vs_middle']['median']:+.1f} %) and the peak gauge strain by "
             f"{100 * finest['strain_end_vs_middle']['median']:+.0f} %.")

@@ -38,7 +38,7 @@ from heml_gym.benchmarks.accuracy.scene_convergence import QN, record, replay, t
 SCENE = "TissueRetraction"
 #: the meshes, coarsest (the default) first; the last is the finest, the others' yardstick
 MESHES = [(12, 12, 2), (16, 16, 2), (24, 24, 3), (32, 32, 4)]
-#: jaw lengths (m) replayed; 40 mm is ``configs/quick_jaws_adhesion.yaml``'s
+#: jaw lengths (m) replayed; 40 mm is ``configs/experiments/quick_jaws_adhesion.yaml``'s
 LENGTHS = [round(0.024 + 0.002 * k, 3) for k in range(17)]
 RECORDED_LENGTH = 0.04
 HOLD_STEPS = slice(20, 30)  # env steps 21..30
@@ -115,7 +115,7 @@ def chart(results: dict, path: Path, ends: str = "vertex") -> None:
             axes[0].plot(mm, force, marker="o", ms=3, label=lab)
         axes[1].step(mm, held, where="mid", marker="o", ms=3, label=lab)
     for a in axes:
-        a.axvline(1e3 * RECORDED_LENGTH, color="k", ls=":", lw=1, label="configs/quick_jaws_adhesion.yaml")
+        a.axvline(1e3 * RECORDED_LENGTH, color="k", ls=":", lw=1, label="configs/experiments/quick_jaws_adhesion.yaml")
         a.set_xlabel("jaw length (mm)")
         a.grid(alpha=0.3)
         a.legend(fontsize=7)

@@ -36,14 +36,18 @@ def collect(trials, summary: dict, config_path: Path, concurrent: int, command: 
         seeds.append({"seed": t.seed, "status": "finished", "env_steps": record["env_steps"],
                       "wall_s": record["wall_s"], "success_rate": record["success_rate"],
                       "success_ci95": record["success_ci95"], "first_eval_at_90_percent": first,
-                      "evaluations": evaluations})
+                      "stopped_early": record.get("stopped_early", False), "evaluations": evaluations})
     finals = [s["success_rate"] for s in seeds if s["status"] == "finished"]
     from heml_gym.agents.config import load_config
 
+    cfg = load_config(config_path)
     out = {"machine": machine_info(), "config": str(config_path.relative_to(ROOT)),
-           "evaluation_every_steps": load_config(config_path).evaluation.every_steps,
+           "evaluation_every_steps": cfg.evaluation.every_steps,
            "trials_at_once": concurrent, "cpus_per_trial": cpus_per_trial, "command": command, "seeds": seeds,
            "seeds_at_90_percent": sum(f >= 0.9 for f in finals), "seeds_finished": len(finals)}
+    if cfg.evaluation.stop_at_success is not None:
+        out["stop_rule"] = {"stop_at_success": cfg.evaluation.stop_at_success, "stop_after": cfg.evaluation.stop_after,
+                            "cap": cfg.algorithm.total_timesteps}
     if finals:
         out["iqm"] = iqm(finals)
         out["iqm_ci95"] = list(iqm_interval(finals))
@@ -67,12 +71,17 @@ def table(result: dict, name: str = "quick_sweep") -> str:
         lo, hi = s["success_ci95"]
         history = " / ".join(f"{e['success_rate']:.0%}" for e in s["evaluations"])
         first = f"{s['first_eval_at_90_percent']:,}" if s["first_eval_at_90_percent"] is not None else "never"
+        steps = f"{s['env_steps']:,}" + (" (stopped: learned)" if s.get("stopped_early") else "")
         rows.append([s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", first, history,
-                     f"{s['env_steps']:,}", f"{s['wall_s'] / 60:.1f}"])
+                     steps, f"{s['wall_s'] / 60:.1f}"])
+    stop = result.get("stop_rule")
+    stopping = (f" Training stops once {stop['stop_after']} evaluations in a row reach {stop['stop_at_success']:.0%} "
+                f"success (cap {stop['cap']:,} env steps); the final success is then measured on 20 episodes the "
+                "evaluations never saw." if stop else "")
     head = (f"`{result['config']}` with {len(result['seeds'])} seeds on {m['cpu']} ({m['cores']} cores), "
             f"{m['date']}, {result['trials_at_once']} at a time with {cpus(result.get('cpus_per_trial', 1))} each "
             f"(`{result.get('command', 'python benchmarks/learning/quick_sweep.py')}`). Final success: 20 fresh seeded evaluation episodes, "
-            "deterministic policy, 95 % Wilson interval." + (f" {result['note']}" if result.get("note") else "") + "\n\n")
+            "deterministic policy, 95 % Wilson interval." + stopping + (f" {result['note']}" if result.get("note") else "") + "\n\n")
     summary = f"\n**{result['seeds_at_90_percent']} of {result['seeds_finished']} seeds reach >= 90 %**"
     if "iqm" in result and result["seeds_finished"] >= SEEDS_FOR_AN_IQM:
         summary += (f"; IQM of the final success across seeds {result['iqm']:.0%} (95 % bootstrap interval "

@@ -1,6 +1,7 @@
 """Check that the docs say what their stored results say.
 
-Two checks over README.md and docs/*.md, each failure printed with its file and line:
+Three checks over README.md, the guides (docs/*.md) and the studies (docs/studies/*.md),
+each failure printed with its file and line:
 
 1. **Generated blocks are current.** Every ``<!-- BEGIN name -->`` ... ``<!-- END name -->``
    block holds exactly ``docs/benchmarks/name.md`` (as ``update_docs.py`` copies it):
@@ -13,6 +14,14 @@ Two checks over README.md and docs/*.md, each failure printed with its file and 
    shipped configs (``configs/**.yaml``) or a constant of the code (a setting, a test's
    parameter). A number typed from memory, or left behind when its result was
    re-measured, has none.
+3. **No sentence runs over 60 words.** Prose (code blocks, tables, headings and HTML
+   comments aside; generated blocks included) is split into sentences: bullets and
+   paragraphs apart, and a sentence ends at ``.``, ``!``, ``?``, ``:`` or ``;`` followed
+   by a space and a capital, a backtick, a parenthesis, a bracket or ``*``. A longer
+   sentence fails with its word count.
+
+Stored results of former tasks live in ``docs/benchmarks/archive/``: they need their
+``**Stale:**`` banner like any other, and they are no source for a number in the prose.
 
 The second check is a necessary condition (a stored value that happens to round to the
 same digits passes), not proof that a sentence quotes the right result; it catches
@@ -35,6 +44,7 @@ from heml_gym.benchmarks.common import parse_arguments, ROOT
 
 RESULTS = ROOT / "docs" / "benchmarks"  # the checkout's stored results, whatever HEML_BENCH_OUT says
 BLOCK = re.compile(r"(<!-- BEGIN (\w+) -->\n)(.*?)(<!-- END \2 -->)", re.S)
+LONGEST_SENTENCE = 60  # words
 NUMBER = re.compile(r"(?<![\w.,\-/^])(\d{1,3}(?:,\d{3})+(?:\.\d+)?|\d+\.\d+|\d+)(?![\w.]*\d)(\s*%)?")
 APPROXIMATE = re.compile(r"(~|about |approximately |roughly |around |Python |version )$")
 
@@ -48,7 +58,9 @@ def shown(path: Path) -> str:
 
 
 def documents() -> list[Path]:
-    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    """README.md, the guides (docs/*.md) and the studies (docs/studies/*.md)."""
+    docs = ROOT / "docs"
+    return [ROOT / "README.md", *sorted(docs.glob("*.md")), *sorted((docs / "studies").glob("*.md"))]
 
 
 def stale_blocks(doc: Path) -> list[str]:
@@ -141,19 +153,57 @@ def unsourced_numbers(doc: Path, values: np.ndarray, printed: set[str]) -> list[
     return failures
 
 
+def sentences(text: str) -> list[str]:
+    """The sentences of Markdown prose (the project's prose-length rule): code blocks and
+    HTML comments dropped, table rows and headings skipped, paragraphs and
+    list items apart, each split after ``. ! ? : ;`` followed by a space and a capital,
+    ``*``, a backtick, ``(`` or ``[``."""
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    text = re.sub(r"<!--.*?-->", "", text, flags=re.S)
+    out = []
+    for para in re.split(r"\n\s*\n|\n(?=\s*[-*] |\s*\d+\. |#)", text):
+        lines = [line for line in para.split("\n") if not line.strip().startswith(("|", "#"))]
+        block = re.sub(r"\s+", " ", " ".join(lines)).strip()
+        if block:
+            out += [s for s in re.split(r"(?<=[.!?:;])\s+(?=[A-Z*`(\[])", block) if s.strip()]
+    return out
+
+
+def where(sentence: str, text: str) -> int:
+    """The line of ``text`` where ``sentence`` starts (approximate: its first words found)."""
+    words = sentence.split()
+    for n in (8, 4, 1):
+        m = re.search(r"\s+".join(re.escape(w) for w in words[:n]), text)
+        if m:
+            return text[:m.start()].count("\n") + 1
+    return 0
+
+
+def long_sentences(doc: Path) -> list[str]:
+    """The sentences of ``doc`` longer than LONGEST_SENTENCE words."""
+    text = doc.read_text()
+    return [f"line {where(s, text)}: a sentence of {len(s.split())} words (at most {LONGEST_SENTENCE}): "
+            f"{' '.join(s.split()[:8])} ..."
+            for s in sentences(text) if len(s.split()) > LONGEST_SENTENCE]
+
+
 def unlabelled_results() -> list[str]:
-    """Stored results that do not say which task versions they measured, whose stale
-    banner is missing, or an index (docs/benchmarks/index.md) that is not current."""
+    """Stored results (docs/benchmarks/ and its archive/) that do not say which task
+    versions they measured, whose stale banner is missing (every table in the archive
+    needs one), or an index (docs/benchmarks/index.md) that is not current."""
     from heml_gym.benchmarks.report import update_docs
 
     failures = []
-    for path in sorted(RESULTS.glob("*.json")):
+    for path in [*sorted(RESULTS.glob("*.json")), *sorted(update_docs.ARCHIVE.glob("*.json"))]:
         data = json.loads(path.read_text())
         if not isinstance(data.get("tasks"), dict):
             failures.append(f"{shown(path)}: no 'tasks' (the task versions it measured)")
         elif update_docs.stale_tasks(data) and path.with_suffix(".md").is_file() \
                 and not path.with_suffix(".md").read_text().startswith("**Stale:**"):
             failures.append(f"{shown(path.with_suffix('.md'))}: measured on a former task, no **Stale:** banner")
+    for table in sorted(update_docs.ARCHIVE.glob("*.md")):
+        if not table.read_text().startswith("**Stale:**"):
+            failures.append(f"{shown(table)}: in the archive of former tasks, no **Stale:** banner")
     index = RESULTS / "index.md"
     if not index.is_file() or index.read_text() != update_docs.index():
         failures.append(f"{shown(index)}: not current (python benchmarks/report/update_docs.py)")
@@ -164,7 +214,7 @@ def check() -> list[str]:
     values, printed = stored_values()
     failures = unlabelled_results()
     for doc in documents():
-        for failure in stale_blocks(doc) + unsourced_numbers(doc, values, printed):
+        for failure in stale_blocks(doc) + unsourced_numbers(doc, values, printed) + long_sentences(doc):
             failures.append(f"{shown(doc)}: {failure}")
     return failures
 

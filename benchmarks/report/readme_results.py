@@ -1,11 +1,16 @@
-"""The README's "Results" and its quick-start sentence, written from the stored results.
+"""The README's generated parts, and the list of every headline result, from the stored results.
 
-Reads docs/benchmarks/{quick_sweep,env_throughput,force_throughput,simulation_speed,
-scene_convergence,agent_results,rllib_learning,rllib_learning_organ,pixel_learning,
-organ_pixel_learning}.json
-and writes docs/benchmarks/readme_results.md, one sentence per result with the CPU and
-date it was measured on (a result that is missing is left out, and said to be), and docs/benchmarks/readme_quickstart.md (what the main job
-gives across seeds). ``python benchmarks/report/update_docs.py`` then copies them into README.md.
+Writes, in docs/benchmarks/ (``python benchmarks/report/update_docs.py`` then copies each
+into the ``<!-- BEGIN name -->`` block of README.md or a study):
+
+* ``readme_tasks.md``: the table of tasks, from the registry (action space, observation
+  modes, success rule) and the stored results (scripted and learned success, env speed
+  over the CPUs on record);
+* ``readme_quickstart.md``: the main job's time as ``scripts/main.sh`` runs it, per CPU
+  class on record (``main_job*.json``);
+* ``readme_highlights.md``: the README's few headline results;
+* ``readme_results.md``: one sentence per result with the CPU and date it was measured on
+  (for docs/studies/results.md; a result that is missing is left out, and said to be).
 
     python benchmarks/report/readme_results.py
 """
@@ -54,66 +59,31 @@ def beside_other_work(data: dict) -> str:
     return ", beside other work on the machine: a quiet one is faster" if data.get("machine_loaded") else ""
 
 
-def quickstart(data: dict) -> str:
-    """The quick-start sentence: what the main job gives a fresh clone, across seeds."""
-    done = [s for s in data["seeds"] if s["status"] == "finished"]
-    wall = sorted(s["wall_s"] / 60 for s in done)
-    misses = [f"seed {s['seed']}: {s['success_rate']:.0%}" for s in done if s["success_rate"] < 0.9]
-    m = data["machine"]
-    isa = f", {m['vector_isa']}" if "vector_isa" in m else ""
-    text = (f"Measured on a {m['cores']}-core {m['cpu']} ({m['date']}{isa}), {len(done)} seeds: training took "
-            f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed (one core each, two seeds at a time"
-            f"{beside_other_work(data)}), and "
-            f"**{data['seeds_at_90_percent']} of {data['seeds_finished']} seeds** reached >= 90 % success on 20 fresh "
-            "evaluation episodes")
-    text += f" (below it: {', '.join(misses)})." if misses else "."
-    return text + " [Per seed](quick_sweep.md)."
+def main_job_times() -> str:
+    """The main job as ``scripts/main.sh`` runs it (stopping once learned), per CPU class on
+    record (``main_job*.json``: ``quick_sweep.py --name main_job --cpus-per-trial 2``): the
+    median training time over the seeds, where each stopped, and how many ended >= 90 %."""
+    import statistics
 
-
-def quickstart_elsewhere(data: dict) -> str:
-    """The same job re-run with other seeds on another machine (``quick_sweep_avx2``)."""
-    done = [s for s in data["seeds"] if s["status"] == "finished"]
-    if not done:
-        return ""
-    wall = sorted(s["wall_s"] / 60 for s in done)
-    ended = ", ".join(f"seed {s['seed']} at {s['success_rate']:.0%}" for s in done)
-    took = f"{wall[0]:.1f} min" if len(wall) == 1 else f"{wall[0]:.1f}-{wall[-1]:.1f} min per seed"
-    if data.get("trials_at_once", 1) == 1 and data.get("cpus_per_trial", 1) >= 2 and not data.get("machine_loaded"):
-        how = "alone on the machine with both cores, as `scripts/main.sh` runs it"
-    else:
-        how = f"{data.get('trials_at_once', 1)} at a time{beside_other_work(data)}"
-    task = task_versions(data)
-    seeds = "a seed" if len(done) == 1 else "seeds"
-    return (f" On an AVX2-only machine ({where(data)}{f'; {task}' if task else ''}) with {seeds} no config was tuned "
-            f"on, training took {took} ({how}) and ended with {ended} ([per seed](quick_sweep_avx2.md)).")
-
-
-def quickstart_quiet(data: dict) -> str:
-    """The same job alone on the machine with both cores, as ``scripts/main.sh`` runs it
-    (``quick_sweep_quiet``: ``quick_sweep.py --seeds 7 --cpus-per-trial 2 --name quick_sweep_quiet``)."""
-    done = [s for s in data["seeds"] if s["status"] == "finished"]
-    if not done or data.get("machine_loaded"):
-        return ""
-    runs = ", ".join(f"seed {s['seed']} took {s['wall_s'] / 60:.1f} min and ended at {s['success_rate']:.0%}"
-                     for s in done)
-    isa = data["machine"].get("vector_isa")
-    on = f" (the same {isa} machine type)" if isa else ""
-    return (f" Alone on the machine with both cores, as `scripts/main.sh` runs it{on}, {runs} "
-            f"([quiet run](quick_sweep_quiet.md)).{avx2_slowdown()}")
-
-
-def avx2_slowdown() -> str:
-    """How much slower the main job's env (16 flap scenes, 2 threads) steps on an AVX2-only
-    CPU than in the AVX-512 run, from the two stored env_throughput runs ("" without both)."""
-    native, avx2 = load("env_throughput"), load("env_throughput_avx2")
-    if not (native and avx2) or native["machine"].get("vector_isa") != "AVX-512":
-        return ""
-    rates = [_rates(d)[0](TISSUE, "vector", 16, 2) for d in (native, avx2)]
-    if None in rates:
-        return ""
-    return (f" On an AVX2-only CPU the main job's 16 flap scenes step {rates[0] / rates[1]:.1f}x slower "
-            f"({rates[1]:,.0f} against {rates[0]:,.0f} env steps/s, Results); PPO's own updates run slower "
-            "there too, and the main job's wall time on such a machine is not on record for today's code.")
+    lines = []
+    for path in sorted(RESULTS.glob("main_job*.json")):
+        data = json.loads(path.read_text())
+        done = [s for s in data["seeds"] if s["status"] == "finished"]
+        if not done:
+            continue
+        minutes = [s["wall_s"] / 60 for s in done]
+        stops = [s["env_steps"] for s in done]
+        m = data["machine"]
+        alone = (data.get("trials_at_once") == 1 and data.get("cpus_per_trial", 1) >= 2)
+        how = "alone on the machine with both cores, as `scripts/main.sh` runs it" if alone else (
+            f"{data.get('trials_at_once')} at a time")
+        lines.append(
+            f"On a {m['cores']}-core {m['cpu']} ({m.get('vector_isa', '?')}, {m['date']}; {how}"
+            f"{beside_other_work(data)}): a median of **{statistics.median(minutes):.1f} min** per seed "
+            f"({min(minutes):.1f}-{max(minutes):.1f} over {len(done)} seeds, stopping at "
+            f"{min(stops) // 1000}-{max(stops) // 1000} k env steps); **{data['seeds_at_90_percent']} of "
+            f"{data['seeds_finished']} seeds** ended at >= 90 % on 20 fresh episodes ([per seed]({path.stem}.md)).")
+    return "\n\n".join(lines)
 
 
 def pixels(data: dict) -> str:
@@ -131,18 +101,18 @@ def pixels(data: dict) -> str:
         first = next((e["env_steps"] for e in s["evaluations"] if e["success_rate"] >= 0.8), None)
         passed += first is not None
         reach = f"passed 80 % at {first // 1000} k env steps" if first is not None else "never passed 80 %"
-        per_seed.append(f"seed {s['seed']} {reach}, final {s['success_rate']:.0%} at {s['env_steps'] // 1000} k "
+        per_seed.append(f"Seed {s['seed']} {reach}, final {s['success_rate']:.0%} at {s['env_steps'] // 1000} k "
                         f"steps in {s['wall_s'] / 60:.0f} min")
     if len(done) < SEEDS_FOR_AN_IQM:
         claim = (f"{len(done)} seed{'s' if len(done) > 1 else ''} on record, fewer than the {SEEDS_FOR_AN_IQM} a claim "
-                 "needs: ")
+                 "needs. ")
     else:
         low, high = data["iqm_ci95"]
         claim = (f"{passed} of {len(done)} seeds passed 80 % within {max(s['env_steps'] for s in done) // 1000} k env "
-                 f"steps, final success IQM {data['iqm']:.0%} (95 % CI {low:.0%}-{high:.0%}): ")
+                 f"steps, final success IQM {data['iqm']:.0%} (95 % CI {low:.0%}-{high:.0%}). ")
     return (f"**From pixels{f' ({env})' if env else ''}.** PPO with a CNN on the task camera's images alone "
-            f"(`{data['config']}`), {claim}{'; '.join(per_seed)} ({where(data)}{beside_other_work(data)}; "
-            f"[envs.md](../envs.md#learning-from-pixels)).")
+            f"(`{data['config']}`): {claim}{'. '.join(per_seed)} ({where(data)}{beside_other_work(data)}; "
+            f"[envs.md](../studies/envs.md#learning-from-pixels)).")
 
 
 def rllib(data: dict) -> str:
@@ -158,15 +128,15 @@ def rllib(data: dict) -> str:
     for s in seeds:
         first = s["first_eval_at_90_percent"]
         reach = f"passed 90 % at {round(first / 1000)} k env steps" if first is not None else "never reached 90 %"
-        per_seed.append(f"seed {s['seed']} {reach}, final {s['final_success_rate']:.0%} in {s['wall_s'] / 60:.0f} min")
+        per_seed.append(f"Seed {s['seed']} {reach}, final {s['final_success_rate']:.0%} in {s['wall_s'] / 60:.0f} min")
     env = data["env"].split("/")[-1]
     claim = f"{sum(f >= 0.9 for f in finals)} of {len(seeds)} seeds ended at >= 90 %"
     if len(seeds) >= SEEDS_FOR_AN_IQM:
         low, high = iqm_interval(finals)
         claim += f" (final success IQM {iqm(finals):.0%}, 95 % CI {low:.0%}-{high:.0%})"
     return (f"**RLlib ({env}).** RLlib PPO with {data['env_runners']} env runners of {data['scenes_per_runner']} "
-            f"scenes (`{data['config']}`, {max(s['env_steps'] for s in seeds) // 1000} k env steps): {claim}: "
-            f"{'; '.join(per_seed)} ({where(data)}{beside_other_work(data)}; [scale_out.md](../scale_out.md#measured)).")
+            f"scenes (`{data['config']}`, {max(s['env_steps'] for s in seeds) // 1000} k env steps): {claim}. "
+            f"{'. '.join(per_seed)} ({where(data)}{beside_other_work(data)}; [scale_out.md](../studies/scale_out.md#measured)).")
 
 
 TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"
@@ -199,7 +169,7 @@ def throughput(data: dict) -> str:
     if all(explicit):
         text += (f", {rate(organ, 'single', 1, 1) / explicit[0]:.1f}x and "
                  f"{rate(organ, 'single', 1, 1, 'scripted') / explicit[1]:.1f}x its explicit path in the same run")
-    text += f", {ov['median_steps_per_s']:,.0f}/s vectorised ({where(data)}; [envs.md](../envs.md#measured))."
+    text += f", {ov['median_steps_per_s']:,.0f}/s vectorised ({where(data)}; [envs.md](../studies/envs.md#measured))."
     avx2 = load("env_throughput_avx2")
     return text + (" " + throughput_avx2(avx2, data) if avx2 else "")
 
@@ -240,7 +210,7 @@ def forces(data: dict) -> str:
     return (f"**Forces.** HEML equals textbook FEM to 1e-15; its Neo-Hookean kernel runs {nh:.0f} M tets/s on one core "
             f"({stvk:.0f} M for StVK; {avx2:.0f} M when compiled for a plain AVX2 CPU{median}) on a "
             f"{laws['native']['n_tets']:,}-tet box ({place}; "
-            "[physics_core.md](../physics_core.md#force-kernel-throughput)).")
+            "[physics_core.md](../studies/physics_core.md#force-kernel-throughput)).")
 
 
 def implicit(data: dict) -> str:
@@ -250,7 +220,7 @@ def implicit(data: dict) -> str:
     r = rows[0]
     return (f"**Implicit step.** A backward-Euler 1/30 s step of a LapGym-size slab ({r['n_tets']:,} tets) takes "
             f"{r['median_step_ms']:.1f} ms on one core, {r['mean_newton_iterations']:.1f} Newton iterations on average "
-            f"({where(data)}; [dynamics.md](../dynamics.md#measured-speed-one-thread)).")
+            f"({where(data)}; [dynamics.md](../studies/dynamics.md#measured-speed-one-thread)).")
 
 
 def agents(data: dict) -> str:
@@ -272,7 +242,7 @@ def agents(data: dict) -> str:
     if not parts:
         return ""
     return (f"**Other agents** (default task, difficulty 1, unless named): {'; '.join(parts)} "
-            "([agents.md](../agents.md#results)).")
+            "([agents.md](../studies/agents.md#results)).")
 
 
 def convergence(data: dict) -> str:
@@ -288,10 +258,127 @@ def convergence(data: dict) -> str:
                      f"exposure error {exposure:.3f}: {verdict}")
     return (f"**Accuracy of the env scenes.** The default models against fine models of the same scene, on the "
             f"scripted baseline's path and its 2 s hold: {'; '.join(parts)} "
-            f"({where(data)}; [scene_convergence.md](../scene_convergence.md)).")
+            f"({where(data)}; [scene_convergence.md](../studies/scene_convergence.md)).")
+
+
+def speed_range(env_id: str) -> str:
+    """Env steps/s of ``env_id`` over every stored env_throughput run (one per CPU class or
+    codegen target): single env on one core (random actions) / best vector env, each as a
+    range over the runs."""
+    singles, vectors = [], []
+    for path in sorted(RESULTS.glob("env_throughput*.json")):
+        data = json.loads(path.read_text())
+        if env_id not in data.get("envs", {}):
+            continue
+        rate, best_vector = _rates(data)
+        single = rate(env_id, "single", 1, 1)
+        if single:
+            singles.append(single)
+            vectors.append(best_vector(env_id)["median_steps_per_s"])
+    if not singles:
+        return "not measured"
+
+    def span(values):
+        low, high = min(values), max(values)
+        return f"{low:,.0f}" if round(low) == round(high) else f"{low:,.0f}-{high:,.0f}"
+
+    return f"{span(singles)} / {span(vectors)}"
+
+
+def cpu_classes() -> str:
+    """The CPUs (and codegen targets) of the stored env_throughput runs, in words."""
+    names = []
+    for path in sorted(RESULTS.glob("env_throughput*.json")):
+        m = json.loads(path.read_text())["machine"]
+        target = m.get("codegen", {}).get("cpu", "host")
+        names.append(f"{m['cpu']} {m.get('vector_isa', '')}".strip() + (f" compiled for {target}" if target
+                                                                           not in ("host", "znver3") else ""))
+    return "; ".join(names)
+
+
+def learned(env_id: str, agents_data: dict | None) -> str:
+    """Each algorithm's seeds at >= 90 % final success on ``env_id`` (difficulty 1)."""
+    parts = []
+    for g in (agents_data or {}).get("groups", []):
+        if g["env"] == env_id and g.get("difficulty", 1) == 1:
+            parts.append(f"{g['algorithm']} {g['seeds_at_90_percent']}/{len(g['seeds'])}")
+    for name in ("rllib_learning", "rllib_learning_organ"):
+        data = load(name)
+        if data and data.get("env") == env_id and data["seeds"]:
+            finals = [s["final_success_rate"] for s in data["seeds"]]
+            parts.append(f"RLlib PPO {sum(f >= 0.9 for f in finals)}/{len(finals)}")
+    return ", ".join(parts) or "not trained yet"
+
+
+def task_table() -> str:
+    """The README's table of tasks: from the registry (spaces, settings) and the stored
+    results (scripted and learned success, speed)."""
+    import gymnasium as gym
+
+    from heml_gym.envs import ENV_IDS
+    from heml_gym.envs.retraction_env import OBS_MODES
+
+    agents_data = load("agent_results")
+    rows = []
+    for env_id in ENV_IDS:
+        env = gym.make(env_id)
+        u = env.unwrapped
+        s = u.task.settings
+        space = env.action_space
+        action = f"`{type(space).__name__}({', '.join(str(n) for n in space.shape)},)`"
+        success = (f"exposure >= {s.success_exposure:.0%}, gauge strain < {s.damage_strain:g}"
+                   + (f", held {s.hold_time:g} s" if s.hold_time else ""))
+        scripted = (agents_data or {}).get("scripted", {}).get(env_id)
+        scripted_text = (f"{scripted['success_rate']:.0%} of {scripted['episodes']}" if scripted else "not measured")
+        instruments = ", ".join(u.instruments)
+        rows.append([f"`{env_id}`", instruments, action, ", ".join(OBS_MODES), success, scripted_text,
+                     learned(env_id, agents_data), speed_range(env_id)])
+        env.close()
+    from heml_gym.benchmarks.common import markdown_table
+
+    return (markdown_table(["task", "instruments", "action", "observations", "success", "scripted expert",
+                            "learned (seeds >= 90 %)", "env steps/s: single / vector"], rows)
+            + f"\nWritten by `benchmarks/report/readme_results.py` from the registry and the stored results. "
+            f"Learned: seeds whose final success on 20 fresh episodes is >= 90 % ([all results](../studies/agents.md#results)). "
+            f"Speed: one env on one core / the best vector env on 2 cores, the range over the CPUs on record "
+            f"({cpu_classes()}; [env_throughput.md](env_throughput.md)).\n")
+
+
+def highlights() -> str:
+    """The README's few headline results, one short sentence each, with a link to the rest."""
+    lines = []
+    conv = load("scene_convergence")
+    if conv:
+        parts = []
+        for scene, res in conv["results"].items():
+            default = next(r for r in res["table"] if r.get("default"))
+            parts.append(f"{scene} {max(x['force'] for x in default['per_seed']) * 100:.1f} %")
+        lines.append("**Accurate where the task needs it.** Along each task's scripted solution, the default mesh's grasp "
+                     f"force stays within 5 % of a fine mesh ({', '.join(parts)}; "
+                     "[scene_convergence](../studies/scene_convergence.md)).")
+    f = load("force_throughput")
+    if f and f.get("laws"):
+        nh = f["laws"]["native"]["tets_per_s"]["HEML Neo-Hookean"] / 1e6
+        lines.append(f"**Fast.** HEML's forces equal textbook FEM to 1e-15, at {nh:.0f} M tets/s on one core "
+                     f"({f['machine']['cpu']}, {f['machine']['date']}; [physics_core](../studies/physics_core.md)).")
+    harm = [load(n) for n in ("constrained_tissue", "constrained_organ")]
+    if all(harm) and all(h["verdict"]["met"] for h in harm):
+        lines.append("**Harm as a cost.** Trained against a damage budget, PPO-Lagrangian lowers the final damage at "
+                     f"the same success on both tasks, {min(len(h['methods']['PPO']['seeds']) for h in harm)} seeds "
+                     "each ([training under a budget]"
+                     "(../studies/agents.md#tissue-harm-under-a-budget)).")
+    pix = [load(n) for n in ("pixel_learning", "organ_pixel_learning")]
+    if all(pix):
+        done = [sum(x["status"] == "finished" for x in d["seeds"]) for d in pix]
+        lines.append(f"**From pixels.** PPO with a CNN learns both tasks from the task camera alone ({done[0]} and "
+                     f"{done[1]} seeds; [learning from pixels](../studies/envs.md#learning-from-pixels)).")
+    lines.append("Every result, its CPU and date: [results](../studies/results.md).")
+    return "\n".join(f"- {line}" for line in lines) + "\n"
 
 
 def main() -> int:
+    (RESULTS / "readme_tasks.md").write_text(task_table())
+    (RESULTS / "readme_highlights.md").write_text(highlights())
     sections = [("quick_sweep", learning), ("env_throughput", throughput), ("force_throughput", forces),
                 ("simulation_speed", implicit), ("scene_convergence", convergence), ("agent_results", agents),
                 ("rllib_learning", rllib), ("rllib_learning_organ", rllib), ("pixel_learning", pixels),
@@ -316,12 +403,9 @@ def main() -> int:
         out += f"\n(Not re-run on the current defaults, so not quoted: {'; '.join(stale)}.)\n"
     (RESULTS / "readme_results.md").write_text(out)
     print(out)
-    sweep = load("quick_sweep")
-    if sweep is not None:
-        elsewhere, quiet = load("quick_sweep_avx2"), load("quick_sweep_quiet")
-        text = (quickstart(sweep) + (quickstart_quiet(quiet) if quiet else "")
-                + (quickstart_elsewhere(elsewhere) if elsewhere else ""))
-        (RESULTS / "readme_quickstart.md").write_text(text + "\n")
+    times = main_job_times()
+    (RESULTS / "readme_quickstart.md").write_text(
+        (times or "The main job's time with early stopping is not on record yet.") + "\n")
     return 0
 
 

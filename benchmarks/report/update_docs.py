@@ -1,8 +1,10 @@
 """Copy the benchmark tables (docs/benchmarks/*.md) into the prose docs and README.md.
 
-Each doc marks where a table goes with ``<!-- BEGIN name -->`` and ``<!-- END name -->``;
-this script replaces what is between them with ``docs/benchmarks/name.md``. Run it after
-re-running benchmarks so the docs match the measurements.
+Each doc (README.md, docs/*.md, docs/studies/*.md) marks where a table goes with
+``<!-- BEGIN name -->`` and ``<!-- END name -->``; this script replaces what is between
+them with ``docs/benchmarks/name.md``. Run it after re-running benchmarks so the docs
+match the measurements. It also writes docs/benchmarks/index.md: the current results,
+then the archive (docs/benchmarks/archive/: results of former tasks, kept as records).
 
     python benchmarks/report/update_docs.py
 """
@@ -17,9 +19,16 @@ from heml_gym.benchmarks.common import ROOT, current_tasks, markdown_table, pars
 
 DOCS = ROOT / "docs"  # the checkout's docs, whatever HEML_BENCH_OUT says
 RESULTS = DOCS / "benchmarks"
+ARCHIVE = RESULTS / "archive"  # results of former tasks, kept as records (not quoted as findings)
 
 PATTERN = re.compile(r"(<!-- BEGIN (\w+) -->\n)(.*?)(<!-- END \2 -->)", re.S)
 LINK = re.compile(r"\]\((?!https?:|#|/)([^)#\s]+)")
+
+
+def documents() -> list[Path]:
+    """The docs that hold generated blocks and quote results: README.md, the guides
+    (docs/*.md) and the studies (docs/studies/*.md)."""
+    return [ROOT / "README.md", *sorted(DOCS.glob("*.md")), *sorted((DOCS / "studies").glob("*.md"))]
 
 
 def relink(text: str, into: Path) -> str:
@@ -62,7 +71,7 @@ def mark_stale() -> list[str]:
     """Begin the table of every result measured on a former task with a ``**Stale:**``
     banner (unless it has one)."""
     marked = []
-    for path in sorted(RESULTS.glob("*.json")):
+    for path in [*sorted(RESULTS.glob("*.json")), *sorted(ARCHIVE.glob("*.json"))]:
         stale = stale_tasks(json.loads(path.read_text()))
         table = path.with_suffix(".md")
         if stale and table.is_file() and not table.read_text().startswith("**Stale:**"):
@@ -71,30 +80,55 @@ def mark_stale() -> list[str]:
     return marked
 
 
-def index() -> str:
-    """docs/benchmarks/index.md: each stored result, the task versions it measured, its
-    date and CPU."""
+def banner_tasks(table: Path) -> str:
+    """The former tasks a table's ``**Stale:**`` banner names (for a table without a JSON)."""
+    m = re.match(r"\*\*Stale:\*\* measured on a former task \(([^)]*)\)", table.read_text())
+    return m.group(1).replace(";", ",") if m else "?"
+
+
+def index_rows(folder: Path) -> list[list[str]]:
+    """One row per result in ``folder``: its JSON (or, for a table stored without one, its
+    table), the task versions it measured, its status, date and CPU."""
     rows = []
-    for path in sorted(RESULTS.glob("*.json")):
+    stems = sorted({p.stem for p in folder.glob("*.json")}
+                   | ({p.stem for p in folder.glob("*.md")} if folder == ARCHIVE else set()))
+    for stem in stems:
+        path = folder / f"{stem}.json"
+        table = f"[{stem}]({stem}.md)" if path.with_suffix(".md").is_file() else stem
+        if not path.is_file():
+            rows.append([table, banner_tasks(path.with_suffix(".md")), "stale (former task)", "?", "?"])
+            continue
         data = json.loads(path.read_text())
         machine = data.get("machine", {}) if isinstance(data.get("machine"), dict) else {}
         tasks = data.get("tasks", {})
         versions = ", ".join(f"{name.split('/')[-1]} {v}" for name, v in tasks.items()) or "none (physics only)"
         status = "stale (former task)" if stale_tasks(data) else "current"
-        table = f"[{path.stem}]({path.stem}.md)" if path.with_suffix(".md").is_file() else path.stem
         cpu = f"{machine.get('cpu', '?')} ({machine.get('vector_isa', '?')})" if machine else "?"
         rows.append([table, versions, status, machine.get("date", "?"), cpu])
+    return rows
+
+
+def index() -> str:
+    """docs/benchmarks/index.md: each stored result, the task versions it measured, its
+    date and CPU; then the archive's."""
+    header = ["result", "tasks", "status", "date", "CPU"]
+    archive = [[re.sub(r"\]\(", "](archive/", row[0], count=1), *row[1:]] for row in index_rows(ARCHIVE)]
     return ("# Stored results\n\nEvery result under docs/benchmarks/, the version of each task it measured "
             "(`tasks` in its JSON), when and on which CPU. Written by `python benchmarks/report/update_docs.py`.\n\n"
-            + markdown_table(["result", "tasks", "status", "date", "CPU"], rows))
+            + markdown_table(header, index_rows(RESULTS))
+            + "\n## Archive: results of former tasks, kept as records\n\nResults under docs/benchmarks/archive/, "
+            "measured on former versions of the tasks. They are the record of their studies; "
+            "the docs do not quote them as findings.\n\n"
+            + markdown_table(header, archive))
 
 
 if __name__ == "__main__":
     parse_arguments(__doc__)
     for name in mark_stale():
-        print(f"docs/benchmarks/{name}.md: marked stale")
+        print(f"docs/benchmarks/{name}.md: marked stale (a result of a former task: git mv it, its JSON and chart "
+              "to docs/benchmarks/archive/, and take its numbers out of the prose)")
     (RESULTS / "index.md").write_text(index())
-    for doc in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]:
+    for doc in documents():
         names = update(doc)
         if names:
             print(f"{doc.relative_to(ROOT)}: {', '.join(names)}")

@@ -1,7 +1,7 @@
 """Quadratic tets by Newton or by L-BFGS: the same backward Euler steps, their cost.
 
 Quadratic (10-node) tets drape the flap where its default linear ones are too stiff
-(docs/status.md), but until 2026-11-28 only Newton's backward Euler stepped them. Since
+(docs/studies/status.md), but until 2026-11-28 only Newton's backward Euler stepped them. Since
 then ``physics={"field": "quadratic", "integrator": "quasi_newton"}`` minimises the same
 incremental potential by L-BFGS (``heml_gym.ImplicitSolver(method="lbfgs")``: one
 factorised scalar initial Hessian per world instead of the field's Hessian assembled and

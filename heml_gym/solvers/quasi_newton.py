@@ -22,7 +22,7 @@ same potential to minimise with another weight of the inertia and another predic
 position, so the same cost per step, and far less numerical damping (backward Euler's
 error is first order in the step). On the retraction scenes' 0.05-0.1 s steps it is no
 more accurate and less robust: those steps do not resolve the tissue's sag oscillation,
-which backward Euler damps out (docs/dynamics.md). It reads the state one step back; a world without
+which backward Euler damps out (docs/studies/dynamics.md). It reads the state one step back; a world without
 one (its first step, or after :meth:`QuasiNewtonSolver.forget`, a refined step, or a change
 of step length) expands it about the step's start with the start's acceleration, which
 keeps the scheme second order. Both schemes are A-stable.
