@@ -1,7 +1,7 @@
 """The ``heml-gym`` command line: train, eval, rollout, bench.
 
     heml-gym train configs/tissue_ppo.yaml [--seed 1] [--resume CHECKPOINT] [--steps N]
-    heml-gym eval runs/tissue_ppo-seed0 [--episodes 50]
+    heml-gym eval runs/tissue_ppo-seed0 [--episodes 50]   (or: eval scripted --env ID; eval pretrained)
     heml-gym rollout [--policy scripted|MODEL] [--env ID] [--episodes 2] [--rrd out.rrd] [--spawn]
     heml-gym scene [ENV_ID] [--out scene.yaml]
     heml-gym sweep CONFIG --seeds 0,1,2 [--set KEY=VALUE] [--grid KEY=V1,V2] [--address ADDR] [--out DIR]
@@ -97,8 +97,17 @@ def _eval(args) -> int:
 
     if args.env:
         _known_env(args.env)
-    policy, cfg = _exported(args.run_or_model, args.env), None
-    if policy is not None:
+    policy, cfg = None, None
+    if args.run_or_model == "scripted":  # the task's scripted expert
+        import gymnasium as gym
+
+        from heml_gym.envs.scripted import scripted_policy
+
+        args.env = args.env or DEFAULT_ENV
+        probe = gym.make(args.env)
+        policy = scripted_policy(probe.unwrapped.scene)
+        probe.close()
+    elif (policy := _exported(args.run_or_model, args.env)) is not None:
         args.env = policy.runs_on
     else:
         policy, _, cfg = load_policy(args.run_or_model, trust_pickle=args.trust_pickle)
@@ -287,7 +296,10 @@ def _calibrate(args) -> int:
             print(f"warning: the data do not tell {', '.join(tie['laws'])} apart (each one's held-out RMS is within "
                   f"the 95 % interval of {record['law']}'s); fitted with them: {spans}. The constants hold for the "
                   "law assumed: give --law if you know it", file=sys.stderr)
-    print(f"written: {Path(args.out) / 'fit.json'}, {Path(args.out) / 'fit.png'}")
+    written = [Path(args.out) / name for name in ("fit.json", "fit.png", "fit.rrd") if (Path(args.out) / name).is_file()]
+    print("written: " + ", ".join(str(p) for p in written)
+          + (f"  (open the recording with: rerun {Path(args.out) / 'fit.rrd'})" if Path(args.out, "fit.rrd").is_file()
+             else ""))
     if not record["converged"]:
         print(f"the fit did NOT converge: {record['message']}", file=sys.stderr)
         return 1
@@ -376,7 +388,8 @@ def main(argv=None) -> int:
     t.set_defaults(func=_train)
 
     e = sub.add_parser("eval", help="success rate of a trained model or run folder")
-    e.add_argument("run_or_model", help="a run folder, a model .zip, an exported .onnx policy or 'pretrained'")
+    e.add_argument("run_or_model", help="a run folder, a model .zip, an exported .onnx policy, 'pretrained' or "
+                   "'scripted' (the task's scripted expert; --env picks the task)")
     e.add_argument("--episodes", type=int, default=50)
     e.add_argument("--seed", type=int, default=10_000)
     e.add_argument("--env", help="environment id (default: the run's)")

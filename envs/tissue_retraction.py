@@ -43,7 +43,8 @@ raise ``ValueError``. Each step simulates ``control_dt`` = 0.1 s.
 | 23 | exposure of the target | 0 | 1 | - |
 
 ``obs_mode="pointcloud"``: ``Dict(state=<the above>, points=Box(64, 3))``: 64 fixed
-tissue surface vertices (m).
+tissue surface vertices (m). ``obs_mode="rgb"``, ``"depth"`` or ``"rgbd"``: the task
+camera's images (``camera={"size": [H, W], ...}``: :class:`~heml_gym.envs.camera.ImageSpec`).
 
 ## Rewards
 
@@ -78,13 +79,14 @@ instead (a replay of a recorded episode starts this way).
 
 ## Episode End
 
-Terminated on success (exposure >= 0.8 with gauge strain below 0.5; with
-``settings={"hold_time": T}``, held continuously for T seconds of simulated time, the
-time held so far in ``info["hold_time"]``, not observed; default 0: at once), when the tissue
-tears (gauge strain >= 1.0), or on a physics failure: a simulation that diverged
-(``info["simulation_diverged"]``) or a Newton solve that did not converge
-(``info["solver_converged"]`` False, implicit integrator); the reward is then 0 and the
-observation stays finite. Truncated after 100 steps (10 s). ``info["substep_refinement"]``
+Terminated on success (exposure >= 0.8 with gauge strain below 0.5, held continuously
+for ``settings.hold_time`` seconds of simulated time: 2 s at the default difficulty 1, 0
+(at once) at difficulty 0; the time held so far is ``info["hold_time"]``, not observed),
+when the tissue tears (gauge strain >= 1.0), or on a physics failure: a simulation that
+diverged (``info["simulation_diverged"]``) or a step whose solve did not converge, under
+any integrator, after the quasi-Newton solver's Newton fallback and its shorter sub-steps
+(``info["solver_converged"]`` False); the reward is then 0 and the observation stays
+finite. Truncated after 100 steps (10 s). ``info["substep_refinement"]``
 says when the solver had to re-take a step in shorter sub-steps (strongly compressed
 tissue), ``info["solver_fallback"]`` when the quasi-Newton solver took it again by
 Newton's method (its fallback), ``info["newton_iterations"]`` what an implicit step cost.
@@ -101,7 +103,8 @@ the episode's draws ``young_modulus`` (Pa) and, with adhesion, ``adhesion_width`
 
 ## Arguments
 
-``obs_mode`` ("state" | "pointcloud"), ``render_mode`` ("rgb_array" | "human"),
+``obs_mode`` ("state" | "pointcloud" | "rgb" | "depth" | "rgbd"), ``camera`` (the image
+observations' settings), ``render_mode`` ("rgb_array" | "human"),
 ``settings`` (:class:`~heml_gym.envs.core.TaskSettings` or a mapping of its fields),
 ``weights`` (:class:`~heml_gym.envs.core.RewardWeights` or a mapping), ``cells`` (mesh
 cells along x, y, z), ``scene`` (a :class:`~heml_gym.envs.scene.Scene`, a mapping of

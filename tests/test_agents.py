@@ -176,6 +176,7 @@ def test_tiny_training_run_saves_reloads_evaluates_and_resumes(tmp_path, capsys)
         load_policy(run / "model.zip")
 
 
+@pytest.mark.slow
 def test_a_config_with_env_kwargs_trains_evaluates_and_records_that_physics(tmp_path):
     import yaml as _yaml
 

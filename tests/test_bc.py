@@ -146,6 +146,7 @@ def test_an_existing_dataset_that_is_not_the_configs_is_refused(tmp_path, capsys
     assert not run.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.ray
 def test_a_bc_sweep_records_its_demos_once_then_fits_every_seed(tmp_path):
     """`heml-gym sweep` of a BC config records the demonstrations once, before the trials

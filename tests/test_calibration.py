@@ -249,6 +249,7 @@ def test_a_tissue_is_recovered_from_its_own_observations():
     assert result.residual_rms["points_m"] < 1e-4
 
 
+@pytest.mark.slow
 def test_weighing_by_the_residuals_finds_each_sensors_noise():
     """Points with 0.5 mm noise per coordinate and a force with 0.02 N per component, fitted
     together from scales of 2 mm and 0.002 N (the force's 17 times too small): weighed by
@@ -269,6 +270,7 @@ def test_weighing_by_the_residuals_finds_each_sensors_noise():
     assert weighed.theta[0] == pytest.approx(5200.0, rel=0.02)
 
 
+@pytest.mark.slow
 def test_standard_errors_describe_the_spread_of_fits_to_noisy_data():
     """The reported standard error of E is the spread of E over fits of one flap observed
     with 30 independent noise draws (20 points with 1 mm, the force with 0.02 N: the force's
@@ -293,6 +295,7 @@ def test_standard_errors_describe_the_spread_of_fits_to_noisy_data():
     assert 0.75 < np.sqrt(np.mean(np.square(z))) < 1.5
 
 
+@pytest.mark.slow
 def test_density_and_a_law_constant_are_recovered_too():
     """Noise-free points and force of a heavier flap (1,300 kg/m^3: it sags more under its
     weight, for the same force per displacement) give its E and density; a Demiray flap's
@@ -391,6 +394,7 @@ def test_observe_then_calibrate_from_the_command_line(tmp_path, capsys):
         gym.make(TISSUE_RETRACTION, physics={"fit": str(out), "young_modulus": [1e3, 2e3]})
 
 
+@pytest.mark.slow
 def test_the_lobe_is_fitted_on_its_calibration_model(tmp_path, capsys):
     """By default `heml-gym calibrate` fits the lobe on its calibration model (a 7 mm lobe,
     heml_gym.envs.calibration_models) to the file's tracked points, not its force, and says
@@ -424,6 +428,7 @@ def test_the_lobe_is_fitted_on_its_calibration_model(tmp_path, capsys):
     assert fits["corrected"]["parameters"]["young_modulus"]["value"] > 1.01 * correction["raw"][0]
 
 
+@pytest.mark.slow
 def test_a_lobe_fit_to_depth_alone_says_it_is_not_corrected(tmp_path, capsys):
     """The lobe's mesh correction replays points and force; a depth-only file is fitted
     without it, and fit.json and the console say so (nothing silent)."""
@@ -438,6 +443,7 @@ def test_a_lobe_fit_to_depth_alone_says_it_is_not_corrected(tmp_path, capsys):
     assert "no mesh correction: depth is not corrected" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_mesh_correction_takes_a_coarse_meshs_bias_off():
     """A lobe observed noise-free on a 7 mm mesh and fitted on the task's 10 mm one comes out soft
     (the coarse mesh is stiffer in bending); corrected towards the observer's mesh
@@ -494,6 +500,7 @@ def test_a_constant_the_data_barely_touch_is_reported_loose(tmp_path, capsys):
     assert "determine young_modulus only loosely" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_points_and_force_that_disagree_are_reported(tmp_path, capsys):
     """Each observed quantity's own estimate of E (one Gauss-Newton step from the joint fit,
     fit.json's by_quantity) is what fitting it alone gives (within 3 %) where they agree;
@@ -621,6 +628,7 @@ def test_paired_rms_interval_covers_the_true_difference():
         paired_rms_interval(b, b[:-1])
 
 
+@pytest.mark.slow
 def test_law_auto_in_worker_processes_fits_each_law_as_one_process_does(tmp_path):
     """``--jobs 2`` spreads ``--law auto``'s five fits over two spawned worker processes: each
     law's record is the one the serial loop makes (the same fit in another process, with
@@ -647,6 +655,7 @@ def test_law_auto_in_worker_processes_fits_each_law_as_one_process_does(tmp_path
         assert b["as_good_as_winner"] == a["as_good_as_winner"] or abs(a["difference_ci95_m"][0]) < 1e-6
 
 
+@pytest.mark.slow
 def test_starts_in_worker_processes_fit_as_one_process_does(tmp_path):
     """``--starts 3 --jobs 2`` fits the three starts in two spawned worker processes and
     polishes the best one here: each start's record is the serial multi-start's (the same fit
@@ -671,6 +680,7 @@ def test_starts_in_worker_processes_fit_as_one_process_does(tmp_path):
     assert parallel["converged"] == serial["converged"]
 
 
+@pytest.mark.slow
 def test_law_auto_keeps_the_law_that_predicts_held_out_points(tmp_path, capsys):
     """Noise-free points of a St Venant-Kirchhoff flap: every law of the package is fitted
     to half the points; the kept law predicts the other half at least about as well as the

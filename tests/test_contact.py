@@ -107,7 +107,7 @@ def test_a_slab_comes_to_rest_on_a_plane(integrator):
     assert on_plane.sum() >= 4 and np.all(state.v[0, on_plane, 2] >= -1e-9)  # no velocity into it
 
 
-@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+@pytest.mark.parametrize("integrator", [pytest.param("explicit", marks=pytest.mark.slow), "implicit"])
 def test_a_closed_mesh_support_acts_like_its_flat_top(integrator):
     """On a box's flat top the sampled distance is exact (linear), so a slab dropped on
     the box behaves as on the plane z = 0: to rounding."""
@@ -120,7 +120,7 @@ def test_a_closed_mesh_support_acts_like_its_flat_top(integrator):
     assert np.abs(on_mesh[-1] - SLAB.vertices).max() > 2e-3  # it really fell onto it
 
 
-@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+@pytest.mark.parametrize("integrator", [pytest.param("explicit", marks=pytest.mark.slow), "implicit"])
 def test_a_batch_on_a_mesh_support_equals_single_worlds(integrator):
     """Four slabs of different E on a sphere (curved contact), in one batch, against
     each simulated alone."""

@@ -58,6 +58,7 @@ def test_plan_validates_every_trial_before_anything_runs(tmp_path):
         plan_sweep(config, [1, 1])
 
 
+@pytest.mark.slow
 @pytest.mark.ray
 def test_a_two_seed_sweep_lands_on_both_nodes_of_a_two_node_cluster(tmp_path):
     ray = pytest.importorskip("ray")
@@ -96,6 +97,7 @@ def test_a_two_seed_sweep_lands_on_both_nodes_of_a_two_node_cluster(tmp_path):
         cluster.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.ray
 def test_a_failing_trial_is_reported_and_the_others_go_on(tmp_path, monkeypatch):
     pytest.importorskip("ray")

@@ -129,6 +129,7 @@ def test_regions_are_places_not_vertices():
         assert np.all((centre[:, 1] >= 0.03) == (region >= 2))
 
 
+@pytest.mark.slow
 def test_law_auto_fits_every_law_per_region(tmp_path, capsys):
     """`--law auto --regions 2x1x1` on a uniform 5,000 Pa flap (a small one: 6 x 6 x 1
     cells, 8 steps, noise-free points and force): every law is fitted with E per half, and
@@ -177,6 +178,7 @@ def test_adjoint_gradients_in_each_regions_modulus(env_id, grid):
     _random_loss_gradient_check(replay, (4.5e3, 6e3, 0.44), (0.5, 0.5, 1e-5), np.random.default_rng(3))
 
 
+@pytest.mark.slow
 def test_two_halves_are_recovered_from_the_command_line_and_trained_on(tmp_path, capsys):
     """A flap whose halves are 3,000 and 7,500 Pa, observed (10 points and the jaws'
     force, noise-free, same mesh) and calibrated with --regions 2x1x1: each half within

@@ -357,6 +357,7 @@ def test_an_env_with_its_jaws_on_a_free_wrist_is_what_the_replay_of_its_control_
     assert np.abs(result.force - obs.force[1:]).max() < 1e-6
 
 
+@pytest.mark.slow
 def test_observe_and_calibrate_a_scene_whose_jaws_are_on_a_free_wrist(tmp_path, capsys):
     """A scene with ``gripper.wrist_reach`` from the command line: `heml-gym observe` records
     points, force and depth images of its own free-wrist grasp (the env steps it), and
