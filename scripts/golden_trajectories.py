@@ -39,21 +39,27 @@ CASES = [
                                       "material_options": {"b": 2.0}}, 20, 3, "state"),
     ("heml_gym/TissueRetraction-v1", {}, 10, 1, "rgbd"),
     ("heml_gym/OrganRetraction-v2", {}, 10, 2, "rgbd"),
+    # the grasper's other jaws: shorter than the grasp region with weighted ends, on a free wrist
+    ("heml_gym/TissueRetraction-v1", {}, 60, 3, "state", {"gripper": {"jaw_length": 0.04, "jaw_ends": "weighted"}}),
+    ("heml_gym/TissueRetraction-v1", {}, 60, 3, "state", {"gripper": {"wrist_reach": 0.01}}),
 ]
 
 
-def case_name(env_id: str, physics: dict, scenes: int | None = None, obs_mode: str = "state") -> str:
+def case_name(env_id: str, physics: dict, scenes: int | None = None, obs_mode: str = "state",
+              scene: dict | None = None) -> str:
     short = env_id.split("/")[1].split("-")[0]
     name = short + "".join(f"_{k}={v}" for k, v in sorted(physics.items()) if k != "material_options")
     if scenes is not None:
         name += f"_vector{scenes}"
+    name += "".join(f"_{k}" for k in sorted((scene or {}).get("gripper", {})))
     return name + ("" if obs_mode == "state" else f"_{obs_mode}")
 
 
 def run_case(env_id: str, physics: dict, steps: int, scenes: int | None = None, obs_mode: str = "state",
-             seed: int = 0) -> dict[str, np.ndarray]:
+             scene: dict | None = None, seed: int = 0) -> dict[str, np.ndarray]:
     """The end state of ``steps`` seeded random env steps (a vector env of ``scenes``
-    scenes when given; its images when ``obs_mode`` has them)."""
+    scenes when given; its images when ``obs_mode`` has them; ``scene``: changes to the
+    task's scene)."""
     import gymnasium as gym
 
     import heml_gym.envs  # noqa: F401
@@ -64,7 +70,7 @@ def run_case(env_id: str, physics: dict, steps: int, scenes: int | None = None, 
         shape = (4,)
     else:
         env = gym.make_vec(env_id, num_envs=scenes, vectorization_mode="vector_entry_point", physics=physics,
-                           obs_mode=obs_mode)
+                           obs_mode=obs_mode, **({"scene": scene} if scene else {}))
         shape = (scenes, 4)
     obs, _ = env.reset(seed=seed)
     rewards, forces = [], []
