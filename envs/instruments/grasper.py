@@ -1,0 +1,249 @@
+"""A grasper: jaws on a shaft that move, close on tissue, hold it and let it go.
+
+One :class:`Grasper` stands for the same instrument in each of a :class:`heml_gym.World`'s
+N copies. It owns its slice of the action (velocity along x, y, z in units of
+``max_speed``, and a grasp command), its part of the state observation (position,
+grasping, the tissue's force on it) and its ``info`` entries, and drives the tissue it
+holds through the world's :class:`~heml_gym.Control`. Units: m, s, N.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import nearest_triangle_distance
+from ..spec import SpecError
+
+
+class Grasper:
+    """Jaws that close on the tissue within reach and hold it until released.
+
+    ``world``: the :class:`heml_gym.World`; ``scene``: the built scene (its grasp region,
+    jaws, start box and workspace: ``scene.spec.gripper``); ``settings``: the task's
+    ``TaskSettings`` (``max_speed``, ``control_dt``, ``grasp_reach``, ``jaw_radius``,
+    ``release_command``); ``name``: prefixes its ``info`` keys (None: none, for a task's
+    only grasper). Closing holds the grasp region's vertices within ``grasp_reach`` of the
+    jaws (all of it, or what jaws of ``jaw_length`` cover, their ends by springs when
+    ``jaw_ends`` is ``weighted``), or without a region the surface vertices within
+    ``jaw_radius``; tissue that is stuck or held by another instrument is not taken.
+    """
+
+    kind = "grasper"
+    #: its slice of the action, entry by entry
+    ACTION = ("velocity_x", "velocity_y", "velocity_z", "grasp")
+    action_size = len(ACTION)
+
+    def __init__(self, world, scene, settings, name: str | None = None):
+        gripper = scene.spec.gripper
+        if gripper.wrist_reach is not None and not world.solver.takes_wrist:
+            raise SpecError(f"scene.gripper.wrist_reach: jaws on a free wrist are stepped by the quasi_newton "
+                            f"integrator, not {scene.physics.integrator}")
+        if gripper.jaw_ends == "weighted" and not world.solver.takes_hold_springs:
+            raise SpecError(f"scene.gripper.jaw_ends: weighted jaws hold their end vertices by springs, which the "
+                            f"{scene.physics.integrator} integrator does not step (use quasi_newton or implicit)")
+        self.world, self.scene, self.settings, self.name = world, scene, settings, name
+        mesh = scene.mesh
+        self._graspable = np.setdiff1d(mesh.surface_vertices, scene.fixed)
+        if scene.grasp_patch is not None:  # the patch's surface triangles (or its edges), for its reach
+            faces = scene.surface_faces[np.isin(scene.surface_faces, scene.grasp_patch).all(axis=1)]
+            if len(faces) == 0:  # a line of vertices: its edges, as degenerate triangles
+                e = mesh.edges[np.isin(mesh.edges, scene.grasp_patch).all(axis=1)]
+                faces = np.column_stack([e, e[:, 1]])
+            self._patch_faces = faces
+            rest = mesh.vertices[scene.grasp_patch]
+            # the patch's long axis (unit): ``gripper.jaw_length`` is measured along it
+            self._patch_axis = np.linalg.svd(rest - rest.mean(axis=0))[2][0] if len(rest) > 1 else np.zeros(3)
+        n, nv = world.n, mesh.n_vertices
+        self.position = np.zeros((n, 3))
+        self.grasping = np.zeros(n, dtype=bool)
+        self.held = np.zeros((n, nv), dtype=bool)
+        #: each held vertex's share held by the jaws (1: whole; weighted jaws' ends: less)
+        self.held_share = np.zeros((n, nv))
+        self.offsets = np.zeros((n, nv, 3))
+        self.pivot_offset = np.zeros((n, 3))  # a free wrist's pivot from the jaws (m)
+        self.force = np.zeros((n, 3))  # the tissue's pull on the jaws, mean over the last step (N)
+        self.grasped_once = np.zeros(n, dtype=bool)
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, i: int, rng: np.random.Generator) -> None:
+        """Copy ``i``'s jaws open at a start drawn from the scene's start box."""
+        self.position[i] = rng.uniform(self.scene.gripper_low, self.scene.gripper_high)
+        self.grasping[i] = False
+        self.held[i] = False
+        self.held_share[i] = 0.0
+        self.grasped_once[i] = False
+        self.force[i] = 0.0
+
+    def place(self, i: int, position) -> None:
+        """Start copy ``i``'s jaws at ``position`` (m, (3,), inside the workspace)."""
+        s = self.scene
+        g = np.asarray(position, dtype=np.float64)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise SpecError(f"gripper: must be 3 finite coordinates (m), got {position!r}")
+        if np.any(g < np.asarray(s.workspace_low) - 1e-12) or np.any(g > np.asarray(s.workspace_high) + 1e-12):
+            raise SpecError(f"gripper: {g.tolist()} lies outside the workspace "
+                            f"{list(s.workspace_low)}..{list(s.workspace_high)} m")
+        self.position[i] = g
+
+    # --------------------------------------------------------------------- step
+    def grasp(self, actions: np.ndarray) -> np.ndarray:
+        """Close or open the jaws per the grasp command (``actions[:, 3]``): above 0 closes,
+        below ``release_command`` opens, in between they stay. Returns which copies grasped
+        tissue for the first time in their episode."""
+        st, world, x = self.settings, self.world, self.world.state.x
+        first = np.zeros(world.n, dtype=bool)
+        for i in range(world.n):
+            close = actions[i, 3] > 0.0
+            release = actions[i, 3] < st.release_command  # between it and 0 the jaws stay as they are
+            if close and not self.grasping[i]:
+                picked, share = self._jaw_vertices(i)
+                wrist = self._wrist(i, picked) if picked.size else None
+                if wrist is not None:
+                    picked, share = wrist[0], np.ones(len(wrist[0]))
+                if picked.size:
+                    self.grasping[i] = True
+                    self.held[i, picked] = True
+                    self.held_share[i, picked] = share
+                    self.offsets[i, picked] = x[i, picked] - self.position[i]
+                    world.control.attach(i, picked, x[i], stiffness=world.hold_stiffness(i, picked, share))
+                    if wrist is not None and wrist[2] is not None:
+                        world.control.turn(i, picked, wrist[1], wrist[2])
+                        self.pivot_offset[i] = wrist[1] - self.position[i]
+                    if not self.grasped_once[i]:
+                        self.grasped_once[i] = True
+                        first[i] = True
+            elif release and self.grasping[i]:
+                self.grasping[i] = False
+                world.control.detach(i, np.flatnonzero(self.held[i]))  # stuck tissue stays stuck
+                self.held[i] = False
+                self.held_share[i] = 0.0
+        return first
+
+    def move(self, actions: np.ndarray) -> None:
+        """Move the jaws by the velocity command (``actions[:, :3]``) over one control step,
+        within the workspace, and drive the tissue they hold there (held tissue cannot be
+        pressed below where it rests on a support)."""
+        st, s, control = self.settings, self.scene, self.world.control
+        self.position = np.clip(self.position + actions[:, :3] * st.max_speed * st.control_dt,
+                                s.workspace_low, s.workspace_high)
+        if s.supports:
+            rest_z = s.mesh.vertices[:, 2]
+            for i in np.flatnonzero(self.grasping):
+                held = self.held[i]
+                self.position[i, 2] = max(self.position[i, 2], (rest_z[held] - self.offsets[i, held, 2]).max())
+        for i in np.flatnonzero(self.grasping):
+            idx = np.flatnonzero(self.held[i])
+            control.drive(i, idx, self.position[i] + self.offsets[i, idx])
+            if control.turns[i].any():
+                control.drive_wrist(i, self.position[i] + self.pivot_offset[i])
+
+    def after_step(self, reaction: np.ndarray, failed: np.ndarray) -> None:
+        """Take the step's outcome: where a free wrist turned the held patch, and the
+        tissue's pull on the jaws (the held vertices' reactions, 0 where the step failed)."""
+        x, turns = self.world.state.x, self.world.control.turns
+        for i in np.flatnonzero(self.grasping & turns.any(axis=1)):  # the patch has turned
+            self.offsets[i, self.held[i]] = x[i, self.held[i]] - self.position[i]
+        held_reaction = np.where(self.held[:, :, None], reaction, 0.0).sum(axis=1)
+        self.force = np.where(failed[:, None], 0.0, -held_reaction)
+
+    # --------------------------------------------------------- what it reports
+    def observation(self) -> list[np.ndarray]:
+        """Its part of the state observation: position (m), grasping (0/1), force (N)."""
+        return [self.position, self.grasping[:, None].astype(np.float64), self.force]
+
+    def key(self, name: str) -> str:
+        return name if self.name is None else f"{self.name}_{name}"
+
+    def info(self, worlds=None) -> dict:
+        """``grasp_force`` (N, its magnitude) and ``grasping`` of ``worlds`` (default all)."""
+        worlds = slice(None) if worlds is None else worlds
+        return {self.key("grasp_force"): np.linalg.norm(self.force[worlds], axis=1),
+                self.key("grasping"): self.grasping[worlds].copy()}
+
+    def start_info(self, worlds) -> dict:
+        """:meth:`info` at an episode's start: nothing held yet."""
+        return {self.key("grasp_force"): np.zeros(len(worlds)), self.key("grasping"): self.grasping[worlds].copy()}
+
+    # ---------------------------------------------------------------- the jaws
+    def _jaw_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """The tissue vertices that closing the jaws of copy ``i`` holds (maybe none), and
+        the share of each that the jaws hold (1: whole; below 1: weighted jaws' ends)."""
+        picked, share = self._reached_vertices(i)
+        keep = ~self.world.control.kinematic[i, picked]  # not stuck, not held by another instrument
+        return picked[keep], share[keep]
+
+    def wrist_patch(self, i: int, picked: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """What jaws on a free wrist hold when they close on ``picked`` (vertex indices) in
+        copy ``i``: the vertices within ``reach`` (m, at rest) of one of them, not fixed or
+        stuck (indices, ascending), and the jaws' axis (unit: the longest direction of
+        ``picked`` at rest, else of the patch; None when that is a single vertex, which has
+        no angle). The scene's wrist (``scene.gripper.wrist_reach``) and the calibration's
+        (:func:`heml_gym.envs.observations.control_log`) both take it."""
+        rest = self.scene.mesh.vertices
+        near = np.zeros(len(rest), dtype=bool)
+        for p in rest[picked]:
+            near |= np.linalg.norm(rest - p, axis=1) <= reach
+        near[picked] = True
+        patch = np.flatnonzero(near & ~self.world.model.fixed & ~self.world.stuck[i])
+        shape = rest[picked] if len(picked) > 1 else rest[patch]
+        if len(shape) < 2:
+            return patch, None
+        return patch, np.linalg.svd(shape - shape.mean(axis=0), full_matrices=False)[2][0]
+
+    def _wrist(self, i: int, picked: np.ndarray):
+        """``(patch, pivot, axis)`` of the scene's free wrist closing on ``picked`` in copy
+        ``i`` (:meth:`wrist_patch`; the pivot: the patch's middle, m), None without one."""
+        reach = self.scene.spec.gripper.wrist_reach
+        if reach is None:
+            return None
+        patch, axis = self.wrist_patch(i, picked, reach)
+        return patch, self.world.state.x[i, patch].mean(axis=0), axis
+
+    def _reached_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        st, patch = self.settings, self.scene.grasp_patch
+        x = self.world.state.x[i]
+        if patch is not None:  # within reach of the patch's surface (or of its vertices)
+            nearest = min(np.linalg.norm(x[patch] - self.position[i], axis=1).min(),
+                          nearest_triangle_distance(self.position[i], x, self._patch_faces))
+            if nearest > st.grasp_reach:
+                return patch[:0], np.zeros(0)
+            gripper = self.scene.spec.gripper
+            if gripper.jaw_length is None:
+                return patch, np.ones(len(patch))
+            if gripper.jaw_ends == "weighted":
+                share = self._jaw_shares(i, gripper.jaw_length)
+                return patch[share > 0.0], share[share > 0.0]
+            # the part of the patch between the jaws: within jaw_length / 2 of them along
+            # the patch's long axis (at least the nearest such vertex)
+            along = np.abs((x[patch] - self.position[i]) @ self._patch_axis)
+            picked = patch[(along <= gripper.jaw_length / 2) | (along == along.min())]
+            return picked, np.ones(len(picked))
+        d = np.linalg.norm(x[self._graspable] - self.position[i], axis=1)
+        held = (d <= st.jaw_radius) | (d == d.min())
+        picked = self._graspable[held & (d <= st.grasp_reach)]
+        return picked, np.ones(len(picked))
+
+    def _jaw_shares(self, i: int, jaw_length: float) -> np.ndarray:
+        """Each grasp-patch vertex's share (0..1) inside jaws ``jaw_length`` (m) long centred
+        on copy ``i``'s jaws: the overlap of its row's span along the patch's axis (from
+        midway to the previous row to midway to the next; at the patch's ends, as far out as
+        in) with the jaws, over the span. Rows: the vertices' rest places along the axis,
+        to 1e-6 m."""
+        patch = self.scene.grasp_patch
+        rest = self.scene.mesh.vertices[patch] @ self._patch_axis
+        rows, row_of = np.unique(np.round(rest, 6), return_inverse=True)
+        if len(rows) == 1:
+            return np.ones(len(patch))
+        mids = 0.5 * (rows[1:] + rows[:-1])
+        low = np.concatenate([[2 * rows[0] - mids[0]], mids])
+        high = np.concatenate([mids, [2 * rows[-1] - mids[-1]]])
+        # the jaws' centre along the axis, in the rest frame: their offset from the patch's
+        # current centre, added to the patch's rest centre
+        x = self.world.state.x[i, patch]
+        centre = rest.mean() + (self.position[i] - x.mean(axis=0)) @ self._patch_axis
+        overlap = np.clip(np.minimum(high, centre + jaw_length / 2) - np.maximum(low, centre - jaw_length / 2), 0.0,
+                          None)
+        share = (overlap / (high - low))[row_of]
+        if not (share > 0).any():  # (jaws between two rows' spans cannot be: the spans tile the axis)
+            share[np.argmin(np.abs(rest - centre))] = 1.0
+        return share
