@@ -290,9 +290,10 @@ def cpu_classes() -> str:
     names = []
     for path in sorted(RESULTS.glob("env_throughput*.json")):
         m = json.loads(path.read_text())["machine"]
-        target = m.get("codegen", {}).get("cpu", "host")
-        names.append(f"{m['cpu']} {m.get('vector_isa', '')}".strip() + (f" compiled for {target}" if target
-                                                                           not in ("host", "znver3") else ""))
+        codegen = m.get("codegen", {})
+        chosen = codegen.get("set_by", "host") != "host"  # kernels compiled for another CPU than the host
+        names.append(f"{m['cpu']} {m.get('vector_isa', '')}".strip()
+                     + (f", kernels compiled for {codegen.get('cpu')}" if chosen else ""))
     return "; ".join(names)
 
 
