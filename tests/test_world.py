@@ -60,3 +60,47 @@ def test_stuck_tissue_stays_where_it_rests_and_falls_once_released(integrator):
         world.step(0.05)
     fall = z0 + v0 * t - 0.5 * 9.81 * t ** 2
     assert world.x[0, :, 2].mean() == pytest.approx(fall, abs=0.15 * 0.5 * 9.81 * t ** 2 + 1e-4)
+
+
+def test_two_graspers_on_one_world_share_a_symmetric_load_and_never_take_each_others_tissue():
+    """Instruments compose on one world: two graspers with 40 mm weighted jaws close on the
+    flap's free edge at mirror places (y = 30 and 90 mm on the mirror-symmetric 120 mm
+    flap) and lift it together. By symmetry they hold mirror sets of vertices and feel the
+    same force; a third closing on held tissue takes nothing."""
+    import dataclasses
+
+    from heml_gym.envs import TaskSettings, build_scene
+    from heml_gym.envs.instruments import Grasper
+    from heml_gym.envs.tissue_retraction import tissue_scene
+
+    base = tissue_scene()
+    scene = build_scene(dataclasses.replace(base, adhesion=None))
+    settings = TaskSettings()
+    world = World.from_physics(scene.mesh, scene.physics, 1, settings.control_dt, fixed=scene.fixed,
+                               supports=scene.supports)
+    world.reset(0)
+    jaws = dataclasses.replace(base.gripper, jaw_length=0.04, jaw_ends="weighted")
+    graspers = [Grasper(world, scene, settings, name=f"g{k}", spec=jaws) for k in range(3)]
+    for g, y in zip(graspers, (0.03, 0.09, 0.03)):
+        g.place(0, (0.112, y, 0.01))
+    close_and_lift = np.array([[0.0, 0.0, 1.0, 1.0]])
+    for _ in range(6):
+        for g in graspers[:2]:
+            g.grasp(close_and_lift)
+        for g in graspers[:2]:
+            g.move(close_and_lift)
+        stats = world.step(settings.control_dt)
+        assert stats.converged.all()
+        for g in graspers[:2]:
+            g.after_step(stats.reaction, ~stats.converged)
+    left, right = (np.flatnonzero(g.held[0]) for g in graspers[:2])
+    assert left.size and right.size and not np.intersect1d(left, right).size
+    X = scene.mesh.vertices
+    mirror = np.array([0.12, 0.12, 0.0]) * [0, 1, 0] + X * [1, -1, 1]  # y -> 120 mm - y
+    assert np.allclose(np.sort(mirror[left][:, 1]), np.sort(X[right][:, 1]))
+    f_left, f_right = (np.linalg.norm(g.force[0]) for g in graspers[:2])
+    assert f_left > 0.05 and f_left == pytest.approx(f_right, rel=1e-3)
+    graspers[2].position[0] = graspers[0].position[0]  # right where the first grasper holds the tissue
+    assert graspers[2]._reached_vertices(0)[0].size  # within reach of it
+    graspers[2].grasp(close_and_lift)
+    assert not graspers[2].held.any() and not graspers[2].grasping[0]

@@ -18,11 +18,11 @@ from ..spec import SpecError
 class Grasper:
     """Jaws that close on the tissue within reach and hold it until released.
 
-    ``world``: the :class:`heml_gym.World`; ``scene``: the built scene (its grasp region,
-    jaws, start box and workspace: ``scene.spec.gripper``); ``settings``: the task's
-    ``TaskSettings`` (``max_speed``, ``control_dt``, ``grasp_reach``, ``jaw_radius``,
-    ``release_command``); ``name``: prefixes its ``info`` keys (None: none, for a task's
-    only grasper). Closing holds the grasp region's vertices within ``grasp_reach`` of the
+    ``world``: the :class:`heml_gym.World`; ``scene``: the built scene (its grasp region
+    and supports); ``settings``: the task's ``TaskSettings`` (``max_speed``,
+    ``control_dt``, ``grasp_reach``, ``jaw_radius``, ``release_command``); ``name``:
+    prefixes its ``info`` keys (None: none, for a task's only grasper); ``spec``: its
+    ``GripperSpec`` (jaws, start box, workspace; None: the scene's ``gripper``). Closing holds the grasp region's vertices within ``grasp_reach`` of the
     jaws (all of it, or what jaws of ``jaw_length`` cover, their ends by springs when
     ``jaw_ends`` is ``weighted``), or without a region the surface vertices within
     ``jaw_radius``; tissue that is stuck or held by another instrument is not taken.
@@ -33,8 +33,8 @@ class Grasper:
     ACTION = ("velocity_x", "velocity_y", "velocity_z", "grasp")
     action_size = len(ACTION)
 
-    def __init__(self, world, scene, settings, name: str | None = None):
-        gripper = scene.spec.gripper
+    def __init__(self, world, scene, settings, name: str | None = None, spec=None):
+        gripper = self.spec = scene.spec.gripper if spec is None else spec
         if gripper.wrist_reach is not None and not world.solver.takes_wrist:
             raise SpecError(f"scene.gripper.wrist_reach: jaws on a free wrist are stepped by the quasi_newton "
                             f"integrator, not {scene.physics.integrator}")
@@ -53,6 +53,8 @@ class Grasper:
             rest = mesh.vertices[scene.grasp_patch]
             # the patch's long axis (unit): ``gripper.jaw_length`` is measured along it
             self._patch_axis = np.linalg.svd(rest - rest.mean(axis=0))[2][0] if len(rest) > 1 else np.zeros(3)
+        self.start_low, self.start_high = np.asarray(gripper.start_low), np.asarray(gripper.start_high)
+        self.workspace_low, self.workspace_high = np.asarray(gripper.workspace_low), np.asarray(gripper.workspace_high)
         n, nv = world.n, mesh.n_vertices
         self.position = np.zeros((n, 3))
         self.grasping = np.zeros(n, dtype=bool)
@@ -67,7 +69,7 @@ class Grasper:
     # ------------------------------------------------------------------ episode
     def reset(self, i: int, rng: np.random.Generator) -> None:
         """Copy ``i``'s jaws open at a start drawn from the scene's start box."""
-        self.position[i] = rng.uniform(self.scene.gripper_low, self.scene.gripper_high)
+        self.position[i] = rng.uniform(self.start_low, self.start_high)
         self.grasping[i] = False
         self.held[i] = False
         self.held_share[i] = 0.0
@@ -76,13 +78,12 @@ class Grasper:
 
     def place(self, i: int, position) -> None:
         """Start copy ``i``'s jaws at ``position`` (m, (3,), inside the workspace)."""
-        s = self.scene
         g = np.asarray(position, dtype=np.float64)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise SpecError(f"gripper: must be 3 finite coordinates (m), got {position!r}")
-        if np.any(g < np.asarray(s.workspace_low) - 1e-12) or np.any(g > np.asarray(s.workspace_high) + 1e-12):
+        if np.any(g < self.workspace_low - 1e-12) or np.any(g > self.workspace_high + 1e-12):
             raise SpecError(f"gripper: {g.tolist()} lies outside the workspace "
-                            f"{list(s.workspace_low)}..{list(s.workspace_high)} m")
+                            f"{list(self.workspace_low)}..{list(self.workspace_high)} m")
         self.position[i] = g
 
     # --------------------------------------------------------------------- step
@@ -125,7 +126,7 @@ class Grasper:
         pressed below where it rests on a support)."""
         st, s, control = self.settings, self.scene, self.world.control
         self.position = np.clip(self.position + actions[:, :3] * st.max_speed * st.control_dt,
-                                s.workspace_low, s.workspace_high)
+                                self.workspace_low, self.workspace_high)
         if s.supports:
             rest_z = s.mesh.vertices[:, 2]
             for i in np.flatnonzero(self.grasping):
@@ -193,7 +194,7 @@ class Grasper:
     def _wrist(self, i: int, picked: np.ndarray):
         """``(patch, pivot, axis)`` of the scene's free wrist closing on ``picked`` in copy
         ``i`` (:meth:`wrist_patch`; the pivot: the patch's middle, m), None without one."""
-        reach = self.scene.spec.gripper.wrist_reach
+        reach = self.spec.wrist_reach
         if reach is None:
             return None
         patch, axis = self.wrist_patch(i, picked, reach)
@@ -207,7 +208,7 @@ class Grasper:
                           nearest_triangle_distance(self.position[i], x, self._patch_faces))
             if nearest > st.grasp_reach:
                 return patch[:0], np.zeros(0)
-            gripper = self.scene.spec.gripper
+            gripper = self.spec
             if gripper.jaw_length is None:
                 return patch, np.ones(len(patch))
             if gripper.jaw_ends == "weighted":
