@@ -7,7 +7,7 @@ instead of interacting with the env::
     algorithm:
       name: BC
       hyperparameters: {hidden: [256, 256], epochs: 200, batch_size: 256, learning_rate: 0.001}
-    demos: {dataset: heml-gym/tissue-scripted-noisy-100-v0, policy: scripted, episodes: 100, action_noise: 0.3}
+    demos: {dataset: heml-gym/tissue-retraction-scripted-noisy-100-v0, policy: scripted, episodes: 100, action_noise: 0.3}
     evaluation: {episodes: 20}
     seed: 0
 
