@@ -14,7 +14,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from heml_gym.world import HOLD_SPRING_SCALE, World  # noqa: F401  (HOLD_SPRING_SCALE: for callers)
+from heml_gym.world import World
 
 from .instruments import Grasper
 from .measures import Exposure, FoldLift, finite

@@ -1,8 +1,8 @@
-"""What a task measures on the tissue, per copy of the world: how much of a target the
+"""What a task measures on the tissue, per world: how much of a target the
 tissue hides from the camera, how far a flap is folded back, how much it is strained.
 
 Each measure is a small object built once from the scene and called with the current
-positions (m) of the copies it measures; the tasks compose them into rewards, success
+positions (m) of the worlds it measures; the tasks compose them into rewards, success
 and cost. Units: m, rad, and fractions.
 """
 
@@ -31,11 +31,11 @@ class Exposure:
         self.sphere = fibonacci_sphere(samples)
 
     def __call__(self, x: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """``x``: ``(k, n, 3)`` positions of ``k`` copies; ``targets``: ``(k, 3)`` centres."""
+        """``x``: ``(k, n, 3)`` positions of ``k`` worlds; ``targets``: ``(k, 3)`` centres."""
         s, r = self.scene, self.scene.target_radius
         points = targets[:, None, :] + r * self.sphere[None, :, :]
         # only samples facing the camera count; the rest are hidden by the target itself
-        if len(x) == 1:  # no thread launch for one copy
+        if len(x) == 1:  # no thread launch for one world
             return np.array([visible_fraction(points[0], s.camera, x[0], s.surface_faces,
                                               sphere_center=targets[0], sphere_radius=r)])
         return visible_fraction_batch(points, s.camera, x, s.surface_faces, sphere_center=targets, sphere_radius=r)
@@ -62,6 +62,6 @@ class FoldLift:
         return np.where(angle <= -np.pi / 2, angle + 2 * np.pi, angle)
 
     def __call__(self, x_edge: np.ndarray) -> np.ndarray:
-        """``x_edge``: ``(k, len(edge), 3)`` positions of the edge vertices of ``k`` copies."""
+        """``x_edge``: ``(k, len(edge), 3)`` positions of the edge vertices of ``k`` worlds."""
         progress = (self.angles(x_edge) - self.rest_angle) / self.scene.fold_angle
         return finite(np.clip(progress, 0.0, 1.0), nan=0.0).mean(axis=1)

@@ -1,7 +1,7 @@
-"""A world: one tissue's model and solver, stepped for N independent copies at once.
+"""The physics of a batch of worlds: one tissue's model and solver, N worlds stepped at once.
 
 :class:`World` holds what the physics of a task needs and nothing of the task: the
-:class:`~heml_gym.Model` (mesh, law per copy, masses, fixed vertices, supports), its
+:class:`~heml_gym.Model` (mesh, law per world, masses, fixed vertices, supports), its
 solver, the :class:`~heml_gym.State` and :class:`~heml_gym.Control`, the tissue stuck to
 what it rests on (adhesion: vertices held where they rest) and the hold springs of jaws
 that hold part of a vertex. Instruments (grasp, release, drive) and tasks (what is
@@ -29,9 +29,9 @@ HOLD_SPRING_SCALE = 0.25
 
 
 class World:
-    """N copies of one tissue, stepped together by one solver.
+    """N worlds of one tissue (a batch, as everywhere in heml_gym), stepped together by one solver.
 
-    ``model``: the :class:`~heml_gym.Model` (``n_worlds`` copies); ``solver``: its solver;
+    ``model``: the :class:`~heml_gym.Model` (``n_worlds`` worlds); ``solver``: its solver;
     ``substeps``: solver sub-steps per :meth:`step`. Attributes: ``state``, ``control``,
     ``reaction`` (the last step's constraint reactions, N, ``(N, n, 3)``) and ``stuck``
     (``(N, n)`` bool: vertices held where they rest by adhesion).
@@ -52,9 +52,9 @@ class World:
         ``heml_gym.envs.PhysicsSpec``: ``material_for(E)``, ``young_modulus`` (low, high),
         ``field``, ``density``, ``gravity``, ``damping``, ``stiffness_regions``,
         ``integrator``, ``scheme``, ``safety``, ``newton_tol``, ``max_newton``,
-        ``hessian_scale``, ``max_dt``), stepped ``control_dt`` seconds at a time. Every copy
+        ``hessian_scale``, ``max_dt``), stepped ``control_dt`` seconds at a time. Every world
         starts with the stiffest tissue the range allows; explicit sub-steps are fixed by it,
-        so that a copy's trajectory does not depend on its neighbours."""
+        so that a world's trajectory does not depend on its neighbours."""
         ph = physics
         E_high = ph.young_modulus[1]
         model = Model(mesh, ph.material_for(E_high), n_worlds=int(n_worlds), field=ph.field, density=ph.density,
@@ -73,11 +73,11 @@ class World:
 
     @property
     def x(self) -> np.ndarray:
-        """Vertex positions of every copy, ``(N, n, 3)`` m."""
+        """Vertex positions of every world, ``(N, n, 3)`` m."""
         return self.state.x
 
     def reset(self, i: int) -> None:
-        """Copy ``i`` at rest: undeformed, still, nothing held or stuck."""
+        """World ``i`` at rest: undeformed, still, nothing held or stuck."""
         self.state.x[i] = self.mesh.vertices
         self.state.v[i] = 0.0
         self.control.clear(i)
@@ -85,20 +85,20 @@ class World:
         self.stuck[i] = False
 
     def stick(self, i: int, vertices: np.ndarray) -> None:
-        """Hold ``vertices`` of copy ``i`` where they rest (adhesion)."""
+        """Hold ``vertices`` of world ``i`` where they rest (adhesion)."""
         self.stuck[i, vertices] = True
         self.control.attach(i, vertices, self.mesh.vertices)
 
     def unstick(self, i: int) -> None:
-        """Release every stuck vertex of copy ``i``."""
+        """Release every stuck vertex of world ``i``."""
         self.control.detach(i, np.flatnonzero(self.stuck[i]))
         self.stuck[i] = False
 
     def hold_stiffness(self, i: int, vertices: np.ndarray, share: np.ndarray) -> np.ndarray:
-        """The hold stiffness (N/m) of ``vertices`` of copy ``i`` held with ``share`` (0..1):
+        """The hold stiffness (N/m) of ``vertices`` of world ``i`` held with ``share`` (0..1):
         0 (held exactly) for a whole share, else ``share / (1 - share)`` times
         :data:`HOLD_SPRING_SCALE` times the tissue's own stiffness at the vertex (the mean
-        diagonal of the copy's rest stiffness matrix there, N/m)."""
+        diagonal of the world's rest stiffness matrix there, N/m)."""
         k = np.zeros(len(vertices))
         part = share < 1.0 - 1e-9
         if part.any():
@@ -109,8 +109,8 @@ class World:
         return k
 
     def step(self, dt: float, active: np.ndarray | None = None):
-        """Advance every (``active``) copy by ``dt`` seconds in :attr:`substeps` solver steps;
-        returns the solver's :class:`~heml_gym.StepStats` (converged, diverged, reaction per copy)."""
+        """Advance every (``active``) world by ``dt`` seconds in :attr:`substeps` solver steps;
+        returns the solver's :class:`~heml_gym.StepStats` (converged, diverged, reaction per world)."""
         stats = self.solver.step(self.state, self.state, self.control, dt, substeps=self.substeps, active=active)
         self.reaction = stats.reaction
         return stats

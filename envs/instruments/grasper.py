@@ -1,7 +1,7 @@
 """A grasper: jaws on a shaft that move, close on tissue, hold it and let it go.
 
 One :class:`Grasper` stands for the same instrument in each of a :class:`heml_gym.World`'s
-N copies. It owns its slice of the action (velocity along x, y, z in units of
+N worlds. It owns its slice of the action (velocity along x, y, z in units of
 ``max_speed``, and a grasp command), its part of the state observation (position,
 grasping, the tissue's force on it) and its ``info`` entries, and drives the tissue it
 holds through the world's :class:`~heml_gym.Control`. Units: m, s, N.
@@ -77,7 +77,7 @@ class Grasper:
         self.force[i] = 0.0
 
     def place(self, i: int, position) -> None:
-        """Start copy ``i``'s jaws at ``position`` (m, (3,), inside the workspace)."""
+        """Start world ``i``'s jaws at ``position`` (m, (3,), inside the workspace)."""
         g = np.asarray(position, dtype=np.float64)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise SpecError(f"gripper: must be 3 finite coordinates (m), got {position!r}")
@@ -89,7 +89,7 @@ class Grasper:
     # --------------------------------------------------------------------- step
     def grasp(self, actions: np.ndarray) -> np.ndarray:
         """Close or open the jaws per the grasp command (``actions[:, 3]``): above 0 closes,
-        below ``release_command`` opens, in between they stay. Returns which copies grasped
+        below ``release_command`` opens, in between they stay. Returns which worlds grasped
         tissue for the first time in their episode."""
         st, world, x = self.settings, self.world, self.world.state.x
         first = np.zeros(world.n, dtype=bool)
@@ -167,7 +167,7 @@ class Grasper:
 
     # ---------------------------------------------------------------- the jaws
     def _jaw_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """The tissue vertices that closing the jaws of copy ``i`` holds (maybe none), and
+        """The tissue vertices that closing the jaws of world ``i`` holds (maybe none), and
         the share of each that the jaws hold (1: whole; below 1: weighted jaws' ends)."""
         picked, share = self._reached_vertices(i)
         keep = ~self.world.control.kinematic[i, picked]  # not stuck, not held by another instrument
@@ -175,7 +175,7 @@ class Grasper:
 
     def wrist_patch(self, i: int, picked: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray | None]:
         """What jaws on a free wrist hold when they close on ``picked`` (vertex indices) in
-        copy ``i``: the vertices within ``reach`` (m, at rest) of one of them, not fixed or
+        world ``i``: the vertices within ``reach`` (m, at rest) of one of them, not fixed or
         stuck (indices, ascending), and the jaws' axis (unit: the longest direction of
         ``picked`` at rest, else of the patch; None when that is a single vertex, which has
         no angle). The scene's wrist (``scene.gripper.wrist_reach``) and the calibration's
@@ -192,7 +192,7 @@ class Grasper:
         return patch, np.linalg.svd(shape - shape.mean(axis=0), full_matrices=False)[2][0]
 
     def _wrist(self, i: int, picked: np.ndarray):
-        """``(patch, pivot, axis)`` of the scene's free wrist closing on ``picked`` in copy
+        """``(patch, pivot, axis)`` of the scene's free wrist closing on ``picked`` in world
         ``i`` (:meth:`wrist_patch`; the pivot: the patch's middle, m), None without one."""
         reach = self.spec.wrist_reach
         if reach is None:
@@ -226,7 +226,7 @@ class Grasper:
 
     def _jaw_shares(self, i: int, jaw_length: float) -> np.ndarray:
         """Each grasp-patch vertex's share (0..1) inside jaws ``jaw_length`` (m) long centred
-        on copy ``i``'s jaws: the overlap of its row's span along the patch's axis (from
+        on world ``i``'s jaws: the overlap of its row's span along the patch's axis (from
         midway to the previous row to midway to the next; at the patch's ends, as far out as
         in) with the jaws, over the span. Rows: the vertices' rest places along the axis,
         to 1e-6 m."""
