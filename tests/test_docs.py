@@ -40,23 +40,32 @@ def test_the_check_finds_a_sentence_over_sixty_words(tmp_path, monkeypatch):
     assert [len(s.split()) for s in check_docs.sentences(short_doc.read_text())] == [3, 60, 60, 60]
 
 
-def test_relative_links_in_the_studies_and_stored_results_resolve():
-    """Every relative Markdown link (``[text](path)``, ``![chart](path)``) in the studies
-    (docs/studies/), the stored results (docs/benchmarks/, its archive included),
-    docs/development.md and CHANGELOG.md names a file or folder that exists."""
+def test_relative_links_in_the_readme_guides_studies_and_stored_results_resolve():
+    """Every relative Markdown link (``[text](path)``, ``![chart](path)``) in README.md, the
+    guides (docs/*.md), the studies (docs/studies/), the stored results (docs/benchmarks/,
+    its archive included) and CHANGELOG.md names a file or folder that exists."""
     import re
 
     from heml_gym.benchmarks.common import ROOT
 
     docs = ROOT / "docs"
-    files = [*(docs / "studies").glob("*.md"), *(docs / "benchmarks").rglob("*.md"), docs / "development.md",
-             ROOT / "CHANGELOG.md"]
+    files = [ROOT / "README.md", *docs.glob("*.md"), *(docs / "studies").glob("*.md"),
+             *(docs / "benchmarks").rglob("*.md"), ROOT / "CHANGELOG.md"]
+    def anchors(doc):  # GitHub's heading slugs
+        text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)
+        return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+                for h in re.findall(r"^#+ (.*)$", text, flags=re.M)}
+
     broken = []
     for path in files:
         text = re.sub(r"```.*?```", "", path.read_text(), flags=re.S)
         for target in re.findall(r"\]\(\s*<?([^)\s>]+)", text):
             if re.match(r"[a-z]+:|#", target):
                 continue
-            if not (path.parent / target.split("#")[0]).exists():
+            file, _, anchor = target.partition("#")
+            linked = path.parent / file
+            if not linked.exists():
                 broken.append(f"{path.relative_to(ROOT)}: {target}")
+            elif anchor and linked.suffix == ".md" and anchor not in anchors(linked):
+                broken.append(f"{path.relative_to(ROOT)}: {target} (no such heading)")
     assert broken == []
