@@ -16,9 +16,10 @@ the peak gauge strain, the damage (the summed ``info["cost"]``: 0.1 s times the 
 strain above the safe strain 0.18, strain x s) and each grasper's mean hold force over the
 last second (N).
 
-Writes docs/benchmarks/bimanual_feasibility.{json,md}.
+Writes docs/benchmarks/bimanual_feasibility.{json,md} (``--cells`` with ``--name``: the
+same on another mesh, e.g. a finer one, to see whether the answer holds as the mesh is refined).
 
-    python benchmarks/accuracy/bimanual_feasibility.py [--steps 80] [--from-json]
+    python benchmarks/accuracy/bimanual_feasibility.py [--steps 80] [--cells 12,24,2] [--name NAME] [--from-json]
 """
 
 from __future__ import annotations
@@ -47,8 +48,9 @@ CONFIGS = {
 }
 
 
-def wide_flap():
-    """The built wide-flap scene: TissueRetraction's, twice as wide, its target fixed."""
+def wide_flap(cells=CELLS):
+    """The built wide-flap scene: TissueRetraction's, twice as wide, its target fixed;
+    ``cells``: its hex grid (6 tets per cell)."""
     from heml_gym.envs import RegionSpec, TargetSpec, TissueSpec, build_scene
     from heml_gym.envs.tissue_retraction import tissue_scene
 
@@ -56,7 +58,7 @@ def wide_flap():
     base = tissue_scene()
     spec = dataclasses.replace(
         base, name="WideFlap",
-        tissue=dataclasses.replace(base.tissue, size=FLAP, cells=CELLS),
+        tissue=dataclasses.replace(base.tissue, size=FLAP, cells=tuple(cells)),
         tracked=RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),
         target=TargetSpec(low=TARGET, high=TARGET, radius=0.008),
         gripper=dataclasses.replace(base.gripper, workspace_high=(0.20, ly + 0.05, 0.15)),
@@ -125,9 +127,9 @@ def run(scene, jaws, young_modulus: float, steps: int) -> dict:
             "hold_force_n": last.mean(axis=0).tolist(), "grasped": [bool(g.grasped_once[0]) for g in graspers]}
 
 
-def measure(steps: int) -> dict:
-    scene = wide_flap()
-    results = {"machine": machine_info(), "flap_m": list(FLAP), "cells": list(CELLS), "n_tets": scene.mesh.n_tets,
+def measure(steps: int, cells=CELLS) -> dict:
+    scene = wide_flap(cells)
+    results = {"machine": machine_info(), "flap_m": list(FLAP), "cells": list(cells), "n_tets": scene.mesh.n_tets,
                "target_m": list(TARGET), "adhesion_m": ADHESION, "steps": steps, "configs": {}}
     with tqdm(total=len(CONFIGS) * len(STIFFNESS), desc="folds") as bar:
         for name, jaws in CONFIGS.items():
@@ -148,10 +150,13 @@ def report(data: dict) -> str:
                          f"{r['max_exposure']:.2f}", f"{r['peak_strain']:.3f}", f"{r['damage']:.3f}",
                          " / ".join(f"{f:.2f}" for f in r["hold_force_n"])])
     m = data["machine"]
+    cells = " x ".join(str(c) for c in data["cells"])
+    command = "python benchmarks/accuracy/bimanual_feasibility.py" + (
+        "" if data["cells"] == list(CELLS) else f" --cells {','.join(str(c) for c in data['cells'])} --name {data['name']}")
     head = (f"A {data['flap_m'][0] * 1e3:.0f} x {data['flap_m'][1] * 1e3:.0f} x {data['flap_m'][2] * 1e3:.0f} mm "
-            f"flap ({data['n_tets']:,} tets), folded back by the scripted fold of each grasper, "
+            f"flap ({cells} cells, {data['n_tets']:,} tets), folded back by the scripted fold of each grasper, "
             f"{data['steps']} env steps of 0.1 s ({m['cpu']}, {m['date']}; "
-            "`python benchmarks/accuracy/bimanual_feasibility.py`). Success as TissueRetraction's: exposure >= 0.8 "
+            f"`{command}`). Success as TissueRetraction's: exposure >= 0.8 "
             "with the gauge strain below 0.5 for 2 s. Damage: the summed strain above 0.18 times 0.1 s.\n\n")
     return head + markdown_table(["graspers", "E (kPa)", "success", "max exposure", "peak gauge strain",
                                   "damage (strain x s)", "hold force per grasper, last 1 s (N)"], rows)
@@ -160,12 +165,22 @@ def report(data: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=80)
+    ap.add_argument("--cells", default=",".join(str(c) for c in CELLS), help="the flap's hex grid, x,y,z")
+    ap.add_argument("--name", default="bimanual_feasibility", help="store as docs/benchmarks/NAME.{json,md}")
     ap.add_argument("--from-json", action="store_true", help="only rewrite the table from the stored result")
     args = ap.parse_args(argv)
     if args.steps < 1:
         ap.error(f"--steps: must be >= 1, got {args.steps}")
-    data = None if args.from_json else measure(args.steps)
-    store_and_report("bimanual_feasibility", data, report, envs=["heml_gym/TissueRetraction-v1"])
+    try:
+        cells = tuple(int(c) for c in args.cells.split(","))
+    except ValueError:
+        cells = ()
+    if len(cells) != 3 or min(cells) < 1:
+        ap.error(f"--cells: three positive integers x,y,z, got {args.cells!r}")
+    data = None
+    if not args.from_json:
+        data = {**measure(args.steps, cells), "name": args.name}
+    store_and_report(args.name, data, report, envs=["heml_gym/TissueRetraction-v1"])
     return 0
 
 
