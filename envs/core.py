@@ -18,7 +18,7 @@ from heml_gym.world import World
 
 from .instruments import Grasper
 from .measures import Exposure, FoldLift, finite
-from .scene import BuiltScene
+from .scene import BuiltScene, GripperSpec
 from .spec import SpecError, from_mapping
 from .strain_gauges import StrainGauges
 
@@ -41,6 +41,8 @@ STATE_FIELDS = [name for name, *_ in STATE_SPEC]
 STATE_SIZE = len(STATE_FIELDS)
 STATE_LOW = np.array([lo for _, lo, _, _ in STATE_SPEC], dtype=np.float32)
 STATE_HIGH = np.array([hi for _, _, hi, _ in STATE_SPEC], dtype=np.float32)
+#: the state entries of one grasper (position, grasping, force), first in :data:`STATE_SPEC`
+GRASPER_SIZE = 7
 
 
 def _positive(obj, name, value, allow_zero=False):
@@ -127,15 +129,21 @@ def as_settings(value, cls, name: str):
 
 class BatchedRetraction:
     """N independent retraction episodes on one scene: a :class:`heml_gym.World` (the
-    tissue's physics), its instruments (one :class:`~heml_gym.envs.instruments.Grasper`)
+    tissue's physics), its instruments (graspers, :class:`~heml_gym.envs.instruments.Grasper`)
     and the task: what is measured (exposure, lift, gauge strain), rewarded, succeeded,
-    failed and costed."""
+    failed and costed.
+
+    ``grippers``: the graspers by name, in action order (a mapping of name to
+    ``GripperSpec``); None: one, the scene's ``gripper``, whose ``info`` keys carry no name.
+    The action is each grasper's 4 entries in turn, and the state observation each one's 7
+    (position, grasping, force) before the task's 17. The first grasper is the one the
+    task's camera draws and the attributes ``gripper``, ``grasping``, ... name."""
 
     #: What :meth:`set_episode` can set, with its unit.
     EPISODE_OPTIONS = {"young_modulus": "Pa", "gripper": "m, (3,)", "adhesion_width": "m"}
 
     def __init__(self, scene: BuiltScene, n_worlds: int, settings: TaskSettings | None = None,
-                 weights: RewardWeights | None = None):
+                 weights: RewardWeights | None = None, grippers: dict | None = None):
         if not isinstance(scene, BuiltScene):
             raise TypeError(f"scene must be a BuiltScene (heml_gym.envs.scene.build_scene), got {type(scene).__name__}")
         self.scene = scene
@@ -147,8 +155,19 @@ class BatchedRetraction:
         if self.world.substeps > 1_000_000:
             raise SpecError(f"settings.control_dt: {dt} s needs {self.world.substeps} explicit sub-steps per env "
                             "step; use a shorter control_dt or the implicit integrator")
-        self.grasper = Grasper(self.world, scene, self.settings)
-        self.instruments = [self.grasper]
+        if grippers is None:
+            self.instruments = [Grasper(self.world, scene, self.settings)]
+        else:
+            if (not isinstance(grippers, dict) or not grippers
+                    or not all(isinstance(spec, GripperSpec) for spec in grippers.values())):
+                raise SpecError(f"grippers: must map each grasper's name to its GripperSpec, got {grippers!r}")
+            self.instruments = [Grasper(self.world, scene, self.settings, name=str(name), spec=spec)
+                                for name, spec in grippers.items()]
+            if sum(g.spec.wrist_reach is not None for g in self.instruments) > 1:
+                raise SpecError("grippers: at most one grasper may be on a free wrist (wrist_reach): a world has "
+                                "one wrist")
+        self.grasper = self.instruments[0]
+        self.action_size = sum(g.action_size for g in self.instruments)
         self.gauges = StrainGauges(scene.mesh, scene.strain_gauge)
         self._exposure = Exposure(scene, self.settings.exposure_samples)
         self._fold = FoldLift(scene)
@@ -204,7 +223,8 @@ class BatchedRetraction:
             self.young_modulus[i] = E
             self.model.set_material(i, s.physics.material_for(E))
             self.target[i] = rng.uniform(s.target_low, s.target_high)
-            self.grasper.reset(i, rng)
+            for g in self.instruments:
+                g.reset(i, rng)
             self.steps[i] = 0
             self.held_steps[i] = 0
             self.damage[i] = 0.0
@@ -251,20 +271,27 @@ class BatchedRetraction:
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
-        """Apply ``actions`` (N, 4) in [-1, 1] to every world; returns reward, terminated,
+        """Apply ``actions`` (N, action_size) in [-1, 1] to every world; returns reward, terminated,
         truncated and a dict of per-world arrays (the info).
 
         Worlds outside the ``active`` mask (default: all) are not simulated (their results
         are meaningless; the vector env resets them right after)."""
         st, w = self.settings, self.weights
-        a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.n, 4), -1.0, 1.0)
+        a = np.asarray(actions, dtype=np.float64)
+        if a.size != self.n * self.action_size:
+            raise ValueError(f"actions: must have shape ({self.n}, {self.action_size}) (each world's "
+                             f"{len(self.instruments)} instrument(s) in turn), got {a.shape}")
+        a = np.clip(a.reshape(self.n, self.action_size), -1.0, 1.0)
+        parts = np.split(a, np.cumsum([g.action_size for g in self.instruments])[:-1], axis=1)
         prev_exposure, prev_lift, prev_strain = self.exposure.copy(), self.lift.copy(), self.max_strain.copy()
-        grasp_bonus = np.where(self.grasper.grasp(a), w.grasp, 0.0)
-        self.grasper.move(a)
+        grasp_bonus = sum(np.where(g.grasp(part), w.grasp, 0.0) for g, part in zip(self.instruments, parts))
+        for g, part in zip(self.instruments, parts):
+            g.move(part)
         stats = self.world.step(st.control_dt, active=active)
         diverged = stats.diverged
         failed = diverged | ~stats.converged
-        self.grasper.after_step(stats.reaction, failed)
+        for g in self.instruments:
+            g.after_step(stats.reaction, failed)
         self.steps += 1
         all_worlds = np.arange(self.n)
         self.exposure = self.measure_exposure(all_worlds)
@@ -276,7 +303,7 @@ class BatchedRetraction:
             "reward_grasp": grasp_bonus,
             "reward_strain": -w.strain * np.maximum(0.0, self.max_strain - st.damage_strain),
             "reward_stretch": -w.stretch * (self.max_strain - prev_strain),
-            "reward_effort": -w.effort * (a[:, :3] ** 2).sum(axis=1),
+            "reward_effort": -w.effort * sum((part[:, :3] ** 2).sum(axis=1) for part in parts),
         }
         # success: the target exposed with the tissue below damage strain, held for hold_time
         # (the condition first met counts as 0 s; each further step in a row adds control_dt)
@@ -297,7 +324,7 @@ class BatchedRetraction:
         cost = np.where(failed, 0.0, st.control_dt * np.maximum(0.0, self.max_strain - st.safe_strain))
         self.damage = self.damage + cost
         info = {**terms, "cost": cost, "damage": self.damage.copy(), "exposure": self.exposure.copy(),
-                "lift": self.lift.copy(), "max_strain": self.max_strain.copy(), **self.grasper.info(),
+                "lift": self.lift.copy(), "max_strain": self.max_strain.copy(), **self._instrument_info(),
                 "is_success": success, "hold_time": np.maximum(self.held_steps - 1, 0) * st.control_dt,
                 "tissue_torn": torn, "simulation_diverged": diverged.copy(), "solver_converged": stats.converged.copy(),
                 "newton_iterations": stats.newton_iterations.copy(), "substep_refinement": stats.refinement.copy(),
@@ -324,11 +351,21 @@ class BatchedRetraction:
         zero, no = np.zeros(k), np.zeros(k, dtype=bool)
         return {**{f"reward_{term.name}": zero.copy() for term in fields(RewardWeights)},
                 "exposure": self.exposure[worlds].copy(), "lift": self.lift[worlds].copy(),
-                "max_strain": self.max_strain[worlds].copy(), **self.grasper.start_info(worlds),
+                "max_strain": self.max_strain[worlds].copy(), **self._instrument_info(worlds, start=True),
                 "cost": zero.copy(), "damage": zero.copy(), "is_success": no.copy(), "hold_time": zero.copy(),
                 "tissue_torn": no.copy(), "simulation_diverged": no.copy(), "solver_converged": ~no,
                 "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),
                 "solver_fallback": no.copy(), **self._wrist_info(worlds), **self._episode_info(worlds)}
+
+    def _instrument_info(self, worlds=None, start: bool = False) -> dict:
+        """Each instrument's ``info`` entries; with several, also ``grasp_force`` (their
+        forces' magnitudes summed, N) and ``grasping`` (any holds tissue)."""
+        parts = [g.start_info(worlds) if start else g.info(worlds) for g in self.instruments]
+        info = {k: v for part in parts for k, v in part.items()}
+        if len(self.instruments) > 1:
+            info["grasp_force"] = sum(part[g.key("grasp_force")] for g, part in zip(self.instruments, parts))
+            info["grasping"] = np.any([part[g.key("grasping")] for g, part in zip(self.instruments, parts)], axis=0)
+        return info
 
     def _wrist_info(self, worlds) -> dict:
         """``wrist_angle`` (rad): how far the jaws on a free wrist have turned since they
@@ -359,15 +396,25 @@ class BatchedRetraction:
     def state_observation(self) -> np.ndarray:
         """The state vector of every world, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
         tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
-        obs = np.concatenate([*self.grasper.observation(), self.target, tracked, self.max_strain[:, None],
-                              self.exposure[:, None]], axis=1)
-        obs = np.clip(finite(obs, nan=0.0), STATE_LOW, STATE_HIGH)
+        parts = [part for g in self.instruments for part in g.observation()]
+        obs = np.concatenate([*parts, self.target, tracked, self.max_strain[:, None], self.exposure[:, None]], axis=1)
+        low, high = self._bounds
+        obs = np.clip(finite(obs, nan=0.0), low, high)
         return obs.astype(np.float32)
 
-    @staticmethod
-    def state_bounds() -> tuple[np.ndarray, np.ndarray]:
-        """``(low, high)`` of the state observation (from :data:`STATE_SPEC`)."""
-        return STATE_LOW.copy(), STATE_HIGH.copy()
+    @property
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        k = len(self.instruments)
+        if k == 1:
+            return STATE_LOW, STATE_HIGH
+        return (np.concatenate([np.tile(STATE_LOW[:GRASPER_SIZE], k), STATE_LOW[GRASPER_SIZE:]]),
+                np.concatenate([np.tile(STATE_HIGH[:GRASPER_SIZE], k), STATE_HIGH[GRASPER_SIZE:]]))
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)`` of the state observation (from :data:`STATE_SPEC`, its grasper's
+        entries once per instrument)."""
+        low, high = self._bounds
+        return low.copy(), high.copy()
 
 
 def settings_with(settings: TaskSettings, **changes) -> TaskSettings:

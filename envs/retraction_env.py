@@ -281,7 +281,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
                                           self.resolve(scene, physics, **size))
         self.difficulty = difficulty
         self.task = BatchedRetraction(build_scene(spec), 1, settings, as_settings(weights, RewardWeights, "weights"))
-        self.action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (self.task.action_size,), dtype=np.float32)
         self.observation_space = self._setup_observations(obs_mode, camera)
         self.render_mode = render_mode
         self._renderer = None
@@ -312,7 +312,7 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
         return {k: v[0].item() for k, v in self.task.start_info([0]).items()}
 
     def step(self, action):
-        a = check_actions(action, (4,))
+        a = check_actions(action, (self.task.action_size,))
         reward, terminated, truncated, info = self.task.step(a[None, :])
         info = {k: (v[0].item() if isinstance(v, np.ndarray) else v) for k, v in info.items()}
         if self.render_mode == "human":
@@ -373,7 +373,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         self.num_envs = int(num_envs)
         self.task = BatchedRetraction(build_scene(spec), self.num_envs, settings,
                                       as_settings(weights, RewardWeights, "weights"))
-        self.single_action_space = spaces.Box(-1.0, 1.0, (4,), dtype=np.float32)
+        self.single_action_space = spaces.Box(-1.0, 1.0, (self.task.action_size,), dtype=np.float32)
         self.single_observation_space = self._setup_observations(obs_mode, camera)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
@@ -393,9 +393,9 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         self._new_camera_poses(idx)
 
     def step_envs(self, actions, active=None):
-        """Step every env with ``actions (N, 4)`` (checked: shape and finite values), no
+        """Step every env with ``actions (N, action size)`` (checked: shape and finite values), no
         autoreset: ``(reward, terminated, truncated, info)`` as per-env arrays."""
-        a = check_actions(actions, (self.num_envs, 4))
+        a = check_actions(actions, (self.num_envs, self.task.action_size))
         return self.task.step(a, active=active)
 
     # --------------------------------------------------------------- gymnasium
