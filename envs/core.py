@@ -168,6 +168,11 @@ class BatchedRetraction:
                                 "one wrist")
         self.grasper = self.instruments[0]
         self.action_size = sum(g.action_size for g in self.instruments)
+        # the state's bounds: a grasper's entries once per grasper, then the task's
+        k = len(self.instruments)
+        self._state_low, self._state_high = [
+            bound if k == 1 else np.concatenate([np.tile(bound[:GRASPER_SIZE], k), bound[GRASPER_SIZE:]])
+            for bound in (STATE_LOW, STATE_HIGH)]
         self.gauges = StrainGauges(scene.mesh, scene.strain_gauge)
         self._exposure = Exposure(scene, self.settings.exposure_samples)
         self._fold = FoldLift(scene)
@@ -398,23 +403,13 @@ class BatchedRetraction:
         tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
         parts = [part for g in self.instruments for part in g.observation()]
         obs = np.concatenate([*parts, self.target, tracked, self.max_strain[:, None], self.exposure[:, None]], axis=1)
-        low, high = self._bounds
-        obs = np.clip(finite(obs, nan=0.0), low, high)
+        obs = np.clip(finite(obs, nan=0.0), self._state_low, self._state_high)
         return obs.astype(np.float32)
-
-    @property
-    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        k = len(self.instruments)
-        if k == 1:
-            return STATE_LOW, STATE_HIGH
-        return (np.concatenate([np.tile(STATE_LOW[:GRASPER_SIZE], k), STATE_LOW[GRASPER_SIZE:]]),
-                np.concatenate([np.tile(STATE_HIGH[:GRASPER_SIZE], k), STATE_HIGH[GRASPER_SIZE:]]))
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the state observation (from :data:`STATE_SPEC`, its grasper's
         entries once per instrument)."""
-        low, high = self._bounds
-        return low.copy(), high.copy()
+        return self._state_low.copy(), self._state_high.copy()
 
 
 def settings_with(settings: TaskSettings, **changes) -> TaskSettings:
