@@ -6,7 +6,7 @@ Rolls a policy (the scripted fold, a shipped pretrained policy, a run folder or 
 grasp force, gauge strain, exposure, cost, ...), loadable with ``minari.load_dataset(NAME)``.
 Datasets go under ``MINARI_DATASETS_PATH`` (``--root``), else ``~/.minari/datasets``.
 
-``--action-noise SIGMA`` adds Gaussian noise of standard deviation SIGMA to the gripper's
+``--action-noise SIGMA`` adds Gaussian noise of standard deviation SIGMA to each grasper's
 three velocity commands the env executes (the grasp command is kept): the episodes then
 visit the states around the demonstrator's path and show how it recovers from them, what
 behaviour cloning needs to hold its course (DART, Laskey et al. 2017). ``actions`` are
@@ -107,7 +107,8 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
             expert = action
             if action_noise:
                 action = action.copy()
-                action[:3] = np.clip(action[:3] + action_noise * noise.standard_normal(3), -1.0, 1.0)
+                for v in range(0, len(action), 4):  # each grasper's velocity command (4 entries each)
+                    action[v:v + 3] = np.clip(action[v:v + 3] + action_noise * noise.standard_normal(3), -1.0, 1.0)
             obs, reward, terminated, truncated, info = env.step(action)
             if action_noise:
                 info = {**info, "expert_action": expert}

@@ -4,6 +4,8 @@ Importing this package registers:
 
 * ``heml_gym/TissueRetraction-v1`` (:class:`~heml_gym.envs.tissue_retraction.TissueRetractionEnv`)
 * ``heml_gym/OrganRetraction-v2`` (:class:`~heml_gym.envs.organ_retraction.OrganRetractionEnv`)
+* ``heml_gym/BimanualRetraction-v0`` (:class:`~heml_gym.envs.bimanual_retraction.BimanualRetractionEnv`):
+  two graspers
 
 each with a batched implementation for ``gymnasium.make_vec(...,
 vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` 100 (the tasks'
@@ -30,7 +32,7 @@ from .spec import SpecError
 
 __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec", "GripperSpec",
            "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC",
-           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
+           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "BIMANUAL_RETRACTION", "ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
            "unknown_env_message"]
 
 #: Arguments set by other means than ``env.kwargs`` (the run config's own keys, gym.make's).
@@ -70,7 +72,8 @@ def check_env_kwargs(env_id: str, kwargs: dict, path: str = "env.kwargs"):
 #: truncation agree).
 TISSUE_RETRACTION = "heml_gym/TissueRetraction-v1"
 ORGAN_RETRACTION = "heml_gym/OrganRetraction-v2"
-ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION)
+BIMANUAL_RETRACTION = "heml_gym/BimanualRetraction-v0"
+ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION, BIMANUAL_RETRACTION)
 MAX_EPISODE_STEPS = TaskSettings().max_steps
 
 #: Ids no longer registered: what replaced them, and why.
@@ -117,5 +120,12 @@ gym.register(
     id=ORGAN_RETRACTION,
     entry_point="heml_gym.envs.organ_retraction:OrganRetractionEnv",
     vector_entry_point="heml_gym.envs.organ_retraction:OrganRetractionVectorEnv",
+    max_episode_steps=MAX_EPISODE_STEPS,
+)
+
+gym.register(
+    id=BIMANUAL_RETRACTION,
+    entry_point="heml_gym.envs.bimanual_retraction:BimanualRetractionEnv",
+    vector_entry_point="heml_gym.envs.bimanual_retraction:BimanualRetractionVectorEnv",
     max_episode_steps=MAX_EPISODE_STEPS,
 )

@@ -82,9 +82,9 @@ class SceneMeshes(NamedTuple):
 
 
 class WorldPoses(NamedTuple):
-    """Per world (leading axis N): the tissue's vertices ``x`` (m), the target's and the
-    gripper's places (m), the jaws' colour (``(N, 3)``), the camera's eye (m) and its
-    world-to-camera rotation ``rots (N, 3, 3)``."""
+    """Per world (leading axis N): the tissue's vertices ``x`` (m), the target's place (m),
+    the K graspers' places ``grippers (N, K, 3)`` (m) and their jaws' colours ``(N, K, 3)``,
+    the camera's eye (m) and its world-to-camera rotation ``rots (N, 3, 3)``."""
 
     x: np.ndarray
     targets: np.ndarray
@@ -143,8 +143,9 @@ def _render_one(s, poses, meshes, lens, images):
                    image, inv, labels)
     draw_triangles(sphere_v, sphere_f, target_colour, targets[s, 0], targets[s, 1], targets[s, 2], np.uint8(2), eye,
                    rot, focal, cx, cy, near, ambient, image, inv, labels)
-    draw_triangles(box_v, box_f, jaw_colours[s:s + 1], grippers[s, 0], grippers[s, 1], grippers[s, 2], np.uint8(3),
-                   eye, rot, focal, cx, cy, near, ambient, image, inv, labels)
+    for k in range(grippers.shape[1]):  # every grasper's jaws
+        draw_triangles(box_v, box_f, jaw_colours[s, k:k + 1], grippers[s, k, 0], grippers[s, k, 1],
+                       grippers[s, k, 2], np.uint8(3), eye, rot, focal, cx, cy, near, ambient, image, inv, labels)
     for i in range(height):
         for j in range(width):
             z = far
@@ -158,7 +159,7 @@ def _render_one(s, poses, meshes, lens, images):
 @nb.njit(cache=True, parallel=True)
 def render_worlds(poses, meshes, lens, images):
     """Draw every world ``s`` (tissue ``poses.x[s]`` over ``meshes.faces``, the target
-    sphere at ``poses.targets[s]``, the jaw box at ``poses.grippers[s]`` in
+    sphere at ``poses.targets[s]``, a jaw box at each of ``poses.grippers[s]`` in
     ``poses.jaw_colours[s]``, the support) from its camera (``poses.eyes[s]``,
     ``poses.rots[s]``) through ``lens`` into ``images`` (:class:`WorldPoses`,
     :class:`SceneMeshes`, :class:`Lens`, :class:`Images`), worlds over threads."""
@@ -246,9 +247,9 @@ class CameraRenderer:
     def render(self):
         """``(rgb, depth, segmentation)`` of every world (arrays owned by the renderer)."""
         t = self.task
-        jaw = np.where(t.grasping[:, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
+        jaw = np.where(t.grasping_all[:, :, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
         kernel = render_worlds if t.n > 1 and nb.get_num_threads() > 1 else render_worlds_serial
-        poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(t.gripper),
+        poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(t.grippers),
                            np.ascontiguousarray(jaw), self.eyes, self.rots)
         kernel(poses, self.meshes, self.lens, Images(self.rgb, self.depth, self.segmentation[..., 0]))
         return self.rgb, self.depth, self.segmentation

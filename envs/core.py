@@ -14,17 +14,13 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from heml_gym.world import World
-
-from .instruments import Grasper
 from .measures import Exposure, FoldLift, finite
-from .scene import BuiltScene, GripperSpec
+from .scene import BuiltScene
 from .spec import SpecError, from_mapping
-from .strain_gauges import StrainGauges
+from .task import STRAIN_BOUND, TissueTask
 
 POSITION_BOUND = 0.5  # m: |positions| in observations are clipped to this
 FORCE_BOUND = 20.0  # N
-STRAIN_BOUND = 5.0
 
 #: The state observation, entry by entry: (name, low, high, unit). The bounds of the
 #: observation space and the clipping of every entry come from this table.
@@ -127,152 +123,46 @@ def as_settings(value, cls, name: str):
     raise SpecError(f"{name}: must be a {cls.__name__} or a mapping of its fields, got {type(value).__name__}")
 
 
-class BatchedRetraction:
-    """N independent retraction episodes on one scene: a :class:`heml_gym.World` (the
-    tissue's physics), its instruments (graspers, :class:`~heml_gym.envs.instruments.Grasper`)
-    and the task: what is measured (exposure, lift, gauge strain), rewarded, succeeded,
-    failed and costed.
+class BatchedRetraction(TissueTask):
+    """N independent retraction episodes on one scene: the shared world, graspers and
+    draws of a :class:`~heml_gym.envs.task.TissueTask`, and the retraction task: what is
+    measured (exposure of a hidden target, lift of the flap, gauge strain), rewarded,
+    succeeded, failed and costed.
 
     ``grippers``: the graspers by name, in action order (a mapping of name to
-    ``GripperSpec``); None: one, the scene's ``gripper``, whose ``info`` keys carry no name.
-    The action is each grasper's 4 entries in turn, and the state observation each one's 7
-    (position, grasping, force) before the task's 17. The first grasper is the one the
-    task's camera draws and the attributes ``gripper``, ``grasping``, ... name."""
-
-    #: What :meth:`set_episode` can set, with its unit.
-    EPISODE_OPTIONS = {"young_modulus": "Pa", "gripper": "m, (3,)", "adhesion_width": "m"}
+    ``GripperSpec``); None: the scene's. The action is each grasper's 4 entries in turn,
+    and the state observation each one's 7 (position, grasping, force) before the task's
+    17. The first grasper is the one the attributes ``gripper``, ``grasping``, ... name."""
 
     def __init__(self, scene: BuiltScene, n_worlds: int, settings: TaskSettings | None = None,
                  weights: RewardWeights | None = None, grippers: dict | None = None):
-        if not isinstance(scene, BuiltScene):
-            raise TypeError(f"scene must be a BuiltScene (heml_gym.envs.scene.build_scene), got {type(scene).__name__}")
-        self.scene = scene
-        self.n = n = int(n_worlds)
-        self.settings = as_settings(settings, TaskSettings, "settings")
+        super().__init__(scene, n_worlds, as_settings(settings, TaskSettings, "settings"), grippers)
         self.weights = as_settings(weights, RewardWeights, "weights")
-        dt = self.settings.control_dt
-        self.world = World.from_physics(scene.mesh, scene.physics, n, dt, fixed=scene.fixed, supports=scene.supports)
-        if self.world.substeps > 1_000_000:
-            raise SpecError(f"settings.control_dt: {dt} s needs {self.world.substeps} explicit sub-steps per env "
-                            "step; use a shorter control_dt or the implicit integrator")
-        if grippers is None:
-            self.instruments = [Grasper(self.world, scene, self.settings)]
-        else:
-            if (not isinstance(grippers, dict) or not grippers
-                    or not all(isinstance(spec, GripperSpec) for spec in grippers.values())):
-                raise SpecError(f"grippers: must map each grasper's name to its GripperSpec, got {grippers!r}")
-            self.instruments = [Grasper(self.world, scene, self.settings, name=str(name), spec=spec)
-                                for name, spec in grippers.items()]
-            if sum(g.spec.wrist_reach is not None for g in self.instruments) > 1:
-                raise SpecError("grippers: at most one grasper may be on a free wrist (wrist_reach): a world has "
-                                "one wrist")
-        self.grasper = self.instruments[0]
-        self.action_size = sum(g.action_size for g in self.instruments)
+        n = self.n
         # the state's bounds: a grasper's entries once per grasper, then the task's
         k = len(self.instruments)
         self._state_low, self._state_high = [
             bound if k == 1 else np.concatenate([np.tile(bound[:GRASPER_SIZE], k), bound[GRASPER_SIZE:]])
             for bound in (STATE_LOW, STATE_HIGH)]
-        self.gauges = StrainGauges(scene.mesh, scene.strain_gauge)
         self._exposure = Exposure(scene, self.settings.exposure_samples)
         self._fold = FoldLift(scene)
-        self.adhesion_width = np.zeros(n)
         self.target = np.zeros((n, 3))
         self.exposure = np.zeros(n)
         self.lift = np.zeros(n)
-        self.max_strain = np.zeros(n)
-        self.damage = np.zeros(n)  # strain x s: the episode's summed info["cost"]
-        self.young_modulus = np.full(n, scene.physics.young_modulus[1])
-        self.steps = np.zeros(n, dtype=np.int64)
         # env steps the success condition has held in a row; success once it has held hold_time
         self.held_steps = np.zeros(n, dtype=np.int64)
         self.steps_to_hold = math.ceil(self.settings.hold_time / self.settings.control_dt - 1e-9)
-        self.rngs = [np.random.default_rng() for _ in range(n)]
-
-    # the world's and the grasper's parts, under the names the envs and tools read
-    model = property(lambda self: self.world.model)
-    solver = property(lambda self: self.world.solver)
-    state = property(lambda self: self.world.state)
-    control = property(lambda self: self.world.control)
-    reaction = property(lambda self: self.world.reaction)
-    substeps = property(lambda self: self.world.substeps, lambda self, n: setattr(self.world, "substeps", int(n)))
-    adhered = property(lambda self: self.world.stuck)
-    grasping = property(lambda self: self.grasper.grasping)
-    held = property(lambda self: self.grasper.held)
-    held_share = property(lambda self: self.grasper.held_share)
-    offsets = property(lambda self: self.grasper.offsets)
-    grasp_force = property(lambda self: self.grasper.force)
-    grasped_once = property(lambda self: self.grasper.grasped_once)
-    gripper = property(lambda self: self.grasper.position,
-                       lambda self, value: setattr(self.grasper, "position", value))
-
-    @property
-    def x(self) -> np.ndarray:
-        """Tissue vertex positions of every world, ``(N, n, 3)`` m (the state's)."""
-        return self.world.state.x
-
-    def wrist_patch(self, i: int, picked: np.ndarray, reach: float):
-        """The grasper's :meth:`~heml_gym.envs.instruments.Grasper.wrist_patch`."""
-        return self.grasper.wrist_patch(i, picked, reach)
 
     # ------------------------------------------------------------------ reset
-    def reset(self, worlds, seeds=None) -> None:
-        """Start new episodes in ``worlds`` (indices), reseeding them from ``seeds`` if given."""
+    def _draw(self, i: int, rng: np.random.Generator) -> None:
         s = self.scene
-        for k, i in enumerate(np.atleast_1d(worlds)):
-            if seeds is not None and seeds[k] is not None:
-                self.rngs[i] = np.random.default_rng(seeds[k])
-            rng = self.rngs[i]
-            self.world.reset(i)
-            E = rng.uniform(*s.physics.young_modulus)
-            self.young_modulus[i] = E
-            self.model.set_material(i, s.physics.material_for(E))
-            self.target[i] = rng.uniform(s.target_low, s.target_high)
-            for g in self.instruments:
-                g.reset(i, rng)
-            self.steps[i] = 0
-            self.held_steps[i] = 0
-            self.damage[i] = 0.0
-            if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
-                self._stick(i, rng.uniform(*s.spec.adhesion.width))
-        self._measure_start(np.atleast_1d(worlds))
+        self.target[i] = rng.uniform(s.target_low, s.target_high)
+        self.held_steps[i] = 0
 
     def _measure_start(self, idx: np.ndarray) -> None:
-        self.solver.forget(idx)  # the same seed gives the same episode, whatever came before
+        super()._measure_start(idx)
         self.exposure[idx] = self.measure_exposure(idx)
         self.lift[idx] = self._lift(idx)
-        self.max_strain[idx] = self.measure_strain(idx)
-
-    def set_episode(self, i: int, young_modulus: float | None = None, gripper=None,
-                    adhesion_width: float | None = None) -> None:
-        """Set what :meth:`reset` drew for world ``i``'s episode (before its first step): the
-        tissue's ``young_modulus`` (Pa), the ``gripper``'s start (m, inside the workspace)
-        and how far out the underside is stuck (``adhesion_width``, m; the scene must have
-        adhesion). A replay of a recorded episode (an observation file) starts this way."""
-        s = self.scene
-        if young_modulus is not None:
-            E = float(young_modulus)
-            if not (math.isfinite(E) and E > 0):
-                raise SpecError(f"young_modulus: must be a positive number of pascals, got {young_modulus!r}")
-            self.young_modulus[i] = E
-            self.model.set_material(i, s.physics.material_for(E))
-        if gripper is not None:
-            self.grasper.place(i, gripper)
-        if adhesion_width is not None:
-            if s.adhesion_vertices is None:
-                raise SpecError("adhesion_width: this scene has no adhesion (scene.adhesion is null)")
-            w = float(adhesion_width)
-            if not (math.isfinite(w) and w >= 0):
-                raise SpecError(f"adhesion_width: must be a distance >= 0 (m), got {adhesion_width!r}")
-            self.world.unstick(i)
-            self._stick(i, w)
-        self._measure_start(np.array([i]))
-
-    def _stick(self, i: int, width: float) -> None:
-        """Hold world ``i``'s underside where it rests, out to ``width`` (m) from the attachment."""
-        s = self.scene
-        self.adhesion_width[i] = width
-        self.world.stick(i, s.adhesion_vertices[s.adhesion_distance <= width + 1e-9])
 
     # ------------------------------------------------------------------- step
     def step(self, actions: np.ndarray, active: np.ndarray | None = None):
@@ -282,22 +172,11 @@ class BatchedRetraction:
         Worlds outside the ``active`` mask (default: all) are not simulated (their results
         are meaningless; the vector env resets them right after)."""
         st, w = self.settings, self.weights
-        a = np.asarray(actions, dtype=np.float64)
-        if a.size != self.n * self.action_size:
-            raise ValueError(f"actions: must have shape ({self.n}, {self.action_size}) (each world's "
-                             f"{len(self.instruments)} instrument(s) in turn), got {a.shape}")
-        a = np.clip(a.reshape(self.n, self.action_size), -1.0, 1.0)
-        parts = np.split(a, np.cumsum([g.action_size for g in self.instruments])[:-1], axis=1)
         prev_exposure, prev_lift, prev_strain = self.exposure.copy(), self.lift.copy(), self.max_strain.copy()
-        grasp_bonus = sum(np.where(g.grasp(part), w.grasp, 0.0) for g, part in zip(self.instruments, parts))
-        for g, part in zip(self.instruments, parts):
-            g.move(part)
-        stats = self.world.step(st.control_dt, active=active)
+        out = self.advance(actions, active)
+        parts, failed, stats = out.parts, out.failed, out.stats
         diverged = stats.diverged
-        failed = diverged | ~stats.converged
-        for g in self.instruments:
-            g.after_step(stats.reaction, failed)
-        self.steps += 1
+        grasp_bonus = sum(np.where(first, w.grasp, 0.0) for first in out.first_grasps)
         all_worlds = np.arange(self.n)
         self.exposure = self.measure_exposure(all_worlds)
         self.lift = self._lift(all_worlds)
@@ -324,26 +203,13 @@ class BatchedRetraction:
         torn = (self.max_strain >= st.tear_strain) & ~failed
         terminated = success | torn | failed
         truncated = (self.steps >= st.max_steps) & ~terminated
-        # harm (Safety-Gymnasium's convention: a per-step cost beside the reward): the time
-        # integral of the gauge strain's excess over the safe strain, strain x s
-        cost = np.where(failed, 0.0, st.control_dt * np.maximum(0.0, self.max_strain - st.safe_strain))
-        self.damage = self.damage + cost
+        cost = self.harm(failed)
         info = {**terms, "cost": cost, "damage": self.damage.copy(), "exposure": self.exposure.copy(),
-                "lift": self.lift.copy(), "max_strain": self.max_strain.copy(), **self._instrument_info(),
+                "lift": self.lift.copy(), "max_strain": self.max_strain.copy(), **self.instrument_info(),
                 "is_success": success, "hold_time": np.maximum(self.held_steps - 1, 0) * st.control_dt,
-                "tissue_torn": torn, "simulation_diverged": diverged.copy(), "solver_converged": stats.converged.copy(),
-                "newton_iterations": stats.newton_iterations.copy(), "substep_refinement": stats.refinement.copy(),
-                "solver_fallback": stats.fallback.copy(), **self._wrist_info(all_worlds),
-                **self._episode_info(all_worlds)}
+                "tissue_torn": torn, **self.solver_info(stats), **self.wrist_info(all_worlds),
+                **self.episode_info(all_worlds)}
         return reward, terminated, truncated, info
-
-    def _episode_info(self, worlds) -> dict:
-        """What ``info`` says of the episode itself (drawn at its reset): the tissue's
-        ``young_modulus`` (Pa) and, with adhesion, its ``adhesion_width`` (m)."""
-        info = {"young_modulus": self.young_modulus[worlds].copy()}
-        if self.scene.adhesion_vertices is not None:
-            info["adhesion_width"] = self.adhesion_width[worlds].copy()
-        return info
 
     def start_info(self, worlds) -> dict:
         """The ``info`` of ``worlds`` (indices) at the start of their episodes (after
@@ -356,29 +222,10 @@ class BatchedRetraction:
         zero, no = np.zeros(k), np.zeros(k, dtype=bool)
         return {**{f"reward_{term.name}": zero.copy() for term in fields(RewardWeights)},
                 "exposure": self.exposure[worlds].copy(), "lift": self.lift[worlds].copy(),
-                "max_strain": self.max_strain[worlds].copy(), **self._instrument_info(worlds, start=True),
+                "max_strain": self.max_strain[worlds].copy(), **self.instrument_info(worlds, start=True),
                 "cost": zero.copy(), "damage": zero.copy(), "is_success": no.copy(), "hold_time": zero.copy(),
-                "tissue_torn": no.copy(), "simulation_diverged": no.copy(), "solver_converged": ~no,
-                "newton_iterations": np.zeros(k, dtype=np.int64), "substep_refinement": np.ones(k, dtype=np.int64),
-                "solver_fallback": no.copy(), **self._wrist_info(worlds), **self._episode_info(worlds)}
-
-    def _instrument_info(self, worlds=None, start: bool = False) -> dict:
-        """Each instrument's ``info`` entries; with several, also ``grasp_force`` (their
-        forces' magnitudes summed, N) and ``grasping`` (any holds tissue)."""
-        parts = [g.start_info(worlds) if start else g.info(worlds) for g in self.instruments]
-        info = {k: v for part in parts for k, v in part.items()}
-        if len(self.instruments) > 1:
-            info["grasp_force"] = sum(part[g.key("grasp_force")] for g, part in zip(self.instruments, parts))
-            info["grasping"] = np.any([part[g.key("grasping")] for g, part in zip(self.instruments, parts)], axis=0)
-        return info
-
-    def _wrist_info(self, worlds) -> dict:
-        """``wrist_angle`` (rad): how far the jaws on a free wrist have turned since they
-        closed (0 when open), where the scene has them."""
-        if self.scene.spec.gripper.wrist_reach is None:
-            return {}
-        turned = self.control.turns[worlds].any(axis=1)
-        return {"wrist_angle": np.where(turned, self.control.wrist_angle[worlds], 0.0)}
+                "tissue_torn": no.copy(), **self.solver_start_info(k), **self.wrist_info(worlds),
+                **self.episode_info(worlds)}
 
     # ----------------------------------------------------------- measurements
     def measure_exposure(self, worlds) -> np.ndarray:
@@ -391,18 +238,12 @@ class BatchedRetraction:
         """Lift progress in [0, 1] (:class:`~heml_gym.envs.measures.FoldLift`)."""
         return self._fold(self.x[np.atleast_1d(worlds)[:, None], self._fold.edge])
 
-    def measure_strain(self, worlds) -> np.ndarray:
-        """Largest engineering strain ``|l / L - 1|`` of the tissue's strain gauges, per world."""
-        worlds = np.atleast_1d(worlds)
-        x = self.x if np.array_equal(worlds, np.arange(self.n)) else self.x[worlds]
-        return finite(self.gauges.max_strain(x), nan=STRAIN_BOUND)
-
     # ------------------------------------------------------------ observation
     def state_observation(self) -> np.ndarray:
         """The state vector of every world, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
         tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
-        parts = [part for g in self.instruments for part in g.observation()]
-        obs = np.concatenate([*parts, self.target, tracked, self.max_strain[:, None], self.exposure[:, None]], axis=1)
+        obs = np.concatenate([*self.instrument_observation(), self.target, tracked, self.max_strain[:, None],
+                              self.exposure[:, None]], axis=1)
         obs = np.clip(finite(obs, nan=0.0), self._state_low, self._state_high)
         return obs.astype(np.float32)
 

@@ -43,9 +43,11 @@ class SceneRenderer:
         strain = np.clip(np.abs(edge / self._rest_edge - 1.0) / t.settings.damage_strain, 0.0, 1.0)
         tissue_colours = ((1 - strain)[:, None] * TISSUE + strain[:, None] * STRAINED).astype(np.uint8)
         sphere = icosphere(t.scene.target_radius, t.target[i], subdivisions=1)
-        jaws = box(t.gripper[i] + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
-        jaw_colour = JAWS_CLOSED if t.grasping[i] else JAWS_OPEN
-        x_all, faces_all, colours = compose([(sphere[0], sphere[1], TARGET), (jaws[0], jaws[1], jaw_colour)])
+        parts = [(sphere[0], sphere[1], TARGET)]
+        for position, closed in zip(t.grippers[i], t.grasping_all[i]):  # every grasper's jaws
+            jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
+            parts.append((jaws[0], jaws[1], JAWS_CLOSED if closed else JAWS_OPEN))
+        x_all, faces_all, colours = compose(parts)
         n = len(x_all)
         return (np.concatenate([x_all, x]), np.concatenate([faces_all, f + n]),
                 np.concatenate([colours, tissue_colours]))

@@ -128,6 +128,11 @@ class _SceneAccess:
 
     task: BatchedRetraction
 
+    @property
+    def instruments(self) -> tuple[str, ...]:
+        """The instruments in each world: their names (or kinds, for an unnamed one), in action order."""
+        return tuple(g.name or g.kind for g in self.task.instruments)
+
     def _setup_observations(self, obs_mode: str, camera=None):
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
@@ -266,8 +271,6 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
-    #: the instruments in each world (kinds, in action order): one grasper today
-    instruments = ("grasper",)
 
     def __init__(self, obs_mode: str = "state", render_mode: str | None = None,
                  settings: TaskSettings | dict | None = None, weights: RewardWeights | dict | None = None,

@@ -407,7 +407,10 @@ class Scene:
     hold (closing within ``grasp_reach`` of it holds all of it, or the part of it within
     ``gripper.jaw_length`` / 2 of the jaws; null: the nearest surface vertex and those within
     ``jaw_radius``); ``tracked``: the 4 points reported in the observation;
-    ``strain_gauge``: the length (m) tissue strain is measured over.
+    ``strain_gauge``: the length (m) tissue strain is measured over; ``graspers``: several
+    graspers by name, in action order (each name prefixes its ``info`` keys; null: one,
+    ``gripper``, whose keys carry no name). With ``graspers``, ``gripper`` only frames
+    single-grasper tools (the first grasper's place in snapshots is its own).
     """
 
     name: str
@@ -423,10 +426,21 @@ class Scene:
     support: SupportSpec = field(default_factory=lambda: SupportSpec(kind="none"))
     strain_gauge: float = 0.015
     adhesion: AdhesionSpec | None = None
+    graspers: dict[str, GripperSpec] | None = None
 
     def __post_init__(self):
         if not self.name:
             raise invalid(self, "name", "must be a non-empty string")
+        if self.graspers is not None:
+            if not self.graspers:
+                raise invalid(self, "graspers", "must name at least one grasper, or be null (one: gripper)")
+            for name, spec in self.graspers.items():
+                if not (isinstance(name, str) and name.isidentifier()):
+                    raise invalid(self, "graspers", f"names must be identifiers (they prefix info keys), got {name!r}")
+                if not isinstance(spec, GripperSpec):
+                    raise invalid(self, "graspers", f"{name}: must be a GripperSpec or a mapping of its fields")
+            if sum(spec.wrist_reach is not None for spec in self.graspers.values()) > 1:
+                raise invalid(self, "graspers", "at most one grasper may have jaws on a free wrist (wrist_reach)")
         if self.tracked.points is None or len(self.tracked.points) != 4:
             raise invalid(self, "tracked", "must give exactly 4 points")
         if not (math.isfinite(self.strain_gauge) and self.strain_gauge > 0):
@@ -476,7 +490,7 @@ class BuiltScene:
     from the hinge (or None), ``edge_vertices``, ``surface_faces``, ``supports``
     (:mod:`heml_gym.contact` objects), and as arrays ``camera`` (eye), ``look_at``,
     ``target_low``, ``target_high``, ``gripper_low``, ``gripper_high``,
-    ``workspace_low``, ``workspace_high``; ``target_radius``, ``hinge``,
+    ``workspace_low``, ``workspace_high`` (every grasper's); ``graspers`` (name, spec); ``target_radius``, ``hinge``,
     ``fold_direction``, ``fold_angle``, ``strain_gauge``, ``physics``.
     """
 
@@ -518,7 +532,11 @@ class BuiltScene:
         self.target_low, self.target_high = np.asarray(t.low), np.asarray(t.high)
         self.target_radius = float(t.radius)
         self.gripper_low, self.gripper_high = np.asarray(g.start_low), np.asarray(g.start_high)
-        self.workspace_low, self.workspace_high = np.asarray(g.workspace_low), np.asarray(g.workspace_high)
+        #: the graspers, ``[(name, GripperSpec), ...]`` in action order (one, unnamed: ``gripper``)
+        self.graspers = [(None, g)] if spec.graspers is None else list(spec.graspers.items())
+        #: where any grasper may go (m): the union of their workspaces
+        self.workspace_low = np.min([s.workspace_low for _, s in self.graspers], axis=0).astype(np.float64)
+        self.workspace_high = np.max([s.workspace_high for _, s in self.graspers], axis=0).astype(np.float64)
         self.hinge = tuple(spec.fold.hinge)
         self.fold_direction = float(spec.fold.direction)
         self.fold_angle = float(spec.fold.angle)

@@ -79,29 +79,64 @@ class FoldBackPolicy:
 
 #: How far (rad above the free direction) each scene family is folded: the flap back
 #: past vertical over its attachment, the lobe's thin edge up about its base.
-MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 1.2}
+MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 1.2, "BimanualRetraction": 1.9}
 #: With jaws shorter than the grasp region, the fold's arc radius as a fraction of the
 #: grasp's distance from the hinge: on the flap 0.9 (held by 40 mm jaws, a taut fold
 #: strains soft tissue beyond damage at the jaws' ends); 1 otherwise
-PARTIAL_JAWS_RADIUS_SCALE = {"TissueRetraction": 0.9}
+PARTIAL_JAWS_RADIUS_SCALE = {"TissueRetraction": 0.9, "BimanualRetraction": 0.9}
 
 
-def scripted_policy(scene) -> FoldBackPolicy:
+class SeveralGraspersPolicy:
+    """One policy per grasper of a task with several (``policies``, in action order), each
+    run on its own view of the state observation: its grasper's 7 entries and the task's
+    17 (as a one-grasper task's 24). The action is theirs in turn."""
+
+    def __init__(self, policies):
+        self.policies = list(policies)
+
+    def reset(self):
+        for p in self.policies:
+            p.reset()
+
+    def __call__(self, obs) -> np.ndarray:
+        state = np.asarray(obs["state"] if isinstance(obs, dict) else obs)
+        k = len(self.policies)
+        task = state[7 * k:]
+        return np.concatenate([p(np.concatenate([state[7 * j:7 * j + 7], task]))
+                               for j, p in enumerate(self.policies)]).astype(np.float32)
+
+
+def scripted_policy(scene):
     """The scripted baseline of a scene (a :class:`~heml_gym.envs.scene.Scene`: its fold
-    hinge and direction are used) or of a scene family by name ("TissueRetraction" or
-    "OrganRetraction", their default scenes)."""
+    hinge and direction are used) or of a scene family by name ("TissueRetraction",
+    "OrganRetraction" or "BimanualRetraction", their default scenes). With several
+    graspers, each folds from the middle of its start box (:class:`SeveralGraspersPolicy`)."""
     if isinstance(scene, str):
-        from . import organ_retraction, tissue_retraction
+        from . import bimanual_retraction, organ_retraction, tissue_retraction
 
-        defaults = {"TissueRetraction": tissue_retraction.tissue_scene, "OrganRetraction": organ_retraction.organ_scene}
+        defaults = {"TissueRetraction": tissue_retraction.tissue_scene, "OrganRetraction": organ_retraction.organ_scene,
+                    "BimanualRetraction": bimanual_retraction.bimanual_scene}
         if scene not in defaults:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
+    if scene.graspers is not None and len(scene.graspers) > 1:
+        return SeveralGraspersPolicy([_fold_policy(scene, spec, at_start=True) for spec in scene.graspers.values()])
+    return _fold_policy(scene, scene.gripper if scene.graspers is None else next(iter(scene.graspers.values())))
+
+
+def _fold_policy(scene, gripper, at_start: bool = False) -> FoldBackPolicy:
+    """The fold of one grasper (``gripper``: its spec); ``at_start``: jaws shorter than the
+    grasp region close at the middle of the grasper's start box in y, not of the region."""
     max_angle = MAX_FOLD_ANGLE.get(scene.name, 1.9)
-    partial = scene.gripper.jaw_length is not None  # jaws shorter than the grasp region
+    partial = gripper.jaw_length is not None  # jaws shorter than the grasp region
+    point = None
+    if partial:
+        point = grasp_point(scene)
+        if at_start:
+            point = (point[0], 0.5 * (gripper.start_low[1] + gripper.start_high[1]))
     return FoldBackPolicy(hinge=scene.fold.hinge, direction=scene.fold.direction, max_angle=max_angle,
                           radius_scale=PARTIAL_JAWS_RADIUS_SCALE.get(scene.name, 1.0) if partial else 1.0,
-                          grasp_point=grasp_point(scene) if partial else None)
+                          grasp_point=point)
 
 
 def grasp_point(scene) -> tuple[float | None, float | None]:

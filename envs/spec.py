@@ -88,7 +88,15 @@ def _convert(tp, value, path: str):
     if origin is dict or tp is dict:
         if not isinstance(value, dict):
             raise SpecError(f"{path}: must be a mapping, got {value!r}")
-        return dict(value)
+        args = get_args(tp)
+        if not args:
+            return dict(value)
+        out = {}
+        for k, v in value.items():  # dict[str, X]: names to values of X, each checked under its name
+            if not isinstance(k, str) or not k:
+                raise SpecError(f"{path}: its keys must be non-empty names, got {k!r}")
+            out[k] = _convert(args[1], v, f"{path}.{k}")
+        return out
     if origin in (list, tuple):
         args = get_args(tp)
         if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__iter__"):
