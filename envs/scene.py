@@ -410,7 +410,8 @@ class Scene:
     ``strain_gauge``: the length (m) tissue strain is measured over; ``graspers``: several
     graspers by name, in action order (each name prefixes its ``info`` keys; null: one,
     ``gripper``, whose keys carry no name). With ``graspers``, ``gripper`` only frames
-    single-grasper tools (the first grasper's place in snapshots is its own).
+    single-grasper tools; ``marker``: one point of the tissue (the vertex nearest to it) that a
+    goal-conditioned task brings to its goal, drawn per episode in ``target``'s region.
     """
 
     name: str
@@ -427,6 +428,7 @@ class Scene:
     strain_gauge: float = 0.015
     adhesion: AdhesionSpec | None = None
     graspers: dict[str, GripperSpec] | None = None
+    marker: RegionSpec | None = None
 
     def __post_init__(self):
         if not self.name:
@@ -445,6 +447,8 @@ class Scene:
             raise invalid(self, "tracked", "must give exactly 4 points")
         if not (math.isfinite(self.strain_gauge) and self.strain_gauge > 0):
             raise invalid(self, "strain_gauge", f"must be a positive length in metres, got {self.strain_gauge}")
+        if self.marker is not None and (self.marker.points is None or len(self.marker.points) != 1):
+            raise invalid(self, "marker", "must give exactly one point (points: [[x, y, z]])")
 
     # ----------------------------------------------------------------- data
     def to_dict(self) -> dict:
@@ -521,6 +525,8 @@ class BuiltScene:
             self.adhesion_vertices = candidates
             # m from the hinge line, along the fold direction (where the free tissue lies)
             self.adhesion_distance = spec.fold.direction * (mesh.vertices[candidates, 0] - spec.fold.hinge[0])
+        #: the marked vertex (a goal-conditioned task's achieved goal), or None
+        self.marker = None if spec.marker is None else int(spec.marker.select(mesh)[0])
         self.surface_faces = mesh.boundary_faces
         self.supports = _supports(spec.support)
         cam = spec.camera
