@@ -307,6 +307,13 @@ def _check_hyperparameters(cfg: RunConfig) -> None:
         if key not in accepted:
             raise ConfigError(f"config key 'algorithm.hyperparameters.{key}': not a {cfg.algorithm.name} argument "
                               f"(known: {', '.join(sorted(accepted))})")
+    if BACKENDS[cfg.algorithm.name] == "sb3":
+        from .algorithms import sb3_hyperparameters
+
+        try:
+            sb3_hyperparameters(cfg.algorithm.name, cfg.algorithm.hyperparameters)
+        except ValueError as exc:
+            raise ConfigError(f"config key 'algorithm.hyperparameters.{exc}'") from None
 
 
 def load_config(path: str | Path, overrides: dict | None = None) -> RunConfig:

@@ -27,7 +27,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
                     obs_mode: str = "state", env_kwargs: dict | None = None) -> dict:
-    """Success rate (with its 95 % Wilson interval), mean final exposure and max strain, and
+    """Success rate (with its 95 % Wilson interval), mean final exposure (of a goal task: the
+    final distance to the goal, m) and max strain, and
     the tissue harm: the mean episode ``damage`` (strain x s, the summed ``info["cost"]``)
     and how many episodes did any; the range of the episodes' Young's moduli (Pa).
 
@@ -53,14 +54,15 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
             steps += 1
             worst = max(worst, info["max_strain"])
         successes += bool(info["is_success"])
-        exposures.append(info["exposure"])
+        exposures.append(info.get("exposure", info.get("goal_distance")))
         strains.append(worst)
         lengths.append(steps)
         damages.append(info["damage"])
     env.close()
     lo, hi = wilson_interval(successes, episodes)
+    final = "mean_final_exposure" if "exposure" in info else "mean_final_goal_distance"  # (m, of a goal task)
     return {"episodes": episodes, "success_rate": successes / episodes, "success_ci95": [lo, hi],
-            "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
+            final: float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
             "mean_episode_length": float(np.mean(lengths)),
             "mean_damage": float(np.mean(damages)), "episodes_with_damage": int(np.sum(np.array(damages) > 0)),
             "young_modulus_range": [min(stiffness), max(stiffness)]}

@@ -140,6 +140,7 @@ ACTION_NAMES = ("move_x", "move_y", "move_z", "grip")
 #: frames only (False)); episode ``k`` logs to :func:`series_entity` (``<base>/ep<k>``)
 SERIES = {
     "exposure": ("plots/exposure/exposure", True),
+    "goal_distance": ("plots/exposure/goal_distance", True),  # (m; a goal task's, in the exposure view)
     "max_strain": ("plots/strain/max_strain", True),
     "hold_time": ("plots/success/hold_time", True),
     "is_success": ("plots/success/success", True),
@@ -430,21 +431,24 @@ class _SceneLogger:
         rec.log("world/tissue", rr.Mesh3D.from_fields(vertex_positions=tri.reshape(-1, 3),
                                                       vertex_normals=np.repeat(normals, 3, axis=0),
                                                       vertex_colors=colours))
-        gripper = np.asarray(snap.gripper, dtype=np.float64)
-        rec.log("world/gripper", rr.Boxes3D(centers=[gripper + np.array(JAW_OFFSET)],
-                                            half_sizes=[np.array(JAW_HALF_SIZE)],
-                                            colors=[JAWS_CLOSED if snap.grasping else JAWS_OPEN],
+        grippers = np.asarray(snap.grippers, dtype=np.float64).reshape(-1, 3)  # every grasper's jaws
+        rec.log("world/gripper", rr.Boxes3D(centers=grippers + np.array(JAW_OFFSET),
+                                            half_sizes=[np.array(JAW_HALF_SIZE)] * len(grippers),
+                                            colors=[JAWS_CLOSED if c else JAWS_OPEN for c in snap.closed],
                                             fill_mode="solid"))
         held = x[snap.held]
         rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=HELD))
-        force = np.nan_to_num(np.asarray(snap.grasp_force, dtype=np.float64))
-        vector = force * self.force_scale
-        jaw_top = gripper + np.array(JAW_OFFSET) + np.array([0.0, 0.0, JAW_HALF_SIZE[2]])
-        rec.log("world/grasp_force", rr.Arrows3D(origins=[jaw_top - vector], vectors=[vector], colors=[FORCE],
-                                                 labels=[f"{np.linalg.norm(force):.2f} N"]))
-        exposure = float(info["exposure"])
+        forces = np.nan_to_num(np.asarray(snap.grasp_forces, dtype=np.float64)).reshape(-1, 3)
+        vectors = forces * self.force_scale
+        jaw_tops = grippers + np.array(JAW_OFFSET) + np.array([0.0, 0.0, JAW_HALF_SIZE[2]])
+        rec.log("world/grasp_force", rr.Arrows3D(origins=jaw_tops - vectors, vectors=vectors,
+                                                 colors=[FORCE] * len(forces),
+                                                 labels=[f"{np.linalg.norm(f):.2f} N" for f in forces]))
+        exposure = float(info["exposure"]) if "exposure" in info else None  # (a goal task has a goal instead)
+        label = (f"target {exposure:.0%} exposed" if exposure is not None
+                 else f"goal: marked point {float(info['goal_distance']) * 1e3:.1f} mm away")
         rec.log("world/target", rr.Points3D([snap.target], radii=float(geo.target_radius), colors=[TARGET],
-                                            labels=[f"target {exposure:.0%} exposed"]))
+                                            labels=[label]))
         rec.log("camera/rgb", rr.Image(view["rgb"]))
         if self.depth_range is None:
             self.depth_range = self._depth_range(view)
@@ -454,13 +458,17 @@ class _SceneLogger:
         # plots
         for entity, field in THRESHOLDS.items():
             rec.log(entity, rr.Scalars(float(getattr(st, field))))
-        values = {"exposure": exposure, "max_strain": float(info["max_strain"]),
-                  "hold_time": float(info["hold_time"]), "is_success": float(bool(info["is_success"])),
-                  "grasp_force": float(info["grasp_force"]), "damage": float(info["damage"])}
+        values = {"max_strain": float(info["max_strain"]), "hold_time": float(info.get("hold_time", 0.0)),
+                  "is_success": float(bool(info["is_success"])), "grasp_force": float(info["grasp_force"]),
+                  "damage": float(info["damage"])}
+        if exposure is not None:
+            values["exposure"] = exposure
+        else:
+            values["goal_distance"] = float(info["goal_distance"])
         if action is not None:
             values["cost"] = float(info["cost"])
             a = np.asarray(action, dtype=np.float64).reshape(-1)
-            values.update({f"action_{n}": float(v) for n, v in zip(ACTION_NAMES, a)})
+            values.update({f"action_{n}": float(v) for n, v in zip(ACTION_NAMES, a)})  # (the first grasper's)
             values["reward"] = float(reward)
             values.update({f"reward_{t}": float(info.get(f"reward_{t}", 0.0)) for t in REWARD_TERMS})
         for name, value in values.items():
@@ -470,7 +478,7 @@ class _SceneLogger:
 
     def _status(self, k, episode_step, snap, info, action, reward, ret) -> str:
         st = self.settings
-        exposure, strain, hold = float(info["exposure"]), float(info["max_strain"]), float(info["hold_time"])
+        strain, hold = float(info["max_strain"]), float(info.get("hold_time", 0.0))
 
         def ok(good: bool) -> str:
             return "yes" if good else "no"
@@ -478,22 +486,39 @@ class _SceneLogger:
         lines = [
             (f"**episode {k}, step {episode_step}** ({episode_step * st.control_dt:.1f} s): "
              f"**success: {ok(bool(info['is_success']))}**"),
-            f"- exposure **{exposure:.0%}** (needs >= {st.success_exposure:.0%}: {ok(exposure >= st.success_exposure)})",
+            self._progress_line(info, ok),
             f"- max gauge strain **{strain:.3f}** (needs < {st.damage_strain:g}: {ok(strain < st.damage_strain)})",
             (f"- tissue harm: damage **{float(info['damage']):.3f}** strain x s so far (strain above the "
              f"safe {st.safe_strain:g}, integrated over time)"),
-            f"- held **{hold:.1f} s** of {st.hold_time:g} s",
-            (f"- jaws {'closed' if snap.grasping else 'open'}, holding {len(snap.held)} vertices, "
-             f"force {float(info['grasp_force']):.2f} N"),
         ]
+        if "hold_time" in info:
+            lines.append(f"- held **{hold:.1f} s** of {st.hold_time:g} s")
+        closed = ", ".join("closed" if c else "open" for c in snap.closed)
+        lines.append(f"- jaws {closed}, holding {len(snap.held)} vertices, force {float(info['grasp_force']):.2f} N")
         if action is not None:
-            a = np.asarray(action, dtype=np.float64).reshape(-1)
-            lines.append(f"- action: move ({a[0]:+.2f}, {a[1]:+.2f}, {a[2]:+.2f}), grip {a[3]:+.2f}; "
-                         f"reward {float(reward):+.3f}, return {ret:+.3f}")
+            a = np.asarray(action, dtype=np.float64).reshape(-1, 4)
+            moves = "; ".join(f"move ({m[0]:+.2f}, {m[1]:+.2f}, {m[2]:+.2f}), grip {m[3]:+.2f}" for m in a)
+            lines.append(f"- action: {moves}; reward {float(reward):+.3f}, return {ret:+.3f}")
         return "\n".join(lines)
+
+    def _progress_line(self, info, ok) -> str:
+        """The status line of the task's progress: the target's exposure, or a goal task's distance."""
+        st = self.settings
+        if "exposure" in info:
+            e = float(info["exposure"])
+            return f"- exposure **{e:.0%}** (needs >= {st.success_exposure:.0%}: {ok(e >= st.success_exposure)})"
+        d, tol = float(info["goal_distance"]), st.goal_tolerance
+        return f"- marked point **{d * 1e3:.1f} mm** from the goal (needs <= {tol * 1e3:g} mm: {ok(d <= tol)})"
 
     def log_outcome(self, outcome: str) -> None:
         self.rec.log("plots/success/outcome", self.rr.Scalars(OUTCOME_VALUES.get(outcome, 0.0)))
+
+
+def _progress(info: dict[str, Any]) -> str:
+    """The task's progress for the episode log: exposure, or a goal task's distance (mm)."""
+    if "exposure" in info:
+        return f"exposure {float(info['exposure']):.2f}"
+    return f"goal distance {float(info['goal_distance']) * 1e3:.1f} mm"
 
 
 def _outcome(info: dict[str, Any], terminated: bool, truncated: bool) -> str:
@@ -581,8 +606,7 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
             logger.start_episode(k)
             young = scene_env.snapshot().young_modulus
             rec.log("log/episodes", rr.TextLog(
-                f"episode {k} start: seed {episode_seed}, E = {young:.0f} Pa, "
-                f"exposure {float(info['exposure']):.2f}", level="INFO"))
+                f"episode {k} start: seed {episode_seed}, E = {young:.0f} Pa, {_progress(info)}", level="INFO"))
             view = scene_env.camera_view(0, CAMERA_SIZE)
             logger.log_camera_pose(view)
             logger.log_frame(k, scene_env.snapshot(), info, view)
@@ -603,7 +627,7 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
                     logger.log_outcome(outcome)
                     rec.log("log/episodes", rr.TextLog(
                         f"episode {k} end: {outcome} after {steps} steps ({steps * dt:.1f} s), "
-                        f"return {ret:.3f}, exposure {float(info['exposure']):.2f}, "
+                        f"return {ret:.3f}, {_progress(info)}, "
                         f"max strain {float(info['max_strain']):.3f}",
                         level="INFO" if outcome == "success" else "WARN"))
                 frame += 1
@@ -611,7 +635,7 @@ def record_rollouts(env, policy: Callable[[Any], Any], path: str | os.PathLike |
             returns.append(ret)
             outcomes.append(_outcome(info, terminated, truncated))
             successes.append(bool(info.get("is_success", False)))
-            final_exposure.append(float(info["exposure"]))
+            final_exposure.append(float(info["exposure"]) if "exposure" in info else None)  # (None: a goal task)
     finally:
         rec.flush()
         if not spawn:

@@ -25,7 +25,7 @@ from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 from heml_gym.envs import TISSUE_RETRACTION, episode_steps  # (and registers the environments)
 
-from .algorithms import ALGORITHMS, BACKENDS, algorithm_class
+from .algorithms import ALGORITHMS, BACKENDS, algorithm_class, sb3_hyperparameters
 from .config import ConfigError, RunConfig, load_config
 from .evaluation import evaluate_policy, wilson_interval  # noqa: F401  (wilson_interval: for callers)
 from .run_files import (NORMALIZER_FILE, UntrustedPickle, load_model, load_normalizer, model_record,  # noqa: F401
@@ -123,7 +123,9 @@ class SuccessEvalCallback(BaseCallback):
         self.history.append(result)
         self.path.write_text(json.dumps(self.history, indent=1))
         self.logger.record("eval/success_rate", result["success_rate"])
-        self.logger.record("eval/mean_final_exposure", result["mean_final_exposure"])
+        for key in ("mean_final_exposure", "mean_final_goal_distance"):
+            if key in result:
+                self.logger.record(f"eval/{key}", result[key])
         self.logger.record("eval/mean_damage", result["mean_damage"])
         return result
 
@@ -256,7 +258,7 @@ def train(cfg: RunConfig, run_dir: str | Path | None = None, resume: str | Path 
         else:
             try:
                 model = algo(cfg.algorithm.policy, env, seed=cfg.seed, device="cpu", verbose=0, tensorboard_log=tb,
-                             **cfg.algorithm.hyperparameters)
+                             **sb3_hyperparameters(cfg.algorithm.name, cfg.algorithm.hyperparameters))
             except (AssertionError, ValueError, TypeError) as exc:
                 raise ConfigError(f"config key 'algorithm.hyperparameters': {cfg.algorithm.name} rejects them: "
                                   f"{exc or type(exc).__name__}") from None

@@ -6,10 +6,12 @@ Importing this package registers:
 * ``heml_gym/OrganRetraction-v2`` (:class:`~heml_gym.envs.organ_retraction.OrganRetractionEnv`)
 * ``heml_gym/BimanualRetraction-v0`` (:class:`~heml_gym.envs.bimanual_retraction.BimanualRetractionEnv`):
   two graspers
+* ``heml_gym/TissueManipulation-v0`` (:class:`~heml_gym.envs.tissue_manipulation.TissueManipulationEnv`):
+  goal-conditioned (``GoalEnv``)
 
 each with a batched implementation for ``gymnasium.make_vec(...,
-vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` 100 (the tasks'
-``settings.max_steps``). The version changes whenever a task's behaviour does (each
+vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` its settings'
+``max_steps`` (100; 50 for TissueManipulation). The version changes whenever a task's behaviour does (each
 env's docstring keeps a version history); ``-v0`` named several former tasks and is
 no longer registered, nor is ``OrganRetraction-v1`` (its camera images were turned 90
 degrees). Asking for a retired id is an error naming today's id (:data:`RETIRED_IDS`):
@@ -26,13 +28,14 @@ from heml_gym.numba_cache import stamp_with_package_sources
 stamp_with_package_sources(_Path(__file__).parent)  # (before any kernel here is loaded: see heml_gym.numba_cache)
 
 from .core import STATE_FIELDS, STATE_SPEC, RewardWeights, TaskSettings
+from .manipulation import ManipulationSettings
 from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec,
                     TargetSpec, TissueSpec, build_scene)
 from .spec import SpecError
 
 __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec", "GripperSpec",
-           "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC",
-           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "BIMANUAL_RETRACTION", "ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
+           "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "ManipulationSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC",
+           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "BIMANUAL_RETRACTION", "TISSUE_MANIPULATION", "ENV_IDS", "GOAL_ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
            "unknown_env_message"]
 
 #: Arguments set by other means than ``env.kwargs`` (the run config's own keys, gym.make's).
@@ -73,7 +76,10 @@ def check_env_kwargs(env_id: str, kwargs: dict, path: str = "env.kwargs"):
 TISSUE_RETRACTION = "heml_gym/TissueRetraction-v1"
 ORGAN_RETRACTION = "heml_gym/OrganRetraction-v2"
 BIMANUAL_RETRACTION = "heml_gym/BimanualRetraction-v0"
-ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION, BIMANUAL_RETRACTION)
+TISSUE_MANIPULATION = "heml_gym/TissueManipulation-v0"
+ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION, BIMANUAL_RETRACTION, TISSUE_MANIPULATION)
+#: The goal-conditioned tasks (``GoalEnv`` observations: observation, achieved_goal, desired_goal).
+GOAL_ENV_IDS = (TISSUE_MANIPULATION,)
 MAX_EPISODE_STEPS = TaskSettings().max_steps
 
 #: Ids no longer registered: what replaced them, and why.
@@ -128,4 +134,11 @@ gym.register(
     entry_point="heml_gym.envs.bimanual_retraction:BimanualRetractionEnv",
     vector_entry_point="heml_gym.envs.bimanual_retraction:BimanualRetractionVectorEnv",
     max_episode_steps=MAX_EPISODE_STEPS,
+)
+
+gym.register(
+    id=TISSUE_MANIPULATION,
+    entry_point="heml_gym.envs.tissue_manipulation:TissueManipulationEnv",
+    vector_entry_point="heml_gym.envs.tissue_manipulation:TissueManipulationVectorEnv",
+    max_episode_steps=ManipulationSettings().max_steps,
 )

@@ -109,9 +109,11 @@ class SceneGeometry:
 
 @dataclass(frozen=True)
 class SceneSnapshot:
-    """One env now: ``positions (n, 3)`` m, ``gripper (3,)`` m, ``grasping``, ``held``
-    (held vertex indices), ``grasp_force (3,)`` N (of the tissue on the gripper),
-    ``target (3,)`` m, ``young_modulus`` Pa, ``step``."""
+    """One env now: ``positions (n, 3)`` m, ``gripper (3,)`` m (the first grasper's),
+    ``grasping``, ``held`` (vertex indices held by any grasper), ``grasp_force (3,)`` N (of
+    the tissue on the first grasper), ``target (3,)`` m (a goal task's goal),
+    ``young_modulus`` Pa, ``step``; every grasper's ``grippers (K, 3)`` m, ``closed (K,)``
+    and ``grasp_forces (K, 3)`` N, in action order."""
 
     positions: np.ndarray
     gripper: np.ndarray
@@ -121,6 +123,9 @@ class SceneSnapshot:
     target: np.ndarray
     young_modulus: float
     step: int
+    grippers: np.ndarray
+    closed: np.ndarray
+    grasp_forces: np.ndarray
 
 
 class _SceneAccess:
@@ -226,9 +231,11 @@ class _SceneAccess:
     def snapshot(self, i: int = 0) -> SceneSnapshot:
         """Scene ``i`` as it is now (copies)."""
         t = self.task
-        return SceneSnapshot(t.x[i].copy(), t.gripper[i].copy(), bool(t.grasping[i]), np.flatnonzero(t.held[i]),
+        held = np.any([g.held[i] for g in t.instruments], axis=0)
+        return SceneSnapshot(t.x[i].copy(), t.gripper[i].copy(), bool(t.grasping[i]), np.flatnonzero(held),
                              t.grasp_force[i].copy(), t.target[i].copy(), float(t.young_modulus[i]),
-                             int(t.steps[i]))
+                             int(t.steps[i]), t.grippers[i].copy(), t.grasping_all[i].copy(),
+                             np.stack([g.force[i] for g in t.instruments]))
 
 
 class _Resolving:
@@ -236,6 +243,9 @@ class _Resolving:
 
     #: The task's default scene: a function of the size arguments (``cells=``, ``mesh_size=``).
     default_scene = None
+    #: The batched task the env runs, and its settings' class.
+    task_class = BatchedRetraction
+    settings_class = TaskSettings
 
     @classmethod
     def resolve(cls, scene=None, physics=None, **size) -> Scene:
@@ -256,7 +266,7 @@ class _Resolving:
                      **size) -> Scene:
         """Validate the data arguments of the constructor (as ``gym.make`` would pass
         them) without building the scene's mesh; returns the resolved scene."""
-        settings = as_settings(settings, TaskSettings, "settings")
+        settings = as_settings(settings, cls.settings_class, "settings")
         as_settings(weights, RewardWeights, "weights")
         if camera is not None:
             as_settings(camera, ImageSpec, "camera")
@@ -280,10 +290,10 @@ class RetractionEnv(_Resolving, _SceneAccess, gym.Env):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}")
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
-        settings, spec = apply_difficulty(difficulty, as_settings(settings, TaskSettings, "settings"),
+        settings, spec = apply_difficulty(difficulty, as_settings(settings, self.settings_class, "settings"),
                                           self.resolve(scene, physics, **size))
         self.difficulty = difficulty
-        self.task = BatchedRetraction(build_scene(spec), 1, settings, as_settings(weights, RewardWeights, "weights"))
+        self.task = self.task_class(build_scene(spec), 1, settings, weights)
         self.action_space = spaces.Box(-1.0, 1.0, (self.task.action_size,), dtype=np.float32)
         self.observation_space = self._setup_observations(obs_mode, camera)
         self.render_mode = render_mode
@@ -360,11 +370,11 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}")
         asked = settings.get("max_steps") if isinstance(settings, dict) else None
-        settings = as_settings(settings, TaskSettings, "settings")
+        settings = as_settings(settings, self.settings_class, "settings")
         if max_episode_steps is not None:
             if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)):
                 raise ValueError(f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}")
-            if asked is None and settings.max_steps != TaskSettings.max_steps:
+            if asked is None and settings.max_steps != self.settings_class.max_steps:
                 asked = settings.max_steps
             if asked is not None and asked != max_episode_steps:
                 raise ValueError(f"settings.max_steps={asked} disagrees with max_episode_steps={max_episode_steps} "
@@ -374,8 +384,7 @@ class RetractionVectorEnv(_Resolving, _SceneAccess, VectorEnv):
         settings, spec = apply_difficulty(difficulty, settings, self.resolve(scene, physics, **size))
         self.difficulty = difficulty
         self.num_envs = int(num_envs)
-        self.task = BatchedRetraction(build_scene(spec), self.num_envs, settings,
-                                      as_settings(weights, RewardWeights, "weights"))
+        self.task = self.task_class(build_scene(spec), self.num_envs, settings, weights)
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.task.action_size,), dtype=np.float32)
         self.single_observation_space = self._setup_observations(obs_mode, camera)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)

@@ -106,19 +106,46 @@ class SeveralGraspersPolicy:
                                for j, p in enumerate(self.policies)]).astype(np.float32)
 
 
+class ReachGoalPolicy:
+    """Scripted expert of a goal-conditioned task (``GoalEnv`` observations): move the open
+    jaws towards the marked point (the achieved goal) and close them (they close as soon
+    as it is within reach), then move them by the marked point's offset from the desired
+    goal each step (``gain`` times it, as a velocity command in units of ``max_speed``)."""
+
+    def __init__(self, max_speed=0.05, control_dt=0.1, gain: float = 1.0):
+        self.scale = float(gain) / (max_speed * control_dt)
+
+    def reset(self):
+        pass
+
+    def __call__(self, obs) -> np.ndarray:
+        state = np.asarray(obs["observation"], dtype=np.float64)
+        achieved = np.asarray(obs["achieved_goal"], dtype=np.float64)
+        jaws, grasping = state[0:3], state[3] > 0.5
+        target = achieved if not grasping else jaws + (np.asarray(obs["desired_goal"], dtype=np.float64) - achieved)
+        move = np.clip((target - jaws) * self.scale, -1.0, 1.0)
+        return np.concatenate([move, [1.0]]).astype(np.float32)
+
+
 def scripted_policy(scene):
     """The scripted baseline of a scene (a :class:`~heml_gym.envs.scene.Scene`: its fold
     hinge and direction are used) or of a scene family by name ("TissueRetraction",
-    "OrganRetraction" or "BimanualRetraction", their default scenes). With several
-    graspers, each folds from the middle of its start box (:class:`SeveralGraspersPolicy`)."""
+    "OrganRetraction", "BimanualRetraction" or "TissueManipulation", their default
+    scenes). With several graspers, each folds from the middle of its start box
+    (:class:`SeveralGraspersPolicy`); a scene with a marked point is a goal task
+    (:class:`ReachGoalPolicy`)."""
     if isinstance(scene, str):
         from . import bimanual_retraction, organ_retraction, tissue_retraction
 
+        from .tissue_manipulation import manipulation_scene
+
         defaults = {"TissueRetraction": tissue_retraction.tissue_scene, "OrganRetraction": organ_retraction.organ_scene,
-                    "BimanualRetraction": bimanual_retraction.bimanual_scene}
+                    "BimanualRetraction": bimanual_retraction.bimanual_scene, "TissueManipulation": manipulation_scene}
         if scene not in defaults:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
+    if scene.marker is not None:  # a goal-conditioned task
+        return ReachGoalPolicy()
     if scene.graspers is not None and len(scene.graspers) > 1:
         return SeveralGraspersPolicy([_fold_policy(scene, spec, at_start=True) for spec in scene.graspers.values()])
     return _fold_policy(scene, scene.gripper if scene.graspers is None else next(iter(scene.graspers.values())))
@@ -174,9 +201,9 @@ def run_episodes(env, policy, episodes: int, seed: int = 0) -> dict:
             steps += 1
             max_strain = max(max_strain, info["max_strain"])
         successes.append(bool(info["is_success"]))
-        exposures.append(info["exposure"])
+        exposures.append(info.get("exposure", np.nan))  # (a goal task has none)
         strains.append(max_strain)
         lengths.append(steps)
     return {"episodes": episodes, "success_rate": float(np.mean(successes)),
-            "mean_final_exposure": float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
+            "mean_final_exposure": float(np.mean(exposures)) if not np.isnan(exposures).any() else None, "mean_max_strain": float(np.mean(strains)),
             "mean_length": float(np.mean(lengths)), "lengths": lengths, "successes": successes}

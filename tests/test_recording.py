@@ -20,7 +20,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from heml_gym.agents.recording import (ACTION_NAMES, BLUEPRINT_VIEWS, CAMERA_SIZE, REWARD_TERMS,  # noqa: E402
                                        SERIES, THRESHOLDS, record_rollouts, series_entity)
-from heml_gym.envs.camera import SEGMENT_IDS  # noqa: E402
+from heml_gym.envs.camera import JAW_OFFSET, SEGMENT_IDS  # noqa: E402
 from heml_gym.envs.core import TaskSettings  # noqa: E402
 from heml_gym.envs.palette import STRAINED, TISSUE  # noqa: E402
 from heml_gym.envs.scripted import scripted_policy  # noqa: E402
@@ -283,8 +283,9 @@ def test_series_match_the_replay(recording, replay, data):
                     "hold_time": [f["hold_time"] for f in frames],
                     "is_success": [float(f["is_success"]) for f in frames],
                     "grasp_force": [f["grasp_force"] for f in frames], "damage": [f["damage"] for f in frames]}
-    assert set(step_values) | set(frame_values) == set(SERIES)
-    for name, (base, every_frame) in SERIES.items():
+    series = {k: v for k, v in SERIES.items() if k != "goal_distance"}  # (a goal task's, not logged here)
+    assert set(step_values) | set(frame_values) == set(series)
+    for name, (base, every_frame) in series.items():
         truth = np.asarray(frame_values[name] if every_frame else step_values[name], dtype=np.float64)
         for k, n in enumerate(lengths):
             series = data["/" + series_entity(base, k)]
@@ -343,3 +344,27 @@ def test_clear_errors(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "rerun.blueprint", None)
     with pytest.raises(ImportError, match=r"pip install 'heml-gym\[viz\]'"):
         record_rollouts(env, policy, path=tmp_path / "x.rrd")
+
+
+@pytest.mark.parametrize("env_id", ["heml_gym/BimanualRetraction-v0", "heml_gym/TissueManipulation-v0"])
+def test_the_new_tasks_record_every_grasper_and_their_progress(env_id, tmp_path):
+    """A scripted episode of each new task records: one jaw box per grasper (two for the
+    bimanual task, in the env's places), and a goal task's distance to its goal, each frame
+    equal to ``info["goal_distance"]``."""
+    import gymnasium as gym
+
+    from heml_gym.envs.scripted import scripted_policy
+
+    env = gym.make(env_id, settings={"max_steps": 12})
+    path = tmp_path / "task.rrd"
+    summary = record_rollouts(env, scripted_policy(env.unwrapped.scene), path=path, episodes=1, seed=SEED)
+    reader = RrdReader(path)
+    (entry,) = reader.recordings()
+    data = _temporal(reader.stream().collect())
+    centers = data["/world/gripper"]["Boxes3D:centers"][-1]
+    assert len(centers) == len(env.unwrapped.task.instruments)
+    np.testing.assert_allclose(np.array(centers) - np.array(JAW_OFFSET), env.unwrapped.task.grippers[0], atol=1e-6)
+    if env_id.endswith("TissueManipulation-v0"):
+        distance = np.array(data["/" + series_entity(SERIES["goal_distance"][0], 0)]["Scalars:scalars"])[:, 0]
+        assert len(distance) == summary["steps"] + 1 and distance[-1] < distance[0]
+        assert summary["final_exposure"] == [None]
