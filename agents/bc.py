@@ -215,12 +215,17 @@ def load_bc_run(run_dir: Path, cfg):
     except Exception as exc:  # noqa: BLE001 - any unreadable or unsafe file is refused the same way
         raise ConfigError(f"{Path(run_dir) / POLICY_FILE} cannot be read as weights ({type(exc).__name__}; "
                           "only tensors are read from it, nothing in it was run)") from None
-    net = BCNetwork(len(mean), 4, hp.hidden)
+    from .train import make_env
+
+    env = make_env(cfg)
+    n_actions = int(env.action_space.shape[0])  # 4 per grasper
+    env.close()
+    net = BCNetwork(len(mean), n_actions, hp.hidden)
     expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
     found = ({k: tuple(getattr(v, "shape", ())) for k, v in weights.items()} if isinstance(weights, dict) else None)
     if found != expected:
         raise ConfigError(f"{Path(run_dir) / POLICY_FILE} does not hold the weights of its config's network "
-                          f"({len(mean)} observations, hidden {hp.hidden}, 4 actions): expected tensors "
+                          f"({len(mean)} observations, hidden {hp.hidden}, {n_actions} actions): expected tensors "
                           f"{expected}, got {found if found is not None else type(weights).__name__}")
     if not all(bool(torch.isfinite(v).all()) for v in weights.values()):
         raise ConfigError(f"{Path(run_dir) / POLICY_FILE}: non-finite weights")

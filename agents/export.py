@@ -1,9 +1,10 @@
 """``heml-gym export``: a trained policy as one ONNX graph, limits included.
 
-The graph maps the env's raw state observation (``(batch, 24)`` float32, the fields of
-``heml_gym.envs.STATE_SPEC`` with their units in the file's metadata) to the action
-(``(batch, 4)`` float32 in [-1, 1]: gripper velocity as a fraction of the env's
-``max_speed`` along x, y, z, and the grasp command): the run's observation normalisation
+The graph maps the env's raw state observation (``(batch, n)`` float32: a retraction
+task's state, e.g. the 24 fields of ``heml_gym.envs.STATE_SPEC``, their units in the
+file's metadata; a goal task's dict concatenated in the order its ``observation_keys``
+metadata names) to the action (``(batch, 4 K)`` float32 in [-1, 1] for K graspers: each
+one's velocity as a fraction of the env's ``max_speed`` along x, y, z, and its grasp command): the run's observation normalisation
 and clipping, the deterministic policy (PPO: the Gaussian's mean; SAC: the squashed mean),
 the action box, and optionally
 
@@ -81,17 +82,34 @@ def policy_layers(model) -> tuple[list, bool]:
 
     policy = model.policy
     if isinstance(model, PPO):
-        if type(policy.features_extractor).__name__ != "FlattenExtractor":
-            raise ExportError("only state-observation (MLP) policies export; this one reads images")
+        _check_flat(policy.features_extractor)
         if getattr(policy, "squash_output", False):
             raise ExportError("a squashed PPO policy does not export here")
         return _layers(policy.mlp_extractor.policy_net) + _layers(policy.action_net), False
     if isinstance(model, SAC):
         actor = policy.actor
-        if type(actor.features_extractor).__name__ != "FlattenExtractor":
-            raise ExportError("only state-observation (MLP) policies export; this one reads images")
+        _check_flat(actor.features_extractor)
         return _layers(actor.latent_pi) + _layers(actor.mu), True
     raise ExportError(f"{type(model).__name__} policies do not export (PPO and SAC do)")
+
+
+def _check_flat(extractor) -> None:
+    """An extractor that only flattens (a state vector, or a goal task's dict of vectors
+    concatenated in key order); images do not export."""
+    name = type(extractor).__name__
+    flat = name == "FlattenExtractor" or (
+        name == "CombinedExtractor" and all(type(e).__name__ == "Flatten" for e in extractor.extractors.values()))
+    if not flat:
+        raise ExportError("only state-observation (MLP) policies export; this one reads images")
+
+
+def observation_keys(model) -> list[str] | None:
+    """The keys of a dict observation in the order the policy concatenates them (a goal
+    task's: achieved_goal, desired_goal, observation), None for a vector observation."""
+    from gymnasium import spaces
+
+    space = getattr(model, "observation_space", None)
+    return list(space.spaces) if isinstance(space, spaces.Dict) else None
 
 
 def observation_size(model) -> int | None:
@@ -101,6 +119,12 @@ def observation_size(model) -> int | None:
 
     if isinstance(model, nn.Sequential):
         return next(m.in_features for m in model.modules() if isinstance(m, nn.Linear))
+    keys = observation_keys(model)
+    if keys is not None:
+        spaces = model.observation_space.spaces
+        if all(len(spaces[k].shape) == 1 for k in keys):
+            return int(sum(spaces[k].shape[0] for k in keys))
+        return None
     return int(model.observation_space.shape[0]) if model.observation_space.shape else None
 
 
@@ -112,27 +136,48 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
-    from heml_gym.envs import STATE_SPEC
+    import gymnasium as gym
 
+    import heml_gym.envs  # noqa: F401  (registers the environments)
+
+    env = gym.make(env_id)
+    fields = env.unwrapped.task.state_fields()
+    goal = isinstance(env.observation_space, gym.spaces.Dict)
+    env.close()
+    keys = observation_keys(model) if goal else None
+    # the flat input: the state (with a goal task's goals, concatenated in the policy's key order)
+    sizes = {"achieved_goal": 3, "desired_goal": 3, "observation": len(fields)}
+    expected = sum(sizes[k] for k in keys) if keys else len(fields)
     obs_dim = observation_size(model)
-    if obs_dim != len(STATE_SPEC):
-        raise ExportError(f"the policy reads {model.observation_space} observations; only the state observation "
-                          f"({len(STATE_SPEC)} fields) exports")
+    if obs_dim != expected or (goal and keys is None):
+        raise ExportError(f"the policy reads {getattr(model, 'observation_space', obs_dim)} observations; only "
+                          f"{env_id}'s state observation ({expected} entries) exports")
+    offset = 0 if not keys else sum(sizes[k] for k in keys[:keys.index("observation")])
     layers, squash = policy_layers(model)
+    action_size = int(next(w for kind, (w, _) in reversed([(k, v) for k, v in layers if k == "gemm"])).shape[0])
+    graspers = action_size // 4
     if not all(np.all(np.isfinite(w)) and np.all(np.isfinite(b)) for kind, (w, b) in
                ((k, v) for k, v in layers if k == "gemm")):
         raise ExportError("the policy's weights are not all finite: nothing to export")
     nodes, inits = [], []
 
+    made = set()
+
     def const(name, value, dtype=np.float32):
-        inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
+        if name not in made:  # (one initializer per name: the graspers' limits share theirs)
+            made.add(name)
+            inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
         return name
 
     x = "observation"
     if normalizer is not None:
         rms = normalizer.obs_rms
-        scale = 1.0 / np.sqrt(rms.var + normalizer.epsilon)
-        nodes.append(helper.make_node("Sub", [x, const("obs_mean", rms.mean)], ["obs_centred"]))
+        if keys:  # per key, in the concatenation's order
+            mean = np.concatenate([rms[k].mean for k in keys])
+            scale = np.concatenate([1.0 / np.sqrt(rms[k].var + normalizer.epsilon) for k in keys])
+        else:
+            mean, scale = rms.mean, 1.0 / np.sqrt(rms.var + normalizer.epsilon)
+        nodes.append(helper.make_node("Sub", [x, const("obs_mean", mean)], ["obs_centred"]))
         nodes.append(helper.make_node("Mul", ["obs_centred", const("obs_scale", scale)], ["obs_scaled"]))
         c = float(normalizer.clip_obs)
         nodes.append(helper.make_node("Clip", ["obs_scaled", const("obs_low", -c), const("obs_high", c)],
@@ -150,45 +195,59 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
         x = "squashed"
     nodes.append(helper.make_node("Clip", [x, const("act_low", -1.0), const("act_high", 1.0)], ["action_box"]))
     x = "action_box"
-    metadata = {"env_id": env_id, "run": run, "observation": "state: " + ", ".join(
-        f"{name} ({unit})" for name, _, _, unit in STATE_SPEC),
-        "action": "[vx, vy, vz] gripper velocity as a fraction of max_speed in [-1, 1]; grasp command "
-                  "(> 0 closes, < release_command opens)",
-        "max_speed_m_per_s": str(max_speed), "normalised_inside": str(normalizer is not None)}
+    state = "state: " + ", ".join(f"{name} ({unit})" for name, unit in fields)
+    metadata = {"env_id": env_id, "run": run,
+                "observation": state if not keys else (f"the concatenation of {', '.join(keys)}: achieved_goal and "
+                                                       f"desired_goal 3-D points (m); observation the {state}"),
+                "action": ("[vx, vy, vz] gripper velocity as a fraction of max_speed in [-1, 1]; grasp command "
+                           "(> 0 closes, < release_command opens)") + (f"; for each of {graspers} graspers in turn"
+                                                                       if graspers > 1 else ""),
+                "max_speed_m_per_s": str(max_speed), "normalised_inside": str(normalizer is not None)}
+    if keys:
+        metadata["observation_keys"] = ",".join(keys)
     if speed_limit is not None or workspace is not None:
-        i0, i3, i4, axis1 = (const(f"index{k}", [k], np.int64) for k in (0, 3, 4, 1))
-        zero = const("zero", 0.0)
-        nodes.append(helper.make_node("Slice", [x, i0, i3, axis1], ["velocity"]))
-        nodes.append(helper.make_node("Slice", [x, i3, i4, axis1], ["grasp"]))
-        v = "velocity"
-        if speed_limit is not None:
-            if not (np.isfinite(speed_limit) and speed_limit > 0):
-                raise ExportError(f"--speed-limit: must be a positive speed in m/s, got {speed_limit}")
-            f = min(float(speed_limit) / max_speed, 1.0)
-            nodes.append(helper.make_node("Clip", [v, const("v_low", -f), const("v_high", f)], ["velocity_limited"]))
-            v = "velocity_limited"
-            metadata["speed_limit_m_per_s"] = str(speed_limit)
+        if speed_limit is not None and not (np.isfinite(speed_limit) and speed_limit > 0):
+            raise ExportError(f"--speed-limit: must be a positive speed in m/s, got {speed_limit}")
         if workspace is not None:
             lo, hi = (np.asarray(w, dtype=np.float32).reshape(3) for w in workspace)
             if not np.all(lo < hi):
                 raise ExportError(f"--workspace: low {lo.tolist()} must lie below high {hi.tolist()} on every axis")
-            nodes.append(helper.make_node("Slice", ["observation", i0, i3, axis1], ["gripper_position"]))
-            nodes += [helper.make_node("GreaterOrEqual", ["gripper_position", const("ws_high", hi)], ["at_high"]),
-                      helper.make_node("LessOrEqual", ["gripper_position", const("ws_low", lo)], ["at_low"]),
-                      helper.make_node("Greater", [v, zero], ["moving_up"]),
-                      helper.make_node("Less", [v, zero], ["moving_down"]),
-                      helper.make_node("And", ["at_high", "moving_up"], ["out_high"]),
-                      helper.make_node("And", ["at_low", "moving_down"], ["out_low"]),
-                      helper.make_node("Or", ["out_high", "out_low"], ["leaving"]),
-                      helper.make_node("Where", ["leaving", zero, v], ["velocity_inside"])]
-            v = "velocity_inside"
+        axis1, zero = const("axis1", [1], np.int64), const("zero", 0.0)
+        parts = []
+        for g in range(graspers):  # each grasper's velocity limited, its grasp command kept
+            at = lambda k: const(f"index{k}", [k], np.int64)  # noqa: E731
+            nodes.append(helper.make_node("Slice", [x, at(4 * g), at(4 * g + 3), axis1], [f"velocity{g}"]))
+            nodes.append(helper.make_node("Slice", [x, at(4 * g + 3), at(4 * g + 4), axis1], [f"grasp{g}"]))
+            v = f"velocity{g}"
+            if speed_limit is not None:
+                f = min(float(speed_limit) / max_speed, 1.0)
+                nodes.append(helper.make_node("Clip", [v, const("v_low", -f), const("v_high", f)],
+                                              [f"velocity_limited{g}"]))
+                v = f"velocity_limited{g}"
+            if workspace is not None:
+                p = offset + 7 * g  # the grasper's position in the flat input
+                nodes.append(helper.make_node("Slice", ["observation", at(p), at(p + 3), axis1], [f"position{g}"]))
+                nodes += [helper.make_node("GreaterOrEqual", [f"position{g}", const("ws_high", hi)], [f"at_high{g}"]),
+                          helper.make_node("LessOrEqual", [f"position{g}", const("ws_low", lo)], [f"at_low{g}"]),
+                          helper.make_node("Greater", [v, zero], [f"moving_up{g}"]),
+                          helper.make_node("Less", [v, zero], [f"moving_down{g}"]),
+                          helper.make_node("And", [f"at_high{g}", f"moving_up{g}"], [f"out_high{g}"]),
+                          helper.make_node("And", [f"at_low{g}", f"moving_down{g}"], [f"out_low{g}"]),
+                          helper.make_node("Or", [f"out_high{g}", f"out_low{g}"], [f"leaving{g}"]),
+                          helper.make_node("Where", [f"leaving{g}", zero, v], [f"velocity_inside{g}"])]
+                v = f"velocity_inside{g}"
+            parts += [v, f"grasp{g}"]
+        if speed_limit is not None:
+            metadata["speed_limit_m_per_s"] = str(speed_limit)
+        if workspace is not None:
             metadata["workspace_m"] = json.dumps([[float(v) for v in w] for w in workspace])
-        nodes.append(helper.make_node("Concat", [v, "grasp"], ["limited"], axis=1))
+        nodes.append(helper.make_node("Concat", parts, ["limited"], axis=1))
         x = "limited"
     nodes.append(helper.make_node("Identity", [x], ["action"]))
     graph = helper.make_graph(nodes, "heml_gym_policy",
                               [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", obs_dim])],
-                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", 4])], inits)
+                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", action_size])],
+                              inits)
     onnx_model = helper.make_model(graph, producer_name="heml-gym", opset_imports=[helper.make_opsetid("", 17)])
     onnx_model.ir_version = 8
     for key, value in metadata.items():
@@ -248,6 +307,9 @@ class OnnxPolicy:
         self.runs_on = SAME_STATE_TASK.get(self.env_id, self.env_id)
 
     def __call__(self, obs) -> np.ndarray:
+        keys = self.metadata.get("observation_keys")
+        if keys and isinstance(obs, dict):  # a goal task's dict, flattened as the policy read it
+            obs = np.concatenate([np.asarray(obs[k], dtype=np.float32) for k in keys.split(",")], axis=-1)
         batch = np.asarray(obs, dtype=np.float32)
         single = batch.ndim == 1
         out = self.session.run(["action"], {"observation": batch[None] if single else batch})[0]

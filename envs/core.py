@@ -247,6 +247,10 @@ class BatchedRetraction(TissueTask):
         obs = np.clip(finite(obs, nan=0.0), self._state_low, self._state_high)
         return obs.astype(np.float32)
 
+    def state_fields(self) -> list[tuple[str, str]]:
+        """``(name, unit)`` of each state entry (:data:`STATE_SPEC`'s, a grasper's once per instrument)."""
+        return self.instrument_fields() + [(name, unit) for name, _, _, unit in STATE_SPEC[GRASPER_SIZE:]]
+
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the state observation (from :data:`STATE_SPEC`, its grasper's
         entries once per instrument)."""

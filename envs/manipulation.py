@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core import FORCE_BOUND, GRASPER_SIZE, POSITION_BOUND, STATE_HIGH, STATE_LOW, TaskSettings, as_settings
+from .core import GRASPER_SIZE, POSITION_BOUND, STATE_HIGH, STATE_LOW, TaskSettings, as_settings
 from .measures import finite
 from .scene import BuiltScene
 from .spec import SpecError
@@ -157,8 +157,13 @@ class BatchedManipulation(TissueTask):
         obs = np.concatenate([*self.instrument_observation(), tracked, self.max_strain[:, None]], axis=1)
         return np.clip(finite(obs, nan=0.0), self._state_low, self._state_high).astype(np.float32)
 
+    def state_fields(self) -> list[tuple[str, str]]:
+        """``(name, unit)`` of each ``observation`` entry."""
+        return self.instrument_fields() + [(name, unit) for name, _, _, unit in MANIPULATION_SPEC]
+
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)`` of the ``observation`` part."""
         return self._state_low.copy(), self._state_high.copy()
 
 
-__all__ = ["BatchedManipulation", "ManipulationSettings", "goal_reward", "REWARD_TYPES", "FORCE_BOUND"]
+__all__ = ["BatchedManipulation", "ManipulationSettings", "goal_reward", "REWARD_TYPES", "MANIPULATION_SPEC"]

@@ -255,6 +255,14 @@ class TissueTask:
         x = self.x if np.array_equal(worlds, np.arange(self.n)) else self.x[worlds]
         return finite(self.gauges.max_strain(x), nan=STRAIN_BOUND)
 
+    def instrument_fields(self) -> list[tuple[str, str]]:
+        """``(name, unit)`` of each grasper's state entries, in order (a named grasper's
+        prefixed by its name)."""
+        from .core import STATE_SPEC, GRASPER_SIZE
+
+        return [((f"{g.name}_" if g.name else "") + name, unit)
+                for g in self.instruments for name, _, _, unit in STATE_SPEC[:GRASPER_SIZE]]
+
     def instrument_observation(self) -> list[np.ndarray]:
         """Each grasper's part of the state observation, in action order."""
         return [part for g in self.instruments for part in g.observation()]

@@ -13,6 +13,8 @@ import heml_gym.envs  # noqa: F401
 from heml_gym import materials as M
 from heml_gym.envs import Scene, SpecError, build_scene, check_env_kwargs
 from heml_gym.envs.organ_retraction import organ_scene
+from heml_gym.envs.bimanual_retraction import bimanual_scene
+from heml_gym.envs.tissue_manipulation import manipulation_scene
 from heml_gym.envs.tissue_retraction import TissueRetractionEnv, tissue_scene
 
 from env_checks import assert_random_steps_stay_finite
@@ -22,17 +24,19 @@ TISSUE, ORGAN = "heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2"
 LAWS = [cls.__name__ for cls in M.ALL_MATERIALS]
 
 
-@pytest.mark.parametrize("make", [tissue_scene, organ_scene])
+@pytest.mark.parametrize("make", [tissue_scene, organ_scene, bimanual_scene, manipulation_scene])
 def test_a_scene_survives_a_yaml_round_trip(make, tmp_path):
     scene = make()
     again = Scene.load(scene.save(tmp_path / "scene.yaml"))
     assert again == scene
     a, b = build_scene(scene), build_scene(again)
-    for name in ("fixed", "tracked", "edge_vertices", "grasp_patch"):
+    for name in ("fixed", "tracked", "edge_vertices", "grasp_patch", "marker"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
-@pytest.mark.parametrize("name, make", [("tissue_retraction", tissue_scene), ("organ_retraction", organ_scene)])
+@pytest.mark.parametrize("name, make", [("tissue_retraction", tissue_scene), ("organ_retraction", organ_scene),
+                                        ("bimanual_retraction", bimanual_scene),
+                                        ("tissue_manipulation", manipulation_scene)])
 def test_the_shipped_scene_files_are_the_envs_defaults(name, make):
     assert Scene.load(ROOT / "configs" / "scenes" / f"{name}.yaml") == make()
 
