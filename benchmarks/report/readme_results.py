@@ -316,7 +316,7 @@ def task_table() -> str:
     results (scripted and learned success, speed)."""
     import gymnasium as gym
 
-    from heml_gym.envs import ENV_IDS
+    from heml_gym.envs import ENV_IDS, GOAL_ENV_IDS
     from heml_gym.envs.retraction_env import OBS_MODES
 
     agents_data = load("agent_results")
@@ -327,11 +327,17 @@ def task_table() -> str:
         s = u.task.settings
         space = env.action_space
         action = f"`{type(space).__name__}({', '.join(str(n) for n in space.shape)},)`"
-        success = (f"exposure >= {s.success_exposure:.0%}, gauge strain < {s.damage_strain:g}"
-                   + (f", held {s.hold_time:g} s" if s.hold_time else ""))
+        if hasattr(s, "goal_tolerance"):  # a goal task
+            success = f"marked point within {s.goal_tolerance * 1e3:g} mm of a goal drawn per episode"
+        else:
+            success = (f"exposure >= {s.success_exposure:.0%}, gauge strain < {s.damage_strain:g}"
+                       + (f", held {s.hold_time:g} s" if s.hold_time else ""))
         scripted = (agents_data or {}).get("scripted", {}).get(env_id)
         scripted_text = (f"{scripted['success_rate']:.0%} of {scripted['episodes']}" if scripted else "not measured")
-        instruments = ", ".join(u.instruments)
+        k = len(u.instruments)
+        instruments = "grasper" if k == 1 else f"{k} graspers ({', '.join(u.instruments)})"
+        if env_id in GOAL_ENV_IDS:
+            action = action + ", goal-conditioned"
         rows.append([f"`{env_id}`", instruments, action, ", ".join(OBS_MODES), success, scripted_text,
                      learned(env_id, agents_data), speed_range(env_id)])
         env.close()
