@@ -1,4 +1,4 @@
-"""Learning results across seeds: PPO, SAC and behaviour cloning on both retraction tasks.
+"""Learning results across seeds: PPO, SAC (with HER on the goal task) and behaviour cloning on every task.
 
 Collects the seed sweeps of the shipped configs (each run by ``benchmarks/learning/quick_sweep.py``,
 i.e. ``heml-gym sweep CONFIG --seeds ...``, one CPU per trial; ``SWEEPS`` below names
@@ -8,7 +8,8 @@ fresh seeded episodes, its first evaluation at >= 90 %, and across seeds the
 interquartile mean (IQM) of the final success with a 95 % stratified-bootstrap interval
 (Agarwal et al. 2021, `heml_gym.agents.stats`), and the IQM of the success curves with
 their intervals. The scripted baseline's success on the same task comes from
-docs/benchmarks/task_difficulty.json. A sweep that has not been run is listed as such.
+docs/benchmarks/task_difficulty.json (the retraction tasks' difficulty levels), else from
+docs/benchmarks/scripted_experts.json. A sweep that has not been run is listed as such.
 
 Writes docs/benchmarks/agent_results.{json,md} and docs/img/agent_results.png.
 
@@ -36,11 +37,15 @@ SWEEPS = [
      "0,1,2,3,4"),
     ("tissue_bc_sweep", "configs/tissue_bc.yaml", "BC", "heml_gym/TissueRetraction-v1", 1, "0,1,2,3,4"),
     ("organ_bc_sweep", "configs/organ_bc.yaml", "BC", "heml_gym/OrganRetraction-v2", 1, "0,1,2,3,4"),
+    ("bimanual_bc_sweep", "configs/bimanual_bc.yaml", "BC", "heml_gym/BimanualRetraction-v0", 1, "0,1,2,3,4"),
+    ("bimanual_ppo", "configs/bimanual_ppo.yaml", "PPO", "heml_gym/BimanualRetraction-v0", 1, "0,1,2,3,4"),
+    ("manipulation_sac_her", "configs/manipulation_sac_her.yaml", "SAC+HER", "heml_gym/TissueManipulation-v0", 1,
+     "0,1,2,3,4"),
 ]
 #: algorithms that learn from demonstrations, without env steps (no learning curve: a line at their IQM)
 OFFLINE = ("BC",)
 #: line colours of the chart by (algorithm, difficulty)
-COLOURS = {("PPO", 1): "tab:blue", ("SAC", 1): "tab:orange", ("PPO", 2): "tab:purple", ("SAC", 2): "tab:brown",
+COLOURS = {("PPO", 1): "tab:blue", ("SAC", 1): "tab:orange", ("SAC+HER", 1): "tab:red", ("PPO", 2): "tab:purple", ("SAC", 2): "tab:brown",
            ("BC", 1): "tab:green"}
 BAR_SUCCESS = 0.9
 
@@ -88,6 +93,10 @@ def collect() -> dict:
         for r in json.loads(difficulty.read_text())["rows"]:
             if r["difficulty"] == 1 and r.get("variant") is None:  # the default task
                 scripted[r["env"]] = {"success_rate": r["success_rate"], "episodes": r["episodes"]}
+    experts = RESULTS / "scripted_experts.json"  # every live task's expert, on held-out seeds
+    if experts.is_file():
+        for r in json.loads(experts.read_text())["results"]:
+            scripted.setdefault(r["env"], {"success_rate": r["success_rate"], "episodes": r["episodes"]})
     groups, missing = [], []
     for name, config, algo, env, difficulty, seeds in SWEEPS:
         path = RESULTS / f"{name}.json"
@@ -195,7 +204,7 @@ def markdown(results: dict) -> str:
         md += markdown_table(["env", "algorithm", "difficulty", "config", "seeds", ">= 90 %", "final success per seed",
                               "IQM (95 % interval)", "first eval >= 90 % at", "budget (env steps)",
                               "wall min per seed", "measured on"], rows)
-    for env, s in results["scripted"].items():
+    for env, s in results["scripted"].items():  # (difficulty 1: the default task)
         md += f"\nScripted baseline on {env.split('/')[-1]} (difficulty 1): {s['success_rate']:.0%} of {s['episodes']} episodes."
     for m in results["missing"]:
         md += (f"\n\nNot run yet: {m['algorithm']} on {m['env'].split('/')[-1]} at difficulty {m['difficulty']} "
