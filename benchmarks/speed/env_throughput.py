@@ -57,7 +57,8 @@ import heml_gym.envs  # noqa: F401  (registers the envs)
 from heml_gym.benchmarks.common import (IMAGES, RESULTS, codegen_target, machine_info, markdown_table,
                     throughput_rate, throughput_rows, write_json)
 
-ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2", "heml_gym/BimanualRetraction-v0",
+           "heml_gym/TissueManipulation-v0")
 VECTOR_SIZES = (1, 4, 16, 64)
 BAR_SINGLE = 400.0  # env steps/s, TissueRetraction single env, one core (issue 13; 300 before)
 # env steps/s in total, TissueRetraction vectorised on 2 cores: 1,500 on AVX-512 (issue 13), 1,000 on an
@@ -97,7 +98,7 @@ class _SingleRunner:
     def block(self, steps: int) -> tuple[float, float, float]:
         """Wall, main-thread CPU and process CPU seconds for ``steps`` env steps
         (including the policy and any resets)."""
-        actions = self.rng.uniform(-1.0, 1.0, (steps, 4)).astype(np.float32)
+        actions = self.rng.uniform(-1.0, 1.0, (steps, *self.env.action_space.shape)).astype(np.float32)
         env, policy = self.env, self.policy
         c0, p0, t0 = time.thread_time(), time.process_time(), time.perf_counter()
         for k in range(steps):
@@ -129,6 +130,9 @@ def _rates(times, steps_per_block, threads):
 ALTERNATIVE_PHYSICS = {"heml_gym/OrganRetraction-v2": {"explicit": {"integrator": "explicit"}}}
 
 
+ONE_GRASPER = "one grasper (same mesh)"
+
+
 def _organ_line_scene():
     from heml_gym.envs.organ_retraction import organ_scene
 
@@ -139,8 +143,16 @@ def _organ_line_scene():
 #: thread; vectorised on every thread at ALTERNATIVE_VECTOR_SIZES): the lobe's former
 #: default, a 40 mm line held on a 7 mm lobe, which has no converged fine-mesh reference
 #: (docs/studies/scene_convergence.md, "Line and patch grasps"), for what the converged default costs.
+def _one_grasper_scene():
+    from heml_gym.benchmarks.accuracy.bimanual_task import variant_scene
+
+    return variant_scene(0.04)
+
+
 ALTERNATIVE_SCENES = {"heml_gym/OrganRetraction-v2": {"line grasp, 7 mm (the former default)":
-                                                      _organ_line_scene}}
+                                                      _organ_line_scene},
+                      # the cost of a second grasper: the same mesh, one grasper of the task's jaws
+                      "heml_gym/BimanualRetraction-v0": {ONE_GRASPER: _one_grasper_scene}}
 ALTERNATIVE_VECTOR_SIZES = (16, 64)
 
 
@@ -207,7 +219,7 @@ def stagger_episodes(venv, rng) -> None:
         restart = np.flatnonzero(offsets == k)
         if k and restart.size:
             env.reset_envs(restart)
-        venv.step(rng.uniform(-1.0, 1.0, (n, 4)).astype(np.float32))
+        venv.step(rng.uniform(-1.0, 1.0, venv.action_space.shape).astype(np.float32))
 
 
 def breakdown(env, steps: int, num_envs: int, threads: int, seed: int = 3) -> dict:
@@ -216,7 +228,7 @@ def breakdown(env, steps: int, num_envs: int, threads: int, seed: int = 3) -> di
     task = env.unwrapped.task
     rng = np.random.default_rng(seed)
     vector = num_envs > 1 or hasattr(env, "num_envs")
-    shape = (num_envs, 4) if vector else (4,)
+    shape = env.action_space.shape
     env.reset(seed=seed)
     if vector:
         stagger_episodes(env, rng)
@@ -258,7 +270,7 @@ class _VectorRunner:
         stagger_episodes(self.env, self.rng)
 
     def block(self, steps: int) -> tuple[float, float, float]:
-        actions = self.rng.uniform(-1.0, 1.0, (steps, self.n, 4)).astype(np.float32)
+        actions = self.rng.uniform(-1.0, 1.0, (steps, *self.env.action_space.shape)).astype(np.float32)
         env = self.env
         c0, p0, t0 = time.thread_time(), time.process_time(), time.perf_counter()
         for k in range(steps):
@@ -438,8 +450,14 @@ def _markdown(results: dict) -> str:
 
 
 def _notes(results: dict) -> str:
-    """Discussion written from the numbers of the first env (TissueRetraction)."""
-    env_id = next(iter(results["envs"]))
+    """Discussion written from the numbers of TissueRetraction (the load alone when it was not timed)."""
+    env_id = "heml_gym/TissueRetraction-v1"
+    if env_id not in results["envs"]:
+        return ("## Notes\n\n"
+                f"- **Load.** All cores were {100 * results['machine_busy_fraction']:.0f}% busy during the run, this "
+                f"process's own share included, {100 * results.get('steal_fraction', 0.0):.1f}% of the time stolen "
+                f"by the hypervisor, load average {results['load_average_before'][0]:.2f} at the start. Every rate "
+                "is a median over interleaved blocks.\n")
     res = results["envs"][env_id]
     rows = res["throughput"]
 
@@ -556,7 +574,8 @@ def _verdict(rows, env_id: str = "heml_gym/TissueRetraction-v1") -> str:
         return "\n".join(
             [f"- {r['env']} env, {r['actions']} actions, 1 thread: {r['median_steps_per_s']:.0f} env steps/s"
              for r in single]
-            + [f"- best vectorised: {max(r['median_steps_per_s'] for r in vec):.0f} env steps/s."])
+            + [f"- best vectorised: {max(r['median_steps_per_s'] for r in vec):.0f} env steps/s."]
+            + _grasper_cost(rows))
     vec_main = throughput_rows(vec, omp_wait_policy=MAIN_POLICY)
     vec_other = throughput_rows(vec, omp_wait_policy=OTHER_POLICY)
     best = max(vec, key=lambda r: r["median_steps_per_s"])
@@ -579,6 +598,32 @@ def _verdict(rows, env_id: str = "heml_gym/TissueRetraction-v1") -> str:
         if parts:
             lines.append(f"- N = {n}: 2 threads / 1 thread: " + ", ".join(parts))
     return "\n".join(lines)
+
+
+def grasper_cost(rows) -> list[dict]:
+    """A two-grasper env step's cost over a one-grasper step on the same mesh, from rows
+    timed in the same rounds: per configuration (single env on one thread, random and
+    scripted actions; vectorised), the ratio of the rates (one grasper / two)."""
+    out = []
+    configs = [("single", 1, 1, a) for a in ("random", "scripted")] + [
+        ("vector", n, None, "random") for n in ALTERNATIVE_VECTOR_SIZES]
+    for env, n, threads, actions in configs:
+        kw = {"num_envs": n, "actions": actions, "omp_wait_policy": MAIN_POLICY}
+        if threads is not None:
+            kw["threads"] = threads
+        two = [r for r in throughput_rows(rows, env=env, **kw) if threads is not None or r["threads"] > 1]
+        one = [r for r in throughput_rows(rows, env=f"{env}, {ONE_GRASPER}", **kw)
+               if threads is not None or r["threads"] > 1]
+        if two and one:
+            out.append({"env": env, "num_envs": n, "actions": actions, "threads": two[0]["threads"],
+                        "cost_ratio": one[0]["median_steps_per_s"] / two[0]["median_steps_per_s"]})
+    return out
+
+
+def _grasper_cost(rows) -> list[str]:
+    return [f"- a two-grasper step costs {c['cost_ratio']:.2f}x a one-grasper step on the same mesh ({c['env']}, "
+            f"N = {c['num_envs']}, {c['threads']} thread(s), {c['actions']} actions; rates timed in the same rounds)"
+            for c in grasper_cost(rows)]
 
 
 MAIN_POLICY, OTHER_POLICY = "PASSIVE", "ACTIVE"
@@ -613,6 +658,7 @@ def main():
                     "write their rows to JSON (used for the OMP_WAIT_POLICY=ACTIVE pass)")
     ap.add_argument("--name", help="store the results as docs/benchmarks/NAME.{json,md} (default env_throughput, "
                     "or env_throughput_avx2 with --avx2): one name per CPU class on record, e.g. env_throughput_intel")
+    ap.add_argument("--envs", help="comma-separated env ids to time (default: every task)")
     ap.add_argument("--from-json", action="store_true",
                     help="only rebuild the tables and the chart from the stored results (with --avx2: its own)")
     args = ap.parse_args()
@@ -639,6 +685,11 @@ def main():
     env_steps_per_block = 40 if args.quick else 128
     threads_all = numba.config.NUMBA_NUM_THREADS
     env_ids = [e for e in ENV_IDS if e in gym.registry]
+    if args.envs:
+        unknown = sorted(set(args.envs.split(",")) - set(env_ids))
+        if unknown:
+            ap.error(f"--envs: {unknown[0]} is not a task (known: {', '.join(env_ids)})")
+        env_ids = [e for e in env_ids if e in args.envs.split(",")]
     if args.vector_only:
         rows = []
         with tqdm(total=len(env_ids) * rounds * 2 * len(VECTOR_SIZES), desc=f"blocks (OMP {WAIT_POLICY})") as bar:
