@@ -45,7 +45,7 @@ import numpy as np
 from .bc_hyperparameters import BehaviourCloning
 from .dataset_ids import use_root
 
-__all__ = ["BehaviourCloning", "BCNetwork", "fit", "train_bc", "load_bc_policy", "POLICY_FILE"]
+__all__ = ["BehaviourCloning", "BCNetwork", "fit", "train_bc", "load_bc_policy", "flat_observation", "POLICY_FILE"]
 
 POLICY_FILE = "policy.pt"
 CLIP_OBS = 10.0  # as SB3's VecNormalize clips the RL runs' normalised observations
@@ -118,10 +118,22 @@ class BCPolicy:
     def __call__(self, obs) -> np.ndarray:
         import torch
 
-        state = obs["state"] if isinstance(obs, dict) else obs
+        state = flat_observation(obs)
         x = torch.as_tensor(normalise(np.asarray(state, dtype=np.float64), self.mean, self.var), dtype=torch.float32)
         with torch.no_grad():
             return self.net(x).numpy().astype(np.float32)
+
+
+def flat_observation(obs) -> np.ndarray:
+    """What BC reads: the state vector; a goal task's dict (``observation``,
+    ``achieved_goal``, ``desired_goal``) as its arrays concatenated in key order (sorted, as
+    SB3's ``MultiInputPolicy`` and the ONNX export concatenate them); a point-cloud dict's
+    ``state``. Works on one observation or a leading batch axis."""
+    if not isinstance(obs, dict):
+        return np.asarray(obs)
+    if "observation" in obs:
+        return np.concatenate([np.asarray(obs[k], dtype=np.float64) for k in sorted(obs)], axis=-1)
+    return np.asarray(obs["state"])
 
 
 def _dataset(cfg, progress_bar: bool):
@@ -147,7 +159,7 @@ def _dataset(cfg, progress_bar: bool):
                           f"not {cfg.env.id}")
     observations, actions = [], []
     for episode in dataset.iterate_episodes():
-        observations.append(np.asarray(episode.observations)[:-1])
+        observations.append(flat_observation(episode.observations)[:-1])
         # the demonstrator's own actions where the executed ones were perturbed (demos --action-noise)
         labels = episode.infos.get("expert_action")
         actions.append(np.asarray(labels)[1:] if labels is not None else np.asarray(episode.actions))

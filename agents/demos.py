@@ -122,6 +122,8 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
             done = terminated or truncated
         returns.append(float(np.sum(rewards)))
         successes += bool(info["is_success"])
+        if isinstance(observations[0], dict):  # a goal task's dict: one array per key (what Minari stores)
+            observations = {key: np.stack([o[key] for o in observations]) for key in observations[0]}
         buffers.append(EpisodeBuffer(id=k, seed=seed + k, observations=observations, actions=actions, rewards=rewards,
                                      terminations=terminations, truncations=truncations,
                                      infos={key: np.asarray(v) for key, v in infos.items()}))

@@ -42,6 +42,9 @@ def pretrained_path(env_id: str) -> Path:
                                 f"(there is one for: {', '.join(have) or 'none yet'})")
     return path
 
+#: a goal task's observation parts beside ``observation`` (its state), with their sizes
+GOAL_PARTS = {"achieved_goal": 3, "desired_goal": 3}
+
 ACTIVATIONS = {"Tanh": "Tanh", "ReLU": "Relu", "ELU": "Elu", "Sigmoid": "Sigmoid", "LeakyReLU": "LeakyRelu"}
 
 
@@ -144,9 +147,9 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
     fields = env.unwrapped.task.state_fields()
     goal = isinstance(env.observation_space, gym.spaces.Dict)
     env.close()
-    keys = observation_keys(model) if goal else None
+    keys = (observation_keys(model) or sorted([*GOAL_PARTS, "observation"])) if goal else None  # (BC: sorted, as it reads)
     # the flat input: the state (with a goal task's goals, concatenated in the policy's key order)
-    sizes = {"achieved_goal": 3, "desired_goal": 3, "observation": len(fields)}
+    sizes = {**GOAL_PARTS, "observation": len(fields)}
     expected = sum(sizes[k] for k in keys) if keys else len(fields)
     obs_dim = observation_size(model)
     if obs_dim != expected or (goal and keys is None):
@@ -172,7 +175,7 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
     x = "observation"
     if normalizer is not None:
         rms = normalizer.obs_rms
-        if keys:  # per key, in the concatenation's order
+        if keys and isinstance(rms, dict):  # per key, in the concatenation's order
             mean = np.concatenate([rms[k].mean for k in keys])
             scale = np.concatenate([1.0 / np.sqrt(rms[k].var + normalizer.epsilon) for k in keys])
         else:
