@@ -227,9 +227,11 @@ def load_bc_run(run_dir: Path, cfg):
     except Exception as exc:  # noqa: BLE001 - any unreadable or unsafe file is refused the same way
         raise ConfigError(f"{Path(run_dir) / POLICY_FILE} cannot be read as weights ({type(exc).__name__}; "
                           "only tensors are read from it, nothing in it was run)") from None
-    from .train import make_env
+    import gymnasium as gym
 
-    env = make_env(cfg)
+    import heml_gym.envs  # noqa: F401  (registers the environments)
+
+    env = gym.make(cfg.env.id, **cfg.env.kwargs)
     n_actions = int(env.action_space.shape[0])  # 4 per grasper
     env.close()
     net = BCNetwork(len(mean), n_actions, hp.hidden)

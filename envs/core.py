@@ -14,6 +14,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from .instruments import Grasper
 from .measures import Exposure, FoldLift, finite
 from .scene import BuiltScene
 from .spec import SpecError, from_mapping
@@ -24,10 +25,10 @@ FORCE_BOUND = 20.0  # N
 
 #: The state observation, entry by entry: (name, low, high, unit). The bounds of the
 #: observation space and the clipping of every entry come from this table.
+_GRASPER_BOUNDS = {"m": POSITION_BOUND, "N": FORCE_BOUND}
 STATE_SPEC = (
-    [(f"gripper_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for a in "xyz"]
-    + [("grasping", 0.0, 1.0, "-")]
-    + [(f"grasp_force_{a}", -FORCE_BOUND, FORCE_BOUND, "N") for a in "xyz"]
+    [(name, -_GRASPER_BOUNDS[unit] if unit in _GRASPER_BOUNDS else 0.0, _GRASPER_BOUNDS.get(unit, 1.0), unit)
+     for name, unit in Grasper.OBSERVATION]  # the grasper's part: position, grasping (0/1), force
     + [(f"target_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for a in "xyz"]
     + [(f"tracked_{i}_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for i in range(4) for a in "xyz"]
     + [("max_strain", 0.0, STRAIN_BOUND, "-"), ("exposure", 0.0, 1.0, "-")]

@@ -258,10 +258,7 @@ class TissueTask:
     def instrument_fields(self) -> list[tuple[str, str]]:
         """``(name, unit)`` of each grasper's state entries, in order (a named grasper's
         prefixed by its name)."""
-        from .core import STATE_SPEC, GRASPER_SIZE
-
-        return [((f"{g.name}_" if g.name else "") + name, unit)
-                for g in self.instruments for name, _, _, unit in STATE_SPEC[:GRASPER_SIZE]]
+        return [((f"{g.name}_" if g.name else "") + name, unit) for g in self.instruments for name, unit in g.OBSERVATION]
 
     def instrument_observation(self) -> list[np.ndarray]:
         """Each grasper's part of the state observation, in action order."""

@@ -186,10 +186,11 @@ def test_vector_manipulation_matches_single_envs():
             assert reward == pytest.approx(steps[k][1][i])
 
 
-def test_sb3_sac_with_her_trains_on_the_goal_task_and_relabels_with_its_reward():
+def test_sb3_sac_with_her_trains_on_the_goal_task_and_relabels_with_its_reward(tmp_path):
     """SB3's SAC with ``HerReplayBuffer`` runs on the task's SB3 VecEnv (a few hundred
     steps), and the buffer's relabelled rewards are the env's ``compute_reward`` of the
-    relabelled goals."""
+    relabelled goals. Its ONNX export, run by onnxruntime on the dict observations of an
+    episode, acts as SB3's own ``predict``."""
     from stable_baselines3 import SAC, HerReplayBuffer
 
     from heml_gym.agents.vec_env import RetractionSb3VecEnv
@@ -205,3 +206,14 @@ def test_sb3_sac_with_her_trains_on_the_goal_task_and_relabels_with_its_reward()
     expected = vec.venv.compute_reward(obs["achieved_goal"].numpy(), obs["desired_goal"].numpy(), None)
     np.testing.assert_allclose(sample.rewards.numpy().ravel(), expected, atol=1e-6)
     assert (sample.rewards.numpy() == 0).any() or (expected == 0).sum() == 0
+
+    from heml_gym.agents.export import OnnxPolicy, export_policy
+
+    out = export_policy(model, None, tmp_path / "her.onnx", envs.TISSUE_MANIPULATION)
+    policy = OnnxPolicy(out)
+    env = TissueManipulationEnv()
+    obs, _ = env.reset(seed=HELD_OUT)
+    for _ in range(10):
+        expected = model.predict(obs, deterministic=True)[0]
+        np.testing.assert_allclose(policy(obs), expected, atol=1e-5)
+        obs, *_ = env.step(expected)

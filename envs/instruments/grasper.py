@@ -32,6 +32,9 @@ class Grasper:
     #: its slice of the action, entry by entry
     ACTION = ("velocity_x", "velocity_y", "velocity_z", "grasp")
     action_size = len(ACTION)
+    #: its part of the state observation, entry by entry: (name, unit)
+    OBSERVATION = (tuple((f"gripper_{a}", "m") for a in "xyz") + (("grasping", "-"),)
+                   + tuple((f"grasp_force_{a}", "N") for a in "xyz"))
 
     def __init__(self, world, scene, settings, name: str | None = None, spec=None):
         gripper = self.spec = scene.spec.gripper if spec is None else spec
