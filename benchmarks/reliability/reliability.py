@@ -55,7 +55,8 @@ import heml_gym.envs  # noqa: F401  (registers the envs)
 from heml_gym.benchmarks.common import IMAGES, RESULTS, checkout_file, codegen_target, machine_info, markdown_table, write_json
 from heml_gym.envs.scripted import scripted_policy
 
-ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2")
+ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2", "heml_gym/BimanualRetraction-v0",
+           "heml_gym/TissueManipulation-v0")
 STREAMS = ("random", "extreme", "toggling", "out_of_range", "push_release", "scripted")
 VECTOR_N = 8
 ACCEPTANCE_STREAMS = ("push_release", "random", "extreme")  # part 1b
@@ -63,10 +64,11 @@ ACCEPTANCE_N = 20
 
 
 class Actions:
-    """An action stream for ``n`` scenes (``n = 0``: a single env's ``(4,)`` actions)."""
+    """An action stream for ``n`` scenes (``n = 0``: a single env's actions) of ``size``
+    entries (4 per grasper: velocity x, y, z and the grasp command)."""
 
-    def __init__(self, kind: str, n: int, rng: np.random.Generator, scene):
-        self.kind, self.n, self.rng = kind, n, rng
+    def __init__(self, kind: str, n: int, rng: np.random.Generator, scene, size: int = 4):
+        self.kind, self.n, self.rng, self.size = kind, n, rng, size
         self.k = np.zeros(max(n, 1), dtype=np.int64)
         self.fold = [scripted_policy(scene) for _ in range(max(n, 1))]
         self.toward_hinge = -scene.fold.direction
@@ -75,28 +77,31 @@ class Actions:
         self.k[i] = 0
         self.fold[i].reset()
 
-    def one(self, i: int, state: np.ndarray) -> np.ndarray:
-        rng, kind, k = self.rng, self.kind, self.k[i]
+    def one(self, i: int, obs) -> np.ndarray:
+        rng, kind, k, size = self.rng, self.kind, self.k[i], self.size
         self.k[i] += 1
+        graspers = size // 4
         if kind == "random":
-            return rng.uniform(-1, 1, 4)
+            return rng.uniform(-1, 1, size)
         if kind == "extreme":
-            return rng.choice([-1.0, 1.0], 4) * rng.uniform(1, 50)
+            return rng.choice([-1.0, 1.0], size) * rng.uniform(1, 50)
         if kind == "toggling":
-            return np.append(rng.uniform(-1, 1, 3), 1.0 if k % 2 == 0 else -1.0)
+            return np.concatenate([np.append(rng.uniform(-1, 1, 3), 1.0 if k % 2 == 0 else -1.0)
+                                   for _ in range(graspers)])
         if kind == "out_of_range":
-            return rng.uniform(-100, 100, 4)
-        if kind == "push_release":
+            return rng.uniform(-100, 100, size)
+        if kind == "push_release":  # every grasper at once
             phase = k % 10
             if phase < 8:
-                return np.array([self.toward_hinge if phase else 0.0, 0.0, 0.0, 1.0])
-            return np.array([0.0, 0.0, 0.0, -1.0])
-        return self.fold[i](state)
+                return np.tile([self.toward_hinge if phase else 0.0, 0.0, 0.0, 1.0], graspers)
+            return np.tile([0.0, 0.0, 0.0, -1.0], graspers)
+        return self.fold[i](obs)
 
-    def __call__(self, states: np.ndarray) -> np.ndarray:
+    def __call__(self, obs) -> np.ndarray:
         if self.n == 0:
-            return self.one(0, states).astype(np.float32)
-        return np.stack([self.one(i, states[i]) for i in range(self.n)]).astype(np.float32)
+            return self.one(0, obs).astype(np.float32)
+        pick = (lambda i: {key: v[i] for key, v in obs.items()}) if isinstance(obs, dict) else (lambda i: obs[i])
+        return np.stack([self.one(i, pick(i)) for i in range(self.n)]).astype(np.float32)
 
 
 def _all_finite(value) -> bool:
@@ -119,7 +124,7 @@ def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: 
         space = env.observation_space
     scene = env.unwrapped.scene
     n = VECTOR_N if vector else 0
-    actions = Actions(kind, n, rng, scene)
+    actions = Actions(kind, n, rng, scene, size=int(env.unwrapped.task.action_size))
     rec = {"env": env_id, "mode": "vector" if vector else "single", "obs_mode": obs_mode, "actions": kind,
            "codegen": codegen_target()["cpu"], "fallback_steps": 0, "refined_steps": 0,
            "env_steps": 0, "episodes": 0, "diverged": 0, "unconverged": 0, "non_finite": 0, "outside_space": 0,
@@ -129,8 +134,7 @@ def soak(env_id: str, vector: bool, obs_mode: str, kind: str, steps: int, seed: 
         obs, _ = env.reset(seed=seed)
         calls = math.ceil(steps / max(n, 1))
         for _ in range(calls):
-            states = obs["state"] if isinstance(obs, dict) else obs
-            a = actions(states)
+            a = actions(obs)
             t0 = time.perf_counter()
             try:
                 obs, reward, terminated, truncated, info = env.step(a)
@@ -177,7 +181,7 @@ def streams(env_id: str, kind: str, steps: int, seed: int) -> dict:
     n = ACCEPTANCE_N
     env = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
     rng = np.random.default_rng(seed)
-    actions = Actions(kind, n, rng, env.unwrapped.scene)
+    actions = Actions(kind, n, rng, env.unwrapped.scene, size=int(env.unwrapped.task.action_size))
     failed = np.zeros(n, dtype=np.int64)
     fallback = np.zeros(n, dtype=np.int64)
     refined = np.zeros(n, dtype=np.int64)
