@@ -63,7 +63,7 @@ def rollout(env_id: str, seed: int, cells, physics=None, actions=None) -> dict:
 
 
 def measure(seeds) -> dict:
-    results = {"machine": machine_info(), "seeds": list(seeds), "fine_physics": FINE_PHYSICS, "tasks": {}}
+    results = {"machine": machine_info(), "seeds": list(seeds), "fine_physics": FINE_PHYSICS, "results": {}}
     with tqdm(total=len(TASKS) * len(seeds), desc="seeds") as bar:
         for env_id, (default, fine) in TASKS.items():
             rows = []
@@ -84,13 +84,13 @@ def measure(seeds) -> dict:
                              "peak_force_n": float(ref["force"].max()), "hold_force_n": float(run["force"][-1]),
                              "hold_force_ref_n": float(ref["force"][-1])})
                 bar.update()
-            results["tasks"][env_id] = {"default_cells": list(default), "fine_cells": list(fine), "seeds": rows}
+            results["results"][env_id] = {"default_cells": list(default), "fine_cells": list(fine), "seeds": rows}
     return results
 
 
 def report(data: dict) -> str:
     rows = []
-    for env_id, t in data["tasks"].items():
+    for env_id, t in data["results"].items():
         worst_f = max(r["force_error"] for r in t["seeds"])
         worst_p = max(r["progress_error"] for r in t["seeds"])
         what = "exposure" if "Bimanual" in env_id else "marked point / its travel"
