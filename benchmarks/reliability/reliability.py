@@ -549,7 +549,9 @@ def main(argv=None) -> int:
                    "streams": [r for r in stored.get("streams", []) if r["env"] not in budget] + rows["streams"],
                    "merged": stored.get("merged", []) + [{"envs": sorted(budget), "machine": results["machine"],
                                                           "wall_s": results["wall_s"]}],
-                   "wall_s": stored["wall_s"] + results["wall_s"]}
+                   "wall_s": stored["wall_s"] + results["wall_s"],
+                   # (--no-bad-inputs: the stored part 2 stays)
+                   "bad_inputs": results["bad_inputs"] or stored.get("bad_inputs", [])}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if out == RESULTS:
