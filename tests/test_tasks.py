@@ -217,3 +217,27 @@ def test_sb3_sac_with_her_trains_on_the_goal_task_and_relabels_with_its_reward(t
         expected = model.predict(obs, deterministic=True)[0]
         np.testing.assert_allclose(policy(obs), expected, atol=1e-5)
         obs, *_ = env.step(expected)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"scene": {"paddle": {"size": [0.04, 0.02]}}}, r"scene\.paddle: unknown field \(known: .*graspers"),
+    ({"scene": {"graspers": {"left": {"jaws": 0.04}}}}, r"scene\.graspers\.left\.jaws: unknown field"),
+    ({"weights": {"exposur": 1.0}}, r"weights\.exposur: unknown field"),
+    ({"settings": {"reward_typ": "dense"}}, r"settings\.reward_typ: unknown field"),
+    ({"settings": {"reward_type": "shaped"}}, r"settings\.reward_type: must be one of"),
+])
+def test_a_run_config_naming_an_unknown_instrument_or_term_is_one_line(kwargs, message, tmp_path):
+    """A run config's env arguments are checked before anything runs: an instrument kind the
+    scenes do not have, a grasper field, a reward term or a setting that does not exist, a
+    reward type not offered. One line, naming the key."""
+    import yaml
+
+    from heml_gym.agents.config import ConfigError, load_config
+
+    env_id = envs.TISSUE_MANIPULATION if "settings" in kwargs else envs.BIMANUAL_RETRACTION
+    config = tmp_path / "run.yaml"
+    config.write_text(yaml.safe_dump({"env": {"id": env_id, "kwargs": kwargs},
+                                      "algorithm": {"name": "PPO", "policy": "MlpPolicy"}}))
+    with pytest.raises(ConfigError, match=message) as caught:
+        load_config(config)
+    assert "\n" not in str(caught.value)
