@@ -241,3 +241,15 @@ def test_a_run_config_naming_an_unknown_instrument_or_term_is_one_line(kwargs, m
     with pytest.raises(ConfigError, match=message) as caught:
         load_config(config)
     assert "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("obs_mode", ["rgb", "rgbd"])
+def test_the_goal_task_in_camera_modes_keeps_its_goals_beside_the_images(obs_mode):
+    """Camera observations of the goal task: the images beside ``observation``,
+    ``achieved_goal`` and ``desired_goal`` (what HER needs), checked by gymnasium; the goal
+    is drawn (target pixels, label 2, in the segmentation)."""
+    env = TissueManipulationEnv(obs_mode=obs_mode, camera={"size": [48, 64], "segmentation": True})
+    check_env(env, skip_render_check=True)
+    obs, _ = env.reset(seed=HELD_OUT)
+    assert {"observation", "achieved_goal", "desired_goal", "rgb", "segmentation"} <= set(obs)
+    assert obs["rgb"].shape == (48, 64, 3) and (obs["segmentation"] == 2).any()
