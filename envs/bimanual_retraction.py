@@ -91,12 +91,9 @@ v0 (2026-11-28): the task described here.
 
 from __future__ import annotations
 
-import math
-
 from .retraction_env import RetractionEnv, RetractionVectorEnv
-from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec,
-                    TargetSpec, TissueSpec)
-from .tissue_retraction import ADHESION_WIDTH, HINGE
+from .scene import AdhesionSpec, CameraSpec, GripperSpec, RegionSpec, Scene, SupportSpec, TargetSpec, TissueSpec
+from .tissue_retraction import ADHESION_WIDTH, flap_physics, flap_regions
 
 FLAP_SIZE = (0.12, 0.24, 0.008)  # m
 DEFAULT_CELLS = (12, 24, 2)
@@ -119,14 +116,8 @@ def bimanual_scene(cells=DEFAULT_CELLS) -> Scene:
     return Scene(
         name="BimanualRetraction",
         tissue=TissueSpec(kind="box", size=FLAP_SIZE, cells=tuple(int(c) for c in cells)),
-        physics=PhysicsSpec(material="NeoHookean", young_modulus=STIFFNESS_RANGE, poisson=0.45, density=950.0,
-                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
-                            max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.75, hessian_scale=1.25),
-        attachment=RegionSpec(low=(0.0, None, None), high=(0.0, None, None)),
-        grasp=RegionSpec(low=(lx, None, lz), high=(lx, None, lz)),
-        tracked=RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),
-        fold=FoldSpec(hinge=HINGE, direction=1.0, angle=math.pi / 2,
-                      edge=RegionSpec(low=(lx, None, None), high=(lx, None, None))),
+        physics=flap_physics(STIFFNESS_RANGE),
+        **flap_regions(FLAP_SIZE),
         target=TargetSpec(low=(0.06, 0.10, -0.02), high=(0.08, 0.14, -0.02), radius=0.008),
         gripper=left,
         camera=CameraSpec(eye=(0.06, ly / 2, 0.35)),

@@ -97,14 +97,11 @@ v0 (2026-11-28): the task described here.
 
 from __future__ import annotations
 
-import math
-
 from .goal_env import GoalObservations
 from .manipulation import BatchedManipulation, ManipulationSettings
 from .retraction_env import RetractionEnv, RetractionVectorEnv
-from .scene import (CameraSpec, FoldSpec, GripperSpec, PhysicsSpec, RegionSpec, Scene, SupportSpec, TargetSpec,
-                    TissueSpec)
-from .tissue_retraction import DEFAULT_CELLS, FLAP_SIZE, HINGE, STIFFNESS_RANGE
+from .scene import CameraSpec, GripperSpec, RegionSpec, Scene, SupportSpec, TargetSpec, TissueSpec
+from .tissue_retraction import DEFAULT_CELLS, FLAP_SIZE, flap_physics, flap_regions
 
 GOAL_LOW = (0.05, 0.045, 0.02)  # m
 GOAL_HIGH = (0.10, 0.075, 0.06)  # m
@@ -117,14 +114,8 @@ def manipulation_scene(cells=DEFAULT_CELLS) -> Scene:
     return Scene(
         name="TissueManipulation",
         tissue=TissueSpec(kind="box", size=FLAP_SIZE, cells=tuple(int(c) for c in cells)),
-        physics=PhysicsSpec(material="NeoHookean", young_modulus=STIFFNESS_RANGE, poisson=0.45, density=950.0,
-                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
-                            max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.75, hessian_scale=1.25),
-        attachment=RegionSpec(low=(0.0, None, None), high=(0.0, None, None)),
-        grasp=RegionSpec(low=(lx, None, lz), high=(lx, None, lz)),
-        tracked=RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),
-        fold=FoldSpec(hinge=HINGE, direction=1.0, angle=math.pi / 2,
-                      edge=RegionSpec(low=(lx, None, None), high=(lx, None, None))),
+        physics=flap_physics(),
+        **flap_regions(FLAP_SIZE),
         target=TargetSpec(low=GOAL_LOW, high=GOAL_HIGH, radius=0.005),
         gripper=GripperSpec(start_low=(0.108, 0.055, 0.009), start_high=(0.114, 0.065, 0.011),
                             workspace_low=(-0.05, -0.05, 0.0), workspace_high=(0.20, 0.17, 0.15),

@@ -167,21 +167,34 @@ JAWS_AND_ADHESION = {"gripper": {"jaw_length": 0.04}, "adhesion": {"region": UND
 FORMER_TASK = {"tissue": {"cells": [12, 12, 1]}, "adhesion": None}
 
 
+def flap_physics(young_modulus=STIFFNESS_RANGE) -> PhysicsSpec:
+    """The fat flaps' physics (Neo-Hookean HEML fat under gravity, backward Euler by L-BFGS
+    in 0.05 s steps), with E drawn in ``young_modulus`` (Pa, low and high)."""
+    return PhysicsSpec(material="NeoHookean", young_modulus=tuple(young_modulus), poisson=0.45, density=950.0,
+                       damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
+                       max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.75, hessian_scale=1.25)
+
+
+def flap_regions(size) -> dict:
+    """The regions of a box flap of ``size`` (m) attached along ``x = 0``: the attachment,
+    the grasp (the free edge's top line), the tracked points (free-edge corners and middle,
+    the centre) and the fold about the attached edge's top line (Scene fields)."""
+    lx, ly, lz = size
+    return {"attachment": RegionSpec(low=(0.0, None, None), high=(0.0, None, None)),
+            "grasp": RegionSpec(low=(lx, None, lz), high=(lx, None, lz)),
+            "tracked": RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),
+            "fold": FoldSpec(hinge=(0.0, lz), direction=1.0, angle=math.pi / 2,
+                             edge=RegionSpec(low=(lx, None, None), high=(lx, None, None)))}
+
+
 def tissue_scene(cells=DEFAULT_CELLS, mirrored: bool = True) -> Scene:
     """The fat-flap scene with a ``cells`` hex grid (6 tets per cell; ``mirrored``: each
     cell split as the mirror image of its neighbours, see :func:`heml_gym.mesh.box_mesh`)."""
-    lx, ly, lz = FLAP_SIZE
     return Scene(
         name="TissueRetraction",
         tissue=TissueSpec(kind="box", size=FLAP_SIZE, cells=tuple(int(c) for c in cells), mirrored=mirrored),
-        physics=PhysicsSpec(material="NeoHookean", young_modulus=STIFFNESS_RANGE, poisson=0.45, density=950.0,
-                            damping=5.0, gravity=(0.0, 0.0, -9.81), field="heml", integrator="quasi_newton",
-                            max_dt=0.05, newton_tol=3e-3, max_newton=100, safety=0.75, hessian_scale=1.25),
-        attachment=RegionSpec(low=(0.0, None, None), high=(0.0, None, None)),
-        grasp=RegionSpec(low=(lx, None, lz), high=(lx, None, lz)),
-        tracked=RegionSpec(points=[(lx, 0.0, lz), (lx, ly / 2, lz), (lx, ly, lz), (lx / 2, ly / 2, lz)]),
-        fold=FoldSpec(hinge=HINGE, direction=1.0, angle=math.pi / 2,
-                      edge=RegionSpec(low=(lx, None, None), high=(lx, None, None))),
+        physics=flap_physics(),
+        **flap_regions(FLAP_SIZE),
         target=TargetSpec(low=(0.05, 0.035, -0.02), high=(0.09, 0.085, -0.02), radius=0.008),
         gripper=GripperSpec(start_low=(0.108, 0.04, 0.009), start_high=(0.114, 0.08, 0.011),
                             workspace_low=(-0.05, -0.05, 0.0), workspace_high=(0.20, 0.17, 0.15)),

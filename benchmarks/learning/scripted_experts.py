@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
 
 from heml_gym.benchmarks.common import machine_info, markdown_table, store_and_report
 
