@@ -135,7 +135,8 @@ def chart(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    envs = sorted({g["env"] for g in results["groups"]}, reverse=True)
+    order = [env for *_, env, _, _ in SWEEPS]  # the tasks in the order SWEEPS names them
+    envs = sorted({g["env"] for g in results["groups"]}, key=order.index)
     if not envs:
         return
     fig, axes = plt.subplots(2, len(envs), figsize=(6.4 * len(envs), 8.4), squeeze=False)
@@ -167,6 +168,8 @@ def chart(results: dict, path: Path) -> None:
                            label=f"scripted baseline, difficulty 1 ({scripted['success_rate']:.0%})")
             ax.axhline(BAR_SUCCESS, color="tab:red", ls="--", lw=1, label="90 %")
             ax.set_ylim(-0.03, 1.03)
+            if not any(curve in g for g in results["groups"] if g["env"] == env):  # demonstrations only
+                ax.set_xticks([])
             ax.set_xlabel(label)
             ax.set_ylabel("evaluated success rate (20 episodes)")
             ax.set_title(f"{env.split('/')[-1]}: success vs {label.split(' (')[0]}", fontsize=10)
