@@ -659,6 +659,7 @@ def main():
     ap.add_argument("--name", help="store the results as docs/benchmarks/NAME.{json,md} (default env_throughput, "
                     "or env_throughput_avx2 with --avx2): one name per CPU class on record, e.g. env_throughput_intel")
     ap.add_argument("--envs", help="comma-separated env ids to time (default: every task)")
+    ap.add_argument("--rounds", type=int, default=9, help="interleaved rounds of blocks (default 9; --quick: 3)")
     ap.add_argument("--from-json", action="store_true",
                     help="only rebuild the tables and the chart from the stored results (with --avx2: its own)")
     args = ap.parse_args()
@@ -681,7 +682,9 @@ def main():
     if restart:
         os.execve(sys.executable, [sys.executable, __file__, *sys.argv[1:]], {**os.environ, **restart})
     name = args.name or default_name
-    rounds = 3 if args.quick else 9
+    if args.rounds < 1:
+        ap.error(f"--rounds: must be >= 1, got {args.rounds}")
+    rounds = 3 if args.quick else args.rounds
     env_steps_per_block = 40 if args.quick else 128
     threads_all = numba.config.NUMBA_NUM_THREADS
     env_ids = [e for e in ENV_IDS if e in gym.registry]
