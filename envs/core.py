@@ -25,10 +25,10 @@ FORCE_BOUND = 20.0  # N
 
 #: The state observation, entry by entry: (name, low, high, unit). The bounds of the
 #: observation space and the clipping of every entry come from this table.
-_GRASPER_BOUNDS = {"m": POSITION_BOUND, "N": FORCE_BOUND}
+#: the bounds of a grasper's entries by their unit: positions (m), the grasping flag (-), forces (N)
+_BOUNDS_BY_UNIT = {"m": (-POSITION_BOUND, POSITION_BOUND), "-": (0.0, 1.0), "N": (-FORCE_BOUND, FORCE_BOUND)}
 STATE_SPEC = (
-    [(name, -_GRASPER_BOUNDS[unit] if unit in _GRASPER_BOUNDS else 0.0, _GRASPER_BOUNDS.get(unit, 1.0), unit)
-     for name, unit in Grasper.OBSERVATION]  # the grasper's part: position, grasping (0/1), force
+    [(name, *_BOUNDS_BY_UNIT[unit], unit) for name, unit in Grasper.OBSERVATION]  # the grasper's part
     + [(f"target_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for a in "xyz"]
     + [(f"tracked_{i}_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for i in range(4) for a in "xyz"]
     + [("max_strain", 0.0, STRAIN_BOUND, "-"), ("exposure", 0.0, 1.0, "-")]
@@ -39,7 +39,7 @@ STATE_SIZE = len(STATE_FIELDS)
 STATE_LOW = np.array([lo for _, lo, _, _ in STATE_SPEC], dtype=np.float32)
 STATE_HIGH = np.array([hi for _, _, hi, _ in STATE_SPEC], dtype=np.float32)
 #: the state entries of one grasper (position, grasping, force), first in :data:`STATE_SPEC`
-GRASPER_SIZE = 7
+GRASPER_SIZE = len(Grasper.OBSERVATION)
 
 
 def _positive(obj, name, value, allow_zero=False):

@@ -43,9 +43,14 @@ class GoalObservations:
     def observations(self):
         """Every env's observation (leading axis N): the ``GoalEnv`` dict."""
         inner = super().observations()
-        obs = {"observation": self.task.state_observation()}
-        for key, value in self._extra_parts(inner, self.obs_mode):
-            obs[key] = value
+        if isinstance(inner, dict):  # the mode's parts, the state among them when the mode has it
+            obs = {k: v for k, v in inner.items() if k != "state"}
+            state = inner.get("state")
+        elif self.obs_mode == "state":  # the state itself: not computed twice
+            obs, state = {}, inner
+        else:
+            obs, state = dict(self._extra_parts(inner, self.obs_mode)), None
+        obs["observation"] = self.task.state_observation() if state is None else state
         obs["achieved_goal"] = self.task.achieved_goal().astype(np.float32)
         obs["desired_goal"] = self.task.goal.astype(np.float32)
         return obs

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from .core import STATE_FIELDS
+from .core import GRASPER_SIZE, STATE_FIELDS
 
 EXPOSURE = STATE_FIELDS.index("exposure")  # its entry in the state observation
 ALIGNED = 0.001  # m: close enough to ``grasp_point`` to close the jaws
@@ -100,9 +100,9 @@ class SeveralGraspersPolicy:
 
     def __call__(self, obs) -> np.ndarray:
         state = np.asarray(obs["state"] if isinstance(obs, dict) else obs)
-        k = len(self.policies)
-        task = state[7 * k:]
-        return np.concatenate([p(np.concatenate([state[7 * j:7 * j + 7], task]))
+        k, g = len(self.policies), GRASPER_SIZE
+        task = state[g * k:]
+        return np.concatenate([p(np.concatenate([state[g * j:g * (j + 1)], task]))
                                for j, p in enumerate(self.policies)]).astype(np.float32)
 
 
