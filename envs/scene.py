@@ -327,7 +327,11 @@ class GripperSpec:
     jaws' axis (the taken vertices' longest direction at rest) through its middle to
     where the tissue's torque on it vanishes (:meth:`heml_gym.Control.turn`; the
     ``quasi_newton`` integrator only, exact jaw ends); null: the jaws hold what they take,
-    rigidly."""
+    rigidly. ``port`` (m): the shaft passes through this point (a trocar in the body
+    wall), outside the start box, and the grasper's action is then ``(pitch_rate,
+    yaw_rate, insertion_rate, grasp)``: tilts about the port in units of ``angular_speed``
+    (rad/s), at most ``max_tilt`` (rad) from the line to the middle of the start box
+    (:class:`~heml_gym.envs.instruments.port.Port`); null: velocities along x, y, z."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)
@@ -336,6 +340,9 @@ class GripperSpec:
     jaw_length: float | None = None
     jaw_ends: str = "vertex"
     wrist_reach: float | None = None
+    port: Vec3 | None = None
+    angular_speed: float = 0.5
+    max_tilt: float = 1.2
 
     def __post_init__(self):
         if self.jaw_ends not in ("vertex", "weighted"):
@@ -357,6 +364,16 @@ class GripperSpec:
         if any(a < wl or b > wh for a, b, wl, wh in zip(self.start_low, self.start_high, self.workspace_low,
                                                           self.workspace_high)):
             raise invalid(self, "start_low", "the start box must lie inside the workspace")
+        for name, high in (("angular_speed", math.inf), ("max_tilt", 1.5)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= high:
+                raise invalid(self, name, f"must be a number in (0, {high:g}], got {value!r}")
+        if self.port is not None:
+            if not isinstance(self.port, (list, tuple)) or len(self.port) != 3 or not _finite(self.port):
+                raise invalid(self, "port", f"must be three finite coordinates in metres or null, got {self.port!r}")
+            if all(lo <= p <= hi for p, lo, hi in zip(self.port, self.start_low, self.start_high)):
+                raise invalid(self, "port", f"{list(self.port)} lies inside the start box: the shaft would have "
+                                            "no direction")
 
 
 @dataclass

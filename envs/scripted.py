@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from .core import GRASPER_SIZE, STATE_FIELDS
+from .instruments.port import Port
 
 EXPOSURE = STATE_FIELDS.index("exposure")  # its entry in the state observation
 ALIGNED = 0.001  # m: close enough to ``grasp_point`` to close the jaws
@@ -127,13 +128,39 @@ class ReachGoalPolicy:
         return np.concatenate([move, [1.0]]).astype(np.float32)
 
 
+class PortCommands:
+    """A scripted policy that thinks in Cartesian velocities, driving graspers on ports:
+    each such grasper's velocity command (its first 3 entries, in units of ``max_speed``)
+    becomes the port's tilt and insertion commands that move its tip so to first order
+    (:meth:`~heml_gym.envs.instruments.port.Port.commands_for`; ``ports``: one
+    :class:`~heml_gym.envs.instruments.port.Port` or None per grasper, in action order)."""
+
+    def __init__(self, policy, ports, max_speed: float = 0.05):
+        self.policy, self.ports, self.max_speed = policy, list(ports), float(max_speed)
+
+    def reset(self):
+        self.policy.reset()
+
+    def __call__(self, obs) -> np.ndarray:
+        action = np.array(self.policy(obs), dtype=np.float32)
+        state = obs.get("observation", obs.get("state")) if isinstance(obs, dict) else obs
+        state = np.asarray(state, dtype=np.float64)
+        for k, port in enumerate(self.ports):
+            if port is not None:
+                tip = state[GRASPER_SIZE * k:GRASPER_SIZE * k + 3]
+                velocity = action[4 * k:4 * k + 3] * self.max_speed
+                action[4 * k:4 * k + 3] = port.commands_for(tip, velocity, self.max_speed)[0]
+        return action
+
+
 def scripted_policy(scene):
     """The scripted baseline of a scene (a :class:`~heml_gym.envs.scene.Scene`: its fold
     hinge and direction are used) or of a scene family by name ("TissueRetraction",
     "OrganRetraction", "BimanualRetraction" or "TissueManipulation", their default
     scenes). With several graspers, each folds from the middle of its start box
     (:class:`SeveralGraspersPolicy`); a scene with a marked point is a goal task
-    (:class:`ReachGoalPolicy`)."""
+    (:class:`ReachGoalPolicy`); graspers on ports take its commands through
+    :class:`PortCommands`."""
     if isinstance(scene, str):
         from . import bimanual_retraction, organ_retraction, tissue_retraction
 
@@ -144,11 +171,15 @@ def scripted_policy(scene):
         if scene not in defaults:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
+    specs = [scene.gripper] if scene.graspers is None else list(scene.graspers.values())
     if scene.marker is not None:  # a goal-conditioned task
-        return ReachGoalPolicy()
-    if scene.graspers is not None and len(scene.graspers) > 1:
-        return SeveralGraspersPolicy([_fold_policy(scene, spec, at_start=True) for spec in scene.graspers.values()])
-    return _fold_policy(scene, scene.gripper if scene.graspers is None else next(iter(scene.graspers.values())))
+        policy = ReachGoalPolicy()
+    elif len(specs) > 1:
+        policy = SeveralGraspersPolicy([_fold_policy(scene, spec, at_start=True) for spec in specs])
+    else:
+        policy = _fold_policy(scene, specs[0])
+    ports = [Port.of(spec) for spec in specs]
+    return policy if all(p is None for p in ports) else PortCommands(policy, ports)
 
 
 def _fold_policy(scene, gripper, at_start: bool = False) -> FoldBackPolicy:

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..geometry import nearest_triangle_distance
 from ..spec import SpecError
+from .port import Port
 
 
 class Grasper:
@@ -29,8 +30,9 @@ class Grasper:
     """
 
     kind = "grasper"
-    #: its slice of the action, entry by entry
+    #: its slice of the action, entry by entry (on a port: :data:`PORT_ACTION`)
     ACTION = ("velocity_x", "velocity_y", "velocity_z", "grasp")
+    PORT_ACTION = ("pitch_rate", "yaw_rate", "insertion_rate", "grasp")
     action_size = len(ACTION)
     #: its part of the state observation, entry by entry: (name, unit)
     OBSERVATION = (tuple((f"gripper_{a}", "m") for a in "xyz") + (("grasping", "-"),)
@@ -57,6 +59,10 @@ class Grasper:
             # the patch's long axis (unit): ``gripper.jaw_length`` is measured along it
             self._patch_axis = np.linalg.svd(rest - rest.mean(axis=0))[2][0] if len(rest) > 1 else np.zeros(3)
         self.start_low, self.start_high = np.asarray(gripper.start_low), np.asarray(gripper.start_high)
+        #: the trocar its shaft passes through (None: it moves freely in x, y, z)
+        self.port = Port.of(gripper)
+        if self.port is not None:
+            self.ACTION = self.PORT_ACTION
         self.workspace_low, self.workspace_high = np.asarray(gripper.workspace_low), np.asarray(gripper.workspace_high)
         n, nv = world.n, mesh.n_vertices
         self.position = np.zeros((n, 3))
@@ -124,12 +130,15 @@ class Grasper:
         return first
 
     def move(self, actions: np.ndarray) -> None:
-        """Move the jaws by the velocity command (``actions[:, :3]``) over one control step,
-        within the workspace, and drive the tissue they hold there (held tissue cannot be
-        pressed below where it rests on a support)."""
+        """Move the jaws by the velocity command (``actions[:, :3]``; on a port, its tilt and
+        insertion rates) over one control step, within the workspace, and drive the tissue
+        they hold there (held tissue cannot be pressed below where it rests on a support)."""
         st, s, control = self.settings, self.scene, self.world.control
-        self.position = np.clip(self.position + actions[:, :3] * st.max_speed * st.control_dt,
-                                self.workspace_low, self.workspace_high)
+        if self.port is None:
+            moved = self.position + actions[:, :3] * st.max_speed * st.control_dt
+        else:
+            moved = self.port.advance(self.position, actions[:, :3], st.max_speed, st.control_dt)
+        self.position = np.clip(moved, self.workspace_low, self.workspace_high)
         if s.supports:
             rest_z = s.mesh.vertices[:, 2]
             for i in np.flatnonzero(self.grasping):
