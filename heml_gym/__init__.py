@@ -29,6 +29,7 @@ from .model import FORCE_FIELDS, Damping, Model
 from .simulation import NotConverged, NotConvergedWarning, Simulation
 from .solvers import ExplicitSolver, ImplicitSolver, QuasiNewtonSolver, SimulationDiverged, StaticSolver, StepStats
 from .state import State
+from .tools import Box, Capsule
 
 __version__ = "0.1.0"
 
@@ -48,6 +49,8 @@ __all__ = [
     "Damping",
     "PlaneSupport",
     "MeshSupport",
+    "Capsule",
+    "Box",
     "FORCE_FIELDS",
     "TetMesh",
     "QuadraticTetMesh",

@@ -142,10 +142,15 @@ class Supports:
     def __len__(self) -> int:
         return len(self.items)
 
-    def kernel_args(self) -> SupportArrays:
-        """``(planes, grids, grid_values)`` for the kernels
+    def kernel_args(self, tools=None, tool_pose=None, tool_k=None) -> SupportArrays:
+        """``(planes, grids, grid_values)`` for the kernels, with ``tools``
+        (:class:`heml_gym.tools.Tools`) posed at ``tool_pose (N, T, 12)`` if any, their
+        penalty stiffness ``tool_k (N, n)`` (N/m at each vertex)
         (:class:`~heml_gym.kernel_data.SupportArrays`)."""
-        return SupportArrays(self.planes, self.grids, self.grid_values)
+        if tools is None or not len(tools):
+            return SupportArrays(self.planes, self.grids, self.grid_values)
+        return SupportArrays(self.planes, self.grids, self.grid_values, tools.kind, tools.size, tool_pose,
+                             tool_k)
 
     def signed_distance(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Smallest signed distance (m) of each point to the supports (``inf`` when there

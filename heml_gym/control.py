@@ -52,9 +52,13 @@ class Control:
     wrist_stiffness : (N,) float, N/m
         The solver's latest estimate of ``d^2 Phi / ds^2`` (``s`` = angle times the patch's
         radius about the axis): its warm start, 0 when none.
+    tool_pose : (N, T, 12) float
+        Each rigid tool's pose (:mod:`heml_gym.tools`) at the end of the next step: its
+        centre (m), then its rotation matrix row by row (its columns: the tool's axes);
+        until posed, a tool waits far away (:data:`heml_gym.tools.PARKED`).
     """
 
-    def __init__(self, n_worlds: int, n_vertices: int):
+    def __init__(self, n_worlds: int, n_vertices: int, n_tools: int = 0):
         self.kinematic = np.zeros((n_worlds, n_vertices), dtype=bool)
         self.targets = np.zeros((n_worlds, n_vertices, 3))
         self.external_forces = np.zeros((n_worlds, n_vertices, 3))
@@ -67,6 +71,25 @@ class Control:
         self.pivot_target = np.zeros((n_worlds, 3))
         self.wrist_angle = np.zeros(n_worlds)
         self.wrist_stiffness = np.zeros(n_worlds)
+        self.tool_pose = np.zeros((n_worlds, n_tools, 12))
+        self.tool_pose[:, :, 2] = 1e6  # parked (heml_gym.tools.PARKED)
+        self.tool_pose[:, :, 3:] = np.eye(3).ravel()
+
+    def pose_tool(self, world: int, tool: int, position, rotation=None) -> None:
+        """Pose rigid tool ``tool`` of world ``world`` for the next step: its centre at
+        ``position`` (m, (3,)), turned by ``rotation`` ((3, 3), orthonormal; None: as
+        built)."""
+        if not 0 <= tool < self.tool_pose.shape[1]:
+            raise ValueError(f"tool must be in [0, {self.tool_pose.shape[1]}) (the model's tools), got {tool}")
+        p = np.asarray(position, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"position must be 3 finite coordinates (m), got {position!r}")
+        r = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        if r.shape != (3, 3) or not np.all(np.isfinite(r)) or not np.allclose(r @ r.T, np.eye(3), atol=1e-9) \
+                or np.linalg.det(r) < 0:
+            raise ValueError("rotation must be a (3, 3) rotation matrix (orthonormal, determinant +1)")
+        self.tool_pose[world, tool, :3] = p
+        self.tool_pose[world, tool, 3:] = r.ravel()
 
     @property
     def n_worlds(self) -> int:

@@ -60,11 +60,25 @@ class WorldLaw(NamedTuple):
 
 
 class SupportArrays(NamedTuple):
-    """The rigid supports as the contact kernels read them (:mod:`heml_gym.kernels_contact`)."""
+    """The rigid supports and tools as the contact kernels read them
+    (:mod:`heml_gym.kernels_contact`): the static supports, then the tools
+    (:mod:`heml_gym.tools`) with the pose of each in each world (a world's kernel gets its
+    own, ``tool_pose`` of one row: :func:`world_supports`)."""
 
     planes: np.ndarray
     grids: np.ndarray
     grid_values: np.ndarray
+    tool_kind: np.ndarray = np.zeros(0, dtype=np.int64)  #: (T,) int64
+    tool_size: np.ndarray = np.zeros((0, 3))  #: (T, 3) m
+    tool_pose: np.ndarray = np.zeros((1, 0, 12))  #: (W, T, 12): centre (m), rotation row by row
+    tool_k: np.ndarray = np.zeros((1, 0))  #: (W, n) N/m: the tools' contact penalty stiffness at each vertex
+
+
+@nb.njit(cache=True, inline="always")
+def world_supports(supports, s):
+    """World ``s``'s view of ``supports`` (:class:`SupportArrays`): its tools' poses only."""
+    return SupportArrays(supports.planes, supports.grids, supports.grid_values, supports.tool_kind,
+                         supports.tool_size, supports.tool_pose[s:s + 1], supports.tool_k[s:s + 1])
 
 
 @nb.njit(cache=True, inline="always")

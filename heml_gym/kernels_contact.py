@@ -356,3 +356,102 @@ def inside_by_parity(vertices, faces, origin, h, dims, shift_x, shift_y, inside)
                 while below < column.shape[0] and column[below] < pz:
                     below += 1
                 inside[i, j, k] = below % 2 == 1
+
+
+# ------------------------------------------------------------------ rigid tools
+#: tool shapes (:mod:`heml_gym.tools`): a capsule (radius, half-length along its local z)
+#: and a box (half-extents along its local x, y, z)
+CAPSULE = 0
+BOX = 1
+
+
+@nb.njit(cache=True, inline="always")
+def tool_signed_distance(kind, size, pose, px, py, pz):
+    """Signed distance (m, negative inside) of ``p`` to one posed tool and the unit outward
+    normal there: ``kind`` (:data:`CAPSULE` or :data:`BOX`), ``size (3,)`` (capsule:
+    radius, half-length; box: half-extents, m), ``pose (12,)`` (the tool's centre, m, then
+    its rotation matrix row by row: its columns are the tool's axes in the world).
+    Returns ``(d, nx, ny, nz)``."""
+    dx = px - pose[0]
+    dy = py - pose[1]
+    dz = pz - pose[2]
+    # local coordinates: R^T d
+    lx = pose[3] * dx + pose[6] * dy + pose[9] * dz
+    ly = pose[4] * dx + pose[7] * dy + pose[10] * dz
+    lz = pose[5] * dx + pose[8] * dy + pose[11] * dz
+    if kind == CAPSULE:
+        cz = min(max(lz, -size[1]), size[1])
+        ex = lx
+        ey = ly
+        ez = lz - cz
+        r = math.sqrt(ex * ex + ey * ey + ez * ez)
+        d = r - size[0]
+        if r > 0.0:
+            mx = ex / r
+            my = ey / r
+            mz = ez / r
+        else:  # on the axis: any normal to it
+            mx = 1.0
+            my = 0.0
+            mz = 0.0
+    else:
+        qx = abs(lx) - size[0]
+        qy = abs(ly) - size[1]
+        qz = abs(lz) - size[2]
+        sx = 1.0 if lx >= 0.0 else -1.0
+        sy = 1.0 if ly >= 0.0 else -1.0
+        sz = 1.0 if lz >= 0.0 else -1.0
+        if qx > 0.0 or qy > 0.0 or qz > 0.0:  # outside: to the nearest point of the box
+            ox = max(qx, 0.0)
+            oy = max(qy, 0.0)
+            oz = max(qz, 0.0)
+            d = math.sqrt(ox * ox + oy * oy + oz * oz)
+            mx = sx * ox / d
+            my = sy * oy / d
+            mz = sz * oz / d
+        else:  # inside: out through the nearest face
+            mx = 0.0
+            my = 0.0
+            mz = 0.0
+            if qx >= qy and qx >= qz:
+                d = qx
+                mx = sx
+            elif qy >= qz:
+                d = qy
+                my = sy
+            else:
+                d = qz
+                mz = sz
+    # back to the world: R n
+    nx = pose[3] * mx + pose[4] * my + pose[5] * mz
+    ny = pose[6] * mx + pose[7] * my + pose[8] * mz
+    nz = pose[9] * mx + pose[10] * my + pose[11] * mz
+    return d, nx, ny, nz
+
+
+@nb.njit(cache=True)
+def tool_distances(points, kind, size, pose, distance, normal):
+    """Lower ``distance (n,)`` and ``normal (n, 3)`` (as :func:`signed_distances` leaves
+    them) where a posed tool is nearer: ``kind (T,)``, ``size (T, 3)``, ``pose (T, 12)``
+    (one world's, see :func:`tool_signed_distance`)."""
+    for i in range(points.shape[0]):
+        for t in range(kind.shape[0]):
+            d, nx, ny, nz = tool_signed_distance(kind[t], size[t], pose[t], points[i, 0], points[i, 1], points[i, 2])
+            if d < distance[i]:
+                distance[i] = d
+                normal[i, 0] = nx
+                normal[i, 1] = ny
+                normal[i, 2] = nz
+
+
+@nb.njit(cache=True)
+def tool_each(points, kind, size, pose, distance, normal):
+    """Each posed tool's signed distance (m) of each point and its outward normal, into
+    ``distance (T, k)`` and ``normal (T, k, 3)`` (``pose (T, 12)``: one world's)."""
+    for t in range(kind.shape[0]):
+        for i in range(points.shape[0]):
+            d, nx, ny, nz = tool_signed_distance(kind[t], size[t], pose[t], points[i, 0], points[i, 1], points[i, 2])
+            distance[t, i] = d
+            normal[t, i, 0] = nx
+            normal[t, i, 1] = ny
+            normal[t, i, 2] = nz

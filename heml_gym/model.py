@@ -33,10 +33,11 @@ import scipy.sparse.linalg as spla
 from .contact import Support, Supports
 from .control import Control
 from .forces import FemForce, ForceField, HemlForce, MassSpringForce, MassTensorForce, QuadraticFemForce
-from .kernel_data import HemlBody, HemlLaws
+from .kernel_data import HemlBody, HemlLaws, SupportArrays
 from .materials import Material
 from .mesh import TetMesh
 from .state import State
+from .tools import Tools
 
 __all__ = ["Model", "Damping", "FORCE_FIELDS"]
 
@@ -88,11 +89,15 @@ class Model:
     supports : sequence of :class:`~heml_gym.contact.PlaneSupport` /
         :class:`~heml_gym.contact.MeshSupport`
         Rigid bodies the tissue rests on.
+    tools : sequence of :class:`~heml_gym.tools.Capsule` / :class:`~heml_gym.tools.Box`
+        Rigid tools that touch the tissue, posed per world each step
+        (:meth:`heml_gym.Control.pose_tool`; the ``quasi_newton`` and ``implicit``
+        integrators step them).
     """
 
     def __init__(self, mesh: TetMesh | None = None, material: Material | Sequence[Material] | None = None,
                  n_worlds: int | None = None, field="heml", density: float = 1000.0, fixed=None,
-                 gravity=(0.0, 0.0, -9.81), damping: Damping | float | None = None, supports=()):
+                 gravity=(0.0, 0.0, -9.81), damping: Damping | float | None = None, supports=(), tools=()):
         if isinstance(field, ForceField):
             if mesh is not None and mesh is not field.mesh:
                 raise ValueError("mesh and field.mesh differ: give one of them")
@@ -145,6 +150,7 @@ class Model:
         for s in self.supports.items:
             if not isinstance(s, Support):
                 raise TypeError(f"supports must be PlaneSupport / MeshSupport objects, got {type(s).__name__}")
+        self.tools = tools if isinstance(tools, Tools) else Tools(tools)
         self.mass = density * mesh.vertex_volumes  # kg per vertex
         self.fixed = vertex_mask(mesh.n_vertices, fixed, "fixed")
         self.fixed.setflags(write=False)
@@ -291,7 +297,17 @@ class Model:
 
     def control(self) -> Control:
         """A control with nothing held and no external force."""
-        return Control(self.n_worlds, self.n_vertices)
+        return Control(self.n_worlds, self.n_vertices, n_tools=len(self.tools))
+
+    def contact_args(self, control: Control, tool_k=None) -> SupportArrays:
+        """The supports and the tools posed as ``control`` says, their penalty stiffness
+        ``tool_k (N, n)`` (N/m at each vertex), for the kernels."""
+        return self.supports.kernel_args(self.tools, control.tool_pose, tool_k)
+
+    @property
+    def has_contact(self) -> bool:
+        """Whether the tissue can touch anything rigid (a support or a tool)."""
+        return bool(len(self.supports) or len(self.tools))
 
     # --------------------------------------------------------------- stability
     def critical_dt(self, world: int | None = None, material: Material | None = None) -> float:

@@ -13,7 +13,14 @@ from ..control import Control
 from ..model import Model
 from ..state import State
 
-__all__ = ["StepStats", "WorldStepStats", "SimulationDiverged", "Solver"]
+__all__ = ["StepStats", "WorldStepStats", "SimulationDiverged", "Solver", "checked_tool_stiffness"]
+
+
+def checked_tool_stiffness(value) -> float:
+    """A solver's ``tool_stiffness``: a positive number, or a one-line error naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"tool_stiffness must be a positive number (units of the tissue's own stiffness), got {value!r}")
+    return float(value)
 
 
 class SimulationDiverged(RuntimeError):
@@ -62,6 +69,9 @@ class StepStats:
     the factor by which the solver had to multiply a world's sub-steps (1: none).
     ``fallback (N,)``: the quasi-Newton solver took the step (or a sub-step of it) again by
     Newton's method, its fallback (``refinement`` then counts the Newton steps).
+    ``tool_force (N, T, 3)``: the force (N) each rigid tool (:mod:`heml_gym.tools`) exerts
+    on the tissue at the step's end (backward Euler's: its contact penalty at the
+    solution, before the projection onto its surface); None for a model without tools.
     """
 
     substeps: int
@@ -75,6 +85,7 @@ class StepStats:
     elements: list = field(default_factory=list)
     refinement: np.ndarray | None = None
     fallback: np.ndarray | None = None
+    tool_force: np.ndarray | None = None
 
     @classmethod
     def empty(cls, n_worlds: int, n_vertices: int, substeps: int) -> "StepStats":
@@ -115,10 +126,15 @@ class Solver:
     takes_hold_springs = False
     #: whether it steps jaws on a free wrist (``Control.turns``)
     takes_wrist = False
+    #: whether it steps rigid tools (``Model.tools``)
+    takes_tools = False
 
     def __init__(self, model: Model, max_speed: float = 1e3):
         if not isinstance(model, Model):
             raise TypeError(f"model must be a heml_gym.Model, got {type(model).__name__}")
+        if len(model.tools) and not self.takes_tools:
+            raise ValueError(f"tools: {type(self).__name__} does not step rigid tools yet; the quasi_newton and "
+                             "implicit integrators do")
         max_speed = float(max_speed)
         if not (math.isfinite(max_speed) and max_speed > 0):
             raise ValueError(f"max_speed must be a positive number of m/s, got {max_speed}")
@@ -161,6 +177,21 @@ class Solver:
         if state_out is not state_in:
             state_out.assign(state_in)
         return dt, active
+
+    def tool_penalty_stiffness(self) -> np.ndarray:
+        """``(N, n)`` N/m: the rigid tools' contact penalty at each vertex of each world,
+        ``tool_stiffness (lambda + mu) V_i^(1/3)`` (``V_i``: the vertex's share of the
+        volume): a multiple of the tissue's own stiffness there, whatever the step length,
+        so that the force a tool reports is within about ``1 / tool_stiffness`` of the
+        force it would take to hold the tissue exactly (a slab squeezed by a paddle, at the
+        default 100: within 1 %)."""
+        m = self.model
+        cached = getattr(self, "_tool_k", None)
+        if cached is None or cached[0] != m.material_revision:
+            modulus = np.array([mat.lame_lambda + mat.shear_modulus for mat in m.materials])
+            k = self.tool_stiffness * modulus[:, None] * np.cbrt(m.mesh.vertex_volumes)[None, :]
+            self._tool_k = cached = (m.material_revision, np.ascontiguousarray(k))
+        return cached[1]
 
     def force_scale(self, world: int, control: Control) -> float:
         """Force (N) the solver tolerances of ``world`` are relative to: its weight plus its

@@ -34,7 +34,7 @@ from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeCholesky, Fr
 from ..mesh import signed_volumes
 from ..model import Model
 from ..state import State
-from .base import Solver, StepStats, stiffness_damping
+from .base import Solver, StepStats, checked_tool_stiffness, stiffness_damping
 from .newton import linear_response, minimize, minimize_lbfgs
 from .quasi_newton import penalised_hessian
 
@@ -72,6 +72,9 @@ class ImplicitSolver(Solver):
         step); ``"direct"``: SuperLU on every system.
     contact_stiffness : float
         Penalty stiffness of the supports, in units of a vertex's inertia ``c m_i``.
+    tool_stiffness : float
+        Penalty stiffness of rigid tools (:mod:`heml_gym.tools`), in units of the tissue's
+        own at each vertex (as :class:`~heml_gym.solvers.QuasiNewtonSolver`'s).
     stall_limit : int or None
         Newton also stops after this many iterations in a row that cut the residual by
         less than 1 % (the round-off floor); None: only ``max_newton`` stops it.
@@ -102,13 +105,14 @@ class ImplicitSolver(Solver):
     """
 
     takes_hold_springs = True
+    takes_tools = True
 
     METHODS = ("newton", "lbfgs")
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_newton: int = 20,
                  linear_solver: str = "pcg", contact_stiffness: float = 100.0, stall_limit: int | None = 5,
                  max_speed: float = 1e3, refinements=(4, 16), method: str = "newton", history: int = 8,
-                 hessian_scale: float = 1.0, contact_refresh: int = 50):
+                 hessian_scale: float = 1.0, contact_refresh: int = 50, tool_stiffness: float = 100.0):
         super().__init__(model, max_speed)
         for f in model.fields:
             if not f.has_hessian:
@@ -144,6 +148,7 @@ class ImplicitSolver(Solver):
         self.max_newton = int(max_newton)
         self.linear_solver = linear_solver
         self.contact_stiffness = contact_stiffness
+        self.tool_stiffness = checked_tool_stiffness(tool_stiffness)
         self.stall_limit = stall_limit
         n = model.n_worlds
         self.pcg = [LaggedFactorPCG(rtol=1e-2, max_iter=8, factorization="cholesky") for _ in range(n)]
@@ -225,6 +230,7 @@ class ImplicitSolver(Solver):
         stats = StepStats.empty(m.n_worlds, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
+        self._tool_force = np.zeros((m.n_worlds, len(m.tools), 3))
         for s in np.flatnonzero(active):
             x0, v0 = state_out.x[s].copy(), state_out.v[s].copy()
             tol = self.newton_tol * self.force_scale(s, control)
@@ -254,6 +260,8 @@ class ImplicitSolver(Solver):
                 stats.messages[s] = (f"Newton stopped at a force residual of {stats.residual[s]:.3g} N, above its "
                                      f"tolerance of {tol:.3g} N, after {stats.newton_iterations[s]} iterations "
                                      f"(sub-steps refined {stats.refinement[s]}x)")
+        if len(m.tools):
+            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], self._tool_force, 0.0)
         return stats
 
     def _retaken_substep(self, s, state, control, h, path, tol, stats) -> bool:
@@ -318,12 +326,18 @@ class ImplicitSolver(Solver):
         k3 = np.repeat(k_hold, 3)
         anchor = targets.reshape(-1)
         supports = m.supports
+        touches = len(supports) > 0
         k_contact = self.contact_stiffness * c * m.mass  # N/m per vertex
+        k_tool = self.tool_penalty_stiffness()[s] if len(m.tools) else None  # N/m per vertex
 
         def contact(x):
             """(penetration (n,) <= 0 on free vertices, normals (n, 3))"""
             d, normal = supports.signed_distance(x)
             return np.where(free_v, np.minimum(d, 0.0), 0.0), normal
+
+        def tools(x):
+            """The rigid tools' penalty at x (:class:`heml_gym.tools.ToolPenalty`), None without tools"""
+            return m.tools.penalty(x, control.tool_pose[s], k_tool, free_v) if len(m.tools) else None
 
         def potential(x):
             d = x.reshape(-1) - x_hat
@@ -334,9 +348,11 @@ class ImplicitSolver(Solver):
             if k_n is not None:
                 dn = x.reshape(-1) - x0
                 phi += 0.5 * float(dn @ (k_n @ dn))
-            if len(supports):
+            if touches:
                 pen, _ = contact(x)
                 phi += 0.5 * float(k_contact @ (pen * pen))
+            if len(m.tools):
+                phi += tools(x).energy
             return phi
 
         def gradient(x):
@@ -345,25 +361,27 @@ class ImplicitSolver(Solver):
                 g += k3 * (x.reshape(-1) - anchor)
             if k_n is not None:
                 g += k_n @ (x.reshape(-1) - x0)
-            if len(supports):
+            if touches:
                 pen, normal = contact(x)
                 g += ((k_contact * pen)[:, None] * normal).reshape(-1)
+            if len(m.tools):
+                g += tools(x).gradient.reshape(-1)
             return g
 
         def hessian(x, project):
             touching, normal = np.zeros(0, dtype=np.int64), None
-            if len(supports):
+            if touches:
                 pen, normal = contact(x)
                 touching = np.flatnonzero(pen < 0)
             a = penalised_hessian(field, m.mass, x, c, project, self._add_diagonal, self._add_blocks, touching,
-                                  normal, self.contact_stiffness * c, k_hold)
+                                  normal, self.contact_stiffness * c, k_hold, tools(x))
             return a if k_n is None else a + k_n
 
         x = self._feasible_start(s, field, x_n, v_n, h, control, targets, potential, hessian)
         free = np.repeat(free_v, 3)
         if self.method == "lbfgs":
             touching, normal = np.zeros(m.n_vertices, dtype=bool), None
-            if len(supports):
+            if touches:
                 pen, normal = contact(x)
                 touching = pen < 0
             precondition = self._lbfgs_preconditioner(s, field, c, free_v, k_hold, touching, normal, k_contact)
@@ -376,7 +394,9 @@ class ImplicitSolver(Solver):
             raise _Diverged("Newton iterate went non-finite")
         x = result.x
         v = (x - x_n) / h
-        if len(supports):  # onto the supports, without velocity into them
+        if len(m.tools):  # each tool's contact force at the solution
+            self._tool_force[s] = tools(x).force
+        if touches:  # onto the supports, without velocity into them
             pen, normal = contact(x)
             x -= pen[:, None] * normal
             v = (x - x_n) / h

@@ -290,7 +290,7 @@ def lane_substeps(lanes_, body, law, supports, step):
     x, v, f, reaction, ext, kinematic, kin_from, kin_to, p0, p1, psi1, bad_vertex = lanes_
     tets, inv_det, base_w, mass, gravity = body.tets, body.inv_det, body.edge_weights, body.mass, body.gravity
     alpha, fixed = body.alpha, body.fixed
-    planes, grids, grid_values = supports
+    planes, grids, grid_values = supports.planes, supports.grids, supports.grid_values
     h, n_sub, max_speed = step
     n_blocks, n, _, lanes = x.shape
     if lanes > LANES:

@@ -44,9 +44,9 @@ from typing import NamedTuple
 
 from ..forces.kernels_heml import (constant_psi1_energy_and_forces_chunk, constant_psi1_forces_chunk,
                                    heml_energy_chunk, heml_forces_chunk)
-from ..kernel_data import world_law
+from ..kernel_data import world_law, world_supports
 from ..kernels_cholesky import envelope_cholesky, envelope_solve, envelope_solve_pair
-from ..kernels_contact import signed_distances
+from ..kernels_contact import signed_distances, tool_signed_distance
 from .kernels_wrist import begin_wrist, radius, settle, subset_forces, tets_touching, world_wrist
 
 
@@ -303,6 +303,31 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supp
                 phi += 0.5 * ks * e * e
                 if want_gradient:
                     g[i, d] += ks * e
+    if supports.tool_kind.shape[0]:
+        phi += _tool_penalty(x, want_gradient, g, held, mass, c, supports)
+    return phi
+
+
+@nb.njit(cache=True)
+def _tool_penalty(x, want_gradient, g, held, mass, c, supports):
+    """The rigid tools' contact penalty ``sum_t sum_i k_i / 2 min(d_it, 0)^2`` (J), ``k_i =
+    tool_k[i]`` (N/m), on the free vertices (each tool on its own, so that a vertex
+    squeezed between two feels both), its gradient added into ``g``. ``supports``: a
+    world's view (one row of poses)."""
+    phi = 0.0
+    kind, size, pose = supports.tool_kind, supports.tool_size, supports.tool_pose[0]
+    for i in range(x.shape[0]):
+        if held[i]:
+            continue
+        k = supports.tool_k[0, i]
+        for t in range(kind.shape[0]):
+            d, nx, ny, nz = tool_signed_distance(kind[t], size[t], pose[t], x[i, 0], x[i, 1], x[i, 2])
+            if d < 0.0:
+                phi += 0.5 * k * d * d
+                if want_gradient:
+                    g[i, 0] += k * d * nx
+                    g[i, 1] += k * d * ny
+                    g[i, 2] += k * d * nz
     return phi
 
 
@@ -448,6 +473,26 @@ def begin_substep(x, v, targets, holds, ext, body, law, sub, history, r_prev, wo
 
 
 @nb.njit(cache=True)
+def tool_contact_forces(x, held, mass, c, supports, out):
+    """``out (T, 3)`` = the force (N) of each rigid tool of a world's ``supports`` (its view:
+    one row of poses) on the free vertices inside it at ``x``: its contact penalty's,
+    ``k_i |d_i| n_i`` with ``k_i = tool_k[i]`` (backward Euler's contact force at
+    the step's end)."""
+    out[:, :] = 0.0
+    kind, size, pose = supports.tool_kind, supports.tool_size, supports.tool_pose[0]
+    for i in range(x.shape[0]):
+        if held[i]:
+            continue
+        k = supports.tool_k[0, i]
+        for t in range(kind.shape[0]):
+            d, nx, ny, nz = tool_signed_distance(kind[t], size[t], pose[t], x[i, 0], x[i, 1], x[i, 2])
+            if d < 0.0:
+                out[t, 0] -= k * d * nx
+                out[t, 1] -= k * d * ny
+                out[t, 2] -= k * d * nz
+
+
+@nb.njit(cache=True)
 def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, body, law, sub, history, holds):
     """What a sub-step does after its minimisation reached ``x``, whichever method
     minimised: vertices inside a support (``dist``, ``normal``: the signed distances at
@@ -519,7 +564,7 @@ def end_substep(x, v, work, dist, normal, n_supports, f_at_x, reaction, r_prev, 
 
 @nb.njit(cache=True)
 def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory, tol, sub, history, r_prev,
-                 reaction, out, wrist):
+                 reaction, out, wrist, tool_force):
     """One backward Euler (``sub.order`` 1) or BDF2 (2) sub-step of one world by L-BFGS, in
     place on ``x, v`` ``(n, 3)``: :func:`begin_substep`, L-BFGS from the best of four
     starts, :func:`end_substep`. ``body``, ``law``, ``supports``: the model's (see
@@ -676,6 +721,8 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
         gnorm = math.sqrt(_dot(g, g))
     if has_wrist:
         wrist.angle[0] = angle_at_x
+    if supports.tool_kind.shape[0]:
+        tool_contact_forces(x, held, body.mass, c, supports, tool_force)
     end_substep(x, v, work, dist, normal, n_supports, last_at_x, reaction, r_prev, body, law, sub, history, holds)
     memory.memory[0] = stored
     memory.memory[1] = newest
@@ -693,39 +740,40 @@ def _reduced_potential(trial, g, f, dist, normal, args, has_wrist, wrist, patch,
 
 @nb.njit(cache=True, inline="always")
 def _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history, r_prev,
-                reaction, out, wrist):
+                reaction, out, wrist, tool_force):
     """:func:`_lbfgs_world` of world ``s`` of the stacked bundles."""
     _lbfgs_world(x[s], v[s], targets[s], Holds(holds.kinematic[s], holds.stiffness[s], holds.anchor[s]), ext[s],
-                 body, world_law(laws, s), supports,
+                 body, world_law(laws, s), world_supports(supports, s),
                  world_hessian(hessians, s),
                  LbfgsMemory(memory.s_hist[s], memory.y_hist[s], memory.rho[s], memory.memory[s]), tol[s], sub,
                  Bdf2History(history.x_prev[s], history.v_prev[s], history.history_h[s:s + 1]), r_prev[s],
-                 reaction[s], out[s], world_wrist(wrist, s))
+                 reaction[s], out[s], world_wrist(wrist, s), tool_force[s])
 
 
 @nb.njit(cache=True, parallel=True)
 def lbfgs_steps_parallel(x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                         active, r_prev, reaction, out, wrist):
+                         active, r_prev, reaction, out, wrist, tool_force):
     """:func:`_lbfgs_world` for every ``active`` world (leading axis N of the arrays and of
     ``laws`` (:class:`~heml_gym.kernel_data.HemlLaws`), ``hessians``
     (:class:`InitialHessians`), ``memory`` (:class:`LbfgsMemory`), ``history``
     (:class:`Bdf2History`), ``wrist`` (:class:`~.kernels_wrist.Wrist`)), worlds over
     threads; world ``s`` preconditions with its current initial Hessian
-    ``hessians.values[s, hessians.entry[s]]``."""
+    ``hessians.values[s, hessians.entry[s]]``. ``tool_force (N, T, 3)`` receives each
+    rigid tool's force on the tissue at the sub-step's end (:func:`tool_contact_forces`)."""
     for s in prange(x.shape[0]):
         if active[s]:
             _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                        r_prev, reaction, out, wrist)
+                        r_prev, reaction, out, wrist, tool_force)
 
 
 @nb.njit(cache=True)
 def lbfgs_steps_serial(x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                       active, r_prev, reaction, out, wrist):
+                       active, r_prev, reaction, out, wrist, tool_force):
     """:func:`lbfgs_steps_parallel` world after world."""
     for s in range(x.shape[0]):
         if active[s]:
             _world_step(s, x, v, targets, holds, ext, body, laws, supports, hessians, memory, tol, sub, history,
-                        r_prev, reaction, out, wrist)
+                        r_prev, reaction, out, wrist, tool_force)
 
 
 @nb.njit(cache=True)

@@ -46,32 +46,43 @@ import scipy.sparse as sp
 
 from ..control import Control
 from ..forces.heml import HemlForce, assembled_edge_weights
-from ..kernel_data import world_law
+from ..kernel_data import world_law, world_supports
 from ..linear_solvers import DiagonalAdd, DiagonalBlockAdd, EnvelopeLayout, FreeSubmatrix, LaggedFactorPCG
 from ..model import Model
 from ..state import State
+from ..tools import Tools
 from . import kernels_quasi_newton as kq
 from .kernels_wrist import Wrist
-from .base import Solver, StepStats
+from .base import Solver, StepStats, checked_tool_stiffness
 from .newton import minimize
 
 __all__ = ["QuasiNewtonSolver", "incremental_hessian", "penalised_hessian"]
 
 
 def penalised_hessian(field, mass, y, c, project, add_diagonal, add_blocks, touching, normal, k_contact,
-                      springs=None):
+                      springs=None, tools=None):
     """The Hessian (CSR, 3n x 3n) at ``y`` (m) of a sub-step's incremental potential, the
     vertices in contact given: the ``field``'s stiffness (its per-element projection if
     ``project``), ``c M`` (1/s^2 times the lumped ``mass``), the hold ``springs`` (n,) N/m
     if any on the diagonal, and the support penalty ``k_contact m_i n n^T`` of the
     ``touching`` vertices (indices; ``normal`` (n, 3) the supports' normals);
     ``add_diagonal`` / ``add_blocks``: a :class:`~heml_gym.linear_solvers.DiagonalAdd` and
-    :class:`~heml_gym.linear_solvers.DiagonalBlockAdd` (they cache the pattern)."""
+    :class:`~heml_gym.linear_solvers.DiagonalBlockAdd` (they cache the pattern); ``tools``:
+    the rigid tools' :class:`~heml_gym.tools.ToolPenalty` at ``y``, whose blocks are added too."""
     diagonal = c * mass if springs is None else c * mass + springs
     hess = add_diagonal(field.hessian(y, project=project), np.repeat(diagonal, 3))
+    blocks = None
     if len(touching):
         nrm = normal[touching]
         blocks = (k_contact * mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+    if tools is not None and len(tools.touching):
+        merged = np.zeros((len(mass), 3, 3))
+        if blocks is not None:
+            merged[touching] = blocks
+        merged[tools.touching] += tools.blocks
+        touching = np.union1d(touching, tools.touching)
+        blocks = merged[touching]
+    if blocks is not None:
         hess = add_blocks(hess, touching, blocks)
     return hess
 
@@ -90,8 +101,12 @@ def incremental_hessian(field, mass, y, c, k_contact, held, potential_args, proj
         dist, normal = np.full(n, math.inf), np.zeros((n, 3))
         kq.potential_and_gradient(y, False, g, f, dist, normal, *potential_args)
         touching = np.flatnonzero((dist < 0.0) & ~held)
+    tools = None
+    if supports.tool_kind.shape[0]:  # (a world's view: one row of poses)
+        tools = Tools.from_arrays(supports.tool_kind, supports.tool_size).penalty(
+            y, supports.tool_pose[0], supports.tool_k[0], ~held)
     return penalised_hessian(field, mass, y, c, project, add_diagonal, add_blocks, touching, normal, k_contact,
-                             springs)
+                             springs, tools)
 
 
 class QuasiNewtonSolver(Solver):
@@ -117,6 +132,10 @@ class QuasiNewtonSolver(Solver):
         Penalty stiffness of the supports, in units of a vertex's inertia ``c m_i``
         (penetration at rest under gravity ``g / (contact_stiffness c)``: 0.07 mm at
         0.1 s steps).
+    tool_stiffness : float
+        Penalty stiffness of rigid tools (:mod:`heml_gym.tools`) in units of the tissue's
+        own at each vertex (``(lambda + mu) V_i^(1/3)``, N/m; :meth:`tool_penalty_stiffness`),
+        so that a tool's force does not depend on the step length.
     contact_refresh : int
         The initial Hessian is factorised again when the vertices in contact differ from
         those it holds by more than this many (a stale contact set costs iterations, a
@@ -155,14 +174,16 @@ class QuasiNewtonSolver(Solver):
 
     takes_hold_springs = True
     takes_wrist = True
+    takes_tools = True
 
     SCHEMES = {"backward_euler": 1, "bdf2": 2}
 
     def __init__(self, model: Model, newton_tol: float = 1e-3, max_iter: int = 50, history: int = 8,
                  contact_stiffness: float = 1000.0, contact_refresh: int = 50, refinements=(4, 16),
                  fallback=(1, 4, 16), max_newton: int = 100, max_speed: float = 1e3,
-                 scheme: str = "backward_euler", hessian_scale: float = 1.0):
+                 scheme: str = "backward_euler", hessian_scale: float = 1.0, tool_stiffness: float = 100.0):
         super().__init__(model, max_speed)
+        self.tool_stiffness = checked_tool_stiffness(tool_stiffness)
         if scheme not in self.SCHEMES:
             raise ValueError(f"scheme must be one of {sorted(self.SCHEMES)}, got {scheme!r}")
         self.scheme = scheme
@@ -228,7 +249,8 @@ class QuasiNewtonSolver(Solver):
         self._axis_slot = np.zeros((N, 2, 3), dtype=np.int64)
         self._entry = np.zeros(N, dtype=np.int64)
         self._factor_key: list = [[None, None] for _ in range(N)]  # (held mask bytes, stiffness, c) per entry
-        self._factor_contact = np.zeros((N, 2, n), dtype=bool)
+        # the contact set each factor holds (with tools: the supports' then the tools')
+        self._factor_contact = np.zeros((N, 2, n * (2 if len(model.tools) else 1)), dtype=bool)
         self._extra = np.zeros((N, 2, 3, n))  # the contact penalty on the diagonal of each factor
         # L-BFGS curvature pairs kept from step to step (dropped when the initial Hessian's
         # material, held set or step length changes): memory[s] = (pairs stored, newest)
@@ -281,7 +303,7 @@ class QuasiNewtonSolver(Solver):
         return self.hessian_scale * float(mat.lame_lambda + mat.shear_modulus)
 
     def _refresh_factors(self, worlds: np.ndarray, held: np.ndarray, x: np.ndarray, c: np.ndarray,
-                         springs: np.ndarray) -> None:
+                         springs: np.ndarray, control: Control | None = None) -> None:
         """Make current, for each of ``worlds``, the initial Hessian of its material, held
         set and step length: the current entry, else the other one if it holds it (a grasp
         undone, a refined step over), else factorised into the other (older) entry; and
@@ -293,10 +315,23 @@ class QuasiNewtonSolver(Solver):
         if len(worlds) == 0:
             return
         stiffness = self._stiffnesses()
+        contact_any = m.has_contact
+        contact = np.zeros((len(worlds), n), dtype=bool)
         if len(m.supports):
             d, normal = m.supports.signed_distance(x if len(worlds) == m.n_worlds else x[worlds])
             contact = (d.reshape(len(worlds), n) <= self._contact_margin) & ~held[worlds]
             normal = normal.reshape(len(worlds), n, 3)
+        tool_diag = None
+        if len(m.tools):  # each tool on its own, as in the potential: its penalty's diagonal per unit c m_i
+            tool_diag = np.zeros((len(worlds), 3, n))  # N/m
+            tool_k = self.tool_penalty_stiffness()
+            tool_contact = np.zeros((len(worlds), n), dtype=bool)
+            for k, s in enumerate(worlds):
+                d_t, normal_t = m.tools.each_distance(x[s], control.tool_pose[s])  # (T, n), (T, n, 3)
+                near = (d_t <= self._contact_margin) & ~held[s][None, :]
+                tool_contact[k] = near.any(axis=0)
+                tool_diag[k] = tool_k[s][None, :] * (near[:, :, None] * normal_t ** 2).sum(axis=0).T
+            contact_key = np.concatenate([contact, tool_contact], axis=1)  # (what a refresh compares)
         jobs = []
         for k, s in enumerate(worlds):
             key = (held[s].tobytes(), springs[s].tobytes(), stiffness[s], c[s])
@@ -306,11 +341,17 @@ class QuasiNewtonSolver(Solver):
                 self._entry[s] = ent
                 self._memory[s] = (0, -1)
             same_key = key == self._factor_key[s][ent]
-            if len(m.supports):
-                if same_key and np.count_nonzero(contact[k] != self._factor_contact[s, ent]) <= self.contact_refresh:
+            if contact_any:
+                key_now = contact[k] if tool_diag is None else contact_key[k]
+                if same_key and np.count_nonzero(key_now != self._factor_contact[s, ent]) <= self.contact_refresh:
                     continue
-                self._factor_contact[s, ent] = contact[k]
-                extra = (self.contact_stiffness * c[s] * m.mass * contact[k])[None, :] * normal[k].T ** 2  # (3, n)
+                self._factor_contact[s, ent] = key_now
+                if len(m.supports):
+                    extra = (self.contact_stiffness * c[s] * m.mass * contact[k])[None, :] * normal[k].T ** 2  # (3, n)
+                else:
+                    extra = np.zeros((3, n))
+                if tool_diag is not None:
+                    extra = extra + tool_diag[k]
                 extra = extra + springs[s][None, :]  # (the hold springs, on every axis)
             elif same_key:
                 continue
@@ -449,6 +490,8 @@ class QuasiNewtonSolver(Solver):
                                      f"tolerance of {tol[s]:.3g} N, after {stats.newton_iterations[s]} iterations "
                                      f"in all (sub-steps refined {stats.refinement[s]}x)")
         stats.reaction[~active] = 0.0
+        if len(m.tools):
+            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], args["tool_force"], 0.0)
         return stats
 
     @staticmethod
@@ -466,8 +509,10 @@ class QuasiNewtonSolver(Solver):
         m = self.model
         springs = control.spring_stiffness(m.fixed)
         return dict(x=state.x, v=state.v, control=control, held=held, tol=tol, body=m.heml_body(),
-                    laws=m.heml_laws(), supports=m.supports.kernel_args(), stiffness=self._stiffnesses(),
-                    springs=springs, holds=kq.Holds(control.kinematic, control.hold_stiffness, control.anchors))
+                    laws=m.heml_laws(), supports=m.contact_args(control, self.tool_penalty_stiffness()),
+                    stiffness=self._stiffnesses(),
+                    springs=springs, holds=kq.Holds(control.kinematic, control.hold_stiffness, control.anchors),
+                    tool_force=np.zeros((m.n_worlds, len(m.tools), 3)))
 
     def _stiffnesses(self) -> np.ndarray:
         """:meth:`stiffness` of every world (Pa), kept until a world's material changes."""
@@ -489,8 +534,8 @@ class QuasiNewtonSolver(Solver):
             return out
         x, v = a["x"], a["v"]
         c = np.full(N, self.inertia(h))
-        self._refresh_factors(np.flatnonzero(run), a["held"], x, c, a["springs"])
         control = a["control"]
+        self._refresh_factors(np.flatnonzero(run), a["held"], x, c, a["springs"], control)
         hessians = kq.InitialHessians(self.layout.inverse, self.layout.first, self.layout.ptr, self._values,
                                       self._entry, self._axis_slot, self._edge_i, self._edge_j, self._edge_w,
                                       a["stiffness"])
@@ -499,7 +544,7 @@ class QuasiNewtonSolver(Solver):
                       control.wrist_angle, control.wrist_stiffness)
         kernel(x, v, control.targets, a["holds"], control.external_forces, a["body"], a["laws"],
                a["supports"], hessians, self._lbfgs_memory(), a["tol"], self._substep(h, fraction, first_substep),
-               self._bdf2_history(), run, r_prev, contribution, out, wrist)
+               self._bdf2_history(), run, r_prev, contribution, out, wrist, a["tool_force"])
         return out
 
     def _substep(self, h: float, fraction: float, first_substep: bool) -> kq.Substep:
@@ -539,7 +584,7 @@ class QuasiNewtonSolver(Solver):
         control = a["control"]
         x, v = a["x"][s], a["v"][s]
         field = m.fields[s]
-        body, law, supports = a["body"], world_law(a["laws"], s), a["supports"]
+        body, law, supports = a["body"], world_law(a["laws"], s), world_supports(a["supports"], s)
         work = kq.substep_work(n, self.order)
         x_n, v_n, held, f = work.x_n, work.v_n, work.held, work.f
         sub = self._substep(h, fraction, first_substep)
@@ -583,6 +628,8 @@ class QuasiNewtonSolver(Solver):
         if not result.finite:
             return float(result.iterations), math.inf, 0.0, 1.0
         kq.potential_and_gradient(x, True, g, f, dist, normal, *potential_args)  # f, dist, normal at x
+        if len(m.tools):
+            kq.tool_contact_forces(x, held, body.mass, c, supports, a["tool_force"][s])
         kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub, history, holds)
         return float(result.iterations), result.residual, float(result.converged), 1.0
 

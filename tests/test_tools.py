@@ -1,0 +1,184 @@
+"""Rigid tools that touch the tissue (heml_gym/tools.py): their signed distances against
+geometry, contact against the support plane it must reproduce, the force they report
+against equilibrium (a slab's weight) and against the analytic uniaxial stress of a
+squeezed slab, the same equilibrium in both solvers that step them, and a one-line error
+from those that do not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import heml_gym as hg
+from heml_gym import materials as M
+from heml_gym.control import rotation
+from heml_gym.tools import Tools
+
+SLAB = hg.box_mesh((0.06, 0.03, 0.008), (6, 3, 2), origin=(0.0, 0.0, 0.0))
+DENSITY, GRAVITY, DAMPING = 950.0, (0.0, 0.0, -9.81), 2.0
+
+
+def _random_rotation(rng):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    return rotation(q[1:] / np.linalg.norm(q[1:]), 2 * np.arccos(q[0]))
+
+
+def _pose(centre, rot):
+    return np.concatenate([centre, rot.ravel()])[None, :]
+
+
+def test_a_capsules_distance_is_the_distance_to_its_segment_less_its_radius():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        r, half = rng.uniform(0.002, 0.01), rng.uniform(0.005, 0.05)
+        centre, rot = rng.uniform(-0.05, 0.05, 3), _random_rotation(rng)
+        tools = Tools([hg.Capsule(r, half)])
+        points = centre + rng.normal(size=(200, 3)) * 0.03
+        d, normal = tools.signed_distance(points, _pose(centre, rot))
+        # the segment, sampled densely: an independent nearest-point search
+        segment = centre + np.linspace(-half, half, 20001)[:, None] * rot[:, 2]
+        nearest = np.array([np.linalg.norm(segment - p, axis=1).min() for p in points])
+        np.testing.assert_allclose(d, nearest - r, atol=half / 20000 + 1e-12)
+        np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, rtol=1e-12)
+
+
+def test_a_boxs_distance_is_zero_on_its_faces_and_grows_along_their_normals_and_its_normal_is_its_gradient():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        h = rng.uniform(0.002, 0.03, 3)
+        centre, rot = rng.uniform(-0.05, 0.05, 3), _random_rotation(rng)
+        tools, pose = Tools([hg.Box(h)]), _pose(centre, rot)
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                local = rng.uniform(-0.8, 0.8, (30, 3)) * h
+                local[:, axis] = sign * h[axis]
+                out = sign * rot[:, axis]
+                face = centre + local @ rot.T
+                for s in (0.0, 0.001, -0.2 * h.min()):  # on, outside, inside (nearer this face than any other)
+                    d, normal = tools.signed_distance(face + s * out, pose)
+                    np.testing.assert_allclose(d, s, atol=1e-13)
+                    if s != 0.0:
+                        np.testing.assert_allclose(normal, np.broadcast_to(out, normal.shape), atol=1e-12)
+        # outside, off the faces (edges and corners too): the normal is the distance's gradient
+        points = centre + rng.normal(size=(50, 3)) * 0.04
+        d, normal = tools.signed_distance(points, pose)
+        eps = 1e-7
+        grad = np.column_stack([(tools.signed_distance(points + eps * e, pose)[0]
+                                 - tools.signed_distance(points - eps * e, pose)[0]) / (2 * eps) for e in np.eye(3)])
+        outside = d > 1e-5
+        np.testing.assert_allclose(grad[outside], normal[outside], atol=1e-6)
+
+
+def _slab_model(tools=(), supports=(), gravity=GRAVITY, E=5e3, fixed=None):
+    return hg.Model(SLAB, M.NeoHookean(E=E, nu=0.45), density=DENSITY, gravity=gravity, damping=DAMPING,
+                    supports=supports, tools=tools, fixed=fixed)
+
+
+def _solver(model, integrator, **kwargs):
+    kwargs = {"newton_tol": 1e-9, **kwargs}
+    return (hg.ImplicitSolver if integrator == "implicit" else hg.QuasiNewtonSolver)(model, **kwargs)
+
+
+def _settle(model, integrator, steps=40, dt=0.05, pose=None, **kwargs):
+    solver = _solver(model, integrator, **kwargs)
+    state, control = model.state(), model.control()
+    if pose is not None:
+        control.pose_tool(0, 0, *pose)
+    for _ in range(steps):
+        stats = solver.step(state, state, control, dt)
+        assert not stats.diverged.any() and stats.converged.all(), stats.messages
+    return state, stats
+
+
+#: a paddle 100 x 60 x 4 mm (it reaches past the slab)
+PADDLE = hg.Box((0.05, 0.03, 0.002))
+#: a block 100 x 60 x 60 mm whose top face is the plane z = 0: a slab dropped on it from rest
+#: moves 25 mm in Newton's first iterate (backward Euler's free fall over 0.05 s), and would
+#: pass through a thinner tool (see heml_gym.tools on tunnelling)
+BLOCK = hg.Box((0.05, 0.03, 0.03))
+BLOCK_UNDER = ((0.03, 0.015, -0.03), None)
+
+
+@pytest.mark.parametrize("integrator", ["quasi_newton", "implicit"])
+def test_a_slab_resting_on_a_tool_rests_as_on_the_plane_and_the_tool_carries_its_weight(integrator):
+    """A tool's flat face is the plane (here a stiff one): the same equilibrium, to within
+    the penalty's penetration (a tool leaves it; the plane projects it away)."""
+    on_paddle, stats = _settle(_slab_model(tools=[BLOCK]), integrator, pose=BLOCK_UNDER)
+    on_plane, _ = _settle(_slab_model(supports=[hg.PlaneSupport(height=0.0)]), integrator, contact_stiffness=1e6)
+    penetration = -on_paddle.x[0, :, 2].min()
+    assert 0 <= penetration < 1e-5
+    assert np.abs(on_paddle.x - on_plane.x).max() <= 2 * penetration + 1e-7  # m, the same equilibrium
+    assert np.abs(on_paddle.x[0, :, 2] - SLAB.vertices[:, 2]).max() > 1e-5  # it sagged under its weight
+    weight = DENSITY * 0.06 * 0.03 * 0.008 * 9.81
+    force = stats.tool_force[0, 0]
+    assert force[2] == pytest.approx(weight, rel=0.01)
+    assert np.abs(force[:2]).max() < 0.01 * weight
+
+
+@pytest.mark.parametrize("integrator", ["quasi_newton", "implicit"])
+def test_a_slab_squeezed_by_a_paddle_pushes_back_with_its_uniaxial_stress(integrator):
+    """Weightless, on the frictionless floor, pressed 0.2 % of its height by a flat
+    paddle turned upside down: uniaxial stress, F = E A delta / H (linear tets represent a
+    uniform strain exactly; at 0.2 % the Neo-Hookean law is linear to 0.3 %)."""
+    E, H, delta = 5e3, 0.008, 0.008 * 0.002
+    flipped = rotation(np.array([1.0, 0.0, 0.0]), np.pi)  # the paddle's -z face now faces up: any face works
+    pose = ((0.03, 0.015, H - delta + 0.002), flipped)
+    model = _slab_model(tools=[PADDLE], supports=[hg.PlaneSupport(height=0.0)], gravity=(0.0, 0.0, 0.0), E=E)
+    # the floor as stiff as the tool: the slab cannot sink into it instead
+    state, stats = _settle(model, integrator, steps=60, pose=pose, contact_stiffness=1e6)
+    force = stats.tool_force[0, 0]
+    assert -force[2] == pytest.approx(E * 0.06 * 0.03 * delta / H, rel=0.01)
+    np.testing.assert_allclose(state.x[0, :, 2].max(), H - delta, atol=0.01 * delta)  # the top on the paddle
+
+
+def test_both_solvers_find_the_same_equilibrium_under_a_capsule():
+    """A bar (capsule) lowered across the slab on the floor, 1 mm into it over 10 steps,
+    then held: quasi-Newton and Newton agree (the slab's end x = 0 fixed: on a frictionless
+    floor under a frictionless bar it would otherwise slide off)."""
+    bar = hg.Capsule(0.004, 0.03)
+    along_y = rotation(np.array([1.0, 0.0, 0.0]), np.pi / 2)  # its axis along y
+    results = []
+    for integrator in ("quasi_newton", "implicit"):
+        model = _slab_model(tools=[bar], supports=[hg.PlaneSupport(height=0.0)],
+                            fixed=np.flatnonzero(SLAB.vertices[:, 0] == 0.0))
+        # the floor as stiff as the tool (a soft floor, projected after each step, and the bar
+        # take turns at the vertices squeezed between them: the solvers then differ)
+        solver = _solver(model, integrator, newton_tol=1e-6, contact_stiffness=1e6)
+        state, control = model.state(), model.control()
+        for k in range(40):
+            depth = 0.001 * min(k + 1, 10) / 10
+            control.pose_tool(0, 0, (0.03, 0.015, 0.008 + 0.004 - depth), along_y)
+            stats = solver.step(state, state, control, 0.05)
+            assert not stats.diverged.any() and stats.converged.all(), stats.messages
+        results.append((state, stats))
+    (qn, qn_stats), (nt, nt_stats) = results
+    assert np.abs(qn.x - nt.x).max() < 1e-5  # m: 1 % of the press
+    assert qn_stats.tool_force[0, 0, 2] < -0.1  # N: it presses down
+    np.testing.assert_allclose(qn_stats.tool_force, nt_stats.tool_force, rtol=0.01, atol=1e-3)
+
+
+def test_a_model_without_tools_reports_no_tool_force_and_an_unposed_tool_touches_nothing():
+    _, stats = _settle(_slab_model(supports=[hg.PlaneSupport(height=0.0)]), "quasi_newton", steps=2)
+    assert stats.tool_force is None
+    _, stats = _settle(_slab_model(tools=[PADDLE], supports=[hg.PlaneSupport(height=0.0)]), "quasi_newton", steps=2)
+    np.testing.assert_array_equal(stats.tool_force, 0.0)
+
+
+@pytest.mark.parametrize("solver", [hg.ExplicitSolver, hg.StaticSolver])
+def test_a_solver_that_does_not_step_tools_refuses_them_in_one_line(solver):
+    with pytest.raises(ValueError, match=r"^tools: .* does not step rigid tools yet") as caught:
+        solver(_slab_model(tools=[PADDLE]))
+    assert "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: hg.Capsule(-1.0, 0.01), r"radius must be a positive number"),
+    (lambda: hg.Box((0.01, 0.01)), r"half_extents must be three positive lengths"),
+    (lambda: _slab_model(tools=[PADDLE]).control().pose_tool(0, 1, (0, 0, 0)), r"tool must be in \[0, 1\)"),
+    (lambda: _slab_model(tools=[PADDLE]).control().pose_tool(0, 0, (0, 0, 0), np.diag([1.0, 1.0, -1.0])),
+     r"rotation must be a \(3, 3\) rotation matrix"),
+])
+def test_bad_tools_and_poses_are_one_line_naming_the_argument(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
