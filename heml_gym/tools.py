@@ -121,13 +121,15 @@ class Tools:
         touching = np.flatnonzero((pen < 0.0).any(axis=0))
         blocks = np.einsum("tk,tka,tkb->kab", (k[None, :] * (pen < 0.0))[:, touching], n[:, touching],
                            n[:, touching])
-        return ToolPenalty(energy, push.sum(axis=0), -push.sum(axis=1), touching, blocks)
+        return ToolPenalty(energy, push.sum(axis=0), -push.sum(axis=1), touching, blocks, k)
 
 
 class ToolPenalty:
     """:meth:`Tools.penalty`'s parts: ``energy`` (J), ``gradient (k, 3)`` (N), ``force (T,
     3)`` (N: each tool's on the points), ``touching`` (indices of the points inside a
-    tool) and ``blocks (len(touching), 3, 3)`` (its Hessian's, N/m)."""
+    tool), ``blocks (len(touching), 3, 3)`` (its Hessian's, N/m) and ``stiffness (k,)``
+    (N/m, the penalty's at each point)."""
 
-    def __init__(self, energy, gradient, force, touching, blocks):
+    def __init__(self, energy, gradient, force, touching, blocks, stiffness):
         self.energy, self.gradient, self.force, self.touching, self.blocks = energy, gradient, force, touching, blocks
+        self.stiffness = stiffness

@@ -329,6 +329,8 @@ class ImplicitSolver(Solver):
         touches = len(supports) > 0
         k_contact = self.contact_stiffness * c * m.mass  # N/m per vertex
         k_tool = self.tool_penalty_stiffness()[s] if len(m.tools) else None  # N/m per vertex
+        if k_tool is not None:  # tissue pressed onto a support by a tool: the support as stiff as the tool
+            k_contact = np.maximum(k_contact, k_tool)
 
         def contact(x):
             """(penetration (n,) <= 0 on free vertices, normals (n, 3))"""

@@ -266,6 +266,7 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supp
     m = tets.shape[0]
     mass = body.mass
     n_supports = supports.planes.shape[0] + supports.grids.shape[0]
+    n_tools = supports.tool_kind.shape[0]
     if law.split and want_gradient:  # energy and forces in one pass
         f[:, :] = 0.0
         phi = constant_psi1_energy_and_forces_chunk(x, tets, body.inv_det, body.coef_t[0], law.weights, law.psi1,
@@ -290,6 +291,8 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supp
         mi = mass[i]
         pen = min(dist[i], 0.0) if n_supports else 0.0
         kc = k_contact * mi
+        if n_tools:  # tissue pressed onto a support by a tool: the support as stiff as the tool
+            kc = max(kc, supports.tool_k[0, i])
         for d in range(3):
             e = x[i, d] - x_hat[i, d]
             phi += 0.5 * c * mi * e * e - load[i, d] * x[i, d]

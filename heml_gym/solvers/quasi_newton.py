@@ -74,7 +74,10 @@ def penalised_hessian(field, mass, y, c, project, add_diagonal, add_blocks, touc
     blocks = None
     if len(touching):
         nrm = normal[touching]
-        blocks = (k_contact * mass[touching])[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
+        k = k_contact * mass[touching]
+        if tools is not None:  # (a support is as stiff as the tools where they press tissue onto it)
+            k = np.maximum(k, tools.stiffness[touching])
+        blocks = k[:, None, None] * nrm[:, :, None] * nrm[:, None, :]
     if tools is not None and len(tools.touching):
         merged = np.zeros((len(mass), 3, 3))
         if blocks is not None:
@@ -137,7 +140,8 @@ class QuasiNewtonSolver(Solver):
         own at each vertex (``(lambda + mu) V_i^(1/3)``, N/m; :meth:`tool_penalty_stiffness`),
         so that a tool's force does not depend on the step length.
     contact_refresh : int
-        The initial Hessian is factorised again when the vertices in contact differ from
+        The initial Hessian is factorised again when a rigid tool's contact set changes, or
+        when the vertices in contact with the supports differ from
         those it holds by more than this many (a stale contact set costs iterations, a
         factorisation about as much as ten of them).
     refinements : sequence of int
@@ -343,10 +347,15 @@ class QuasiNewtonSolver(Solver):
             same_key = key == self._factor_key[s][ent]
             if contact_any:
                 key_now = contact[k] if tool_diag is None else contact_key[k]
-                if same_key and np.count_nonzero(key_now != self._factor_contact[s, ent]) <= self.contact_refresh:
+                changed = key_now != self._factor_contact[s, ent]
+                # a tool's contact is stiff: any change of it refactorises (the supports' tolerate a few)
+                if same_key and np.count_nonzero(changed[:n]) <= self.contact_refresh and not changed[n:].any():
                     continue
                 self._factor_contact[s, ent] = key_now
-                if len(m.supports):
+                if len(m.supports) and tool_diag is not None:  # (as stiff as the tools: the potential's)
+                    k_support = np.maximum(self.contact_stiffness * c[s] * m.mass, tool_k[s])
+                    extra = (k_support * contact[k])[None, :] * normal[k].T ** 2
+                elif len(m.supports):
                     extra = (self.contact_stiffness * c[s] * m.mass * contact[k])[None, :] * normal[k].T ** 2  # (3, n)
                 else:
                     extra = np.zeros((3, n))
