@@ -182,3 +182,44 @@ def test_a_solver_that_does_not_step_tools_refuses_them_in_one_line(solver):
 def test_bad_tools_and_poses_are_one_line_naming_the_argument(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+@pytest.mark.parametrize("integrator", ["quasi_newton", "implicit"])
+def test_the_tools_impulse_is_the_change_of_the_tissues_momentum(integrator):
+    """A free slab (nothing fixed, no floor, no damping) lifted by a paddle that speeds up:
+    each step, sum m dv / dt = M g + the paddle's reported force (backward Euler's momentum
+    balance: the elastic forces sum to zero)."""
+    model = hg.Model(SLAB, M.NeoHookean(E=5e3, nu=0.45), density=DENSITY, gravity=GRAVITY, damping=0.0,
+                     tools=[BLOCK])
+    solver = _solver(model, integrator, newton_tol=1e-8)
+    state, control = model.state(), model.control()
+    weight = model.mass.sum() * np.asarray(GRAVITY)
+    dt, z = 0.05, -0.03
+    for k in range(30):
+        z += 0.0005 * max(0, k - 10) * dt / 0.05  # still, then faster and faster up
+        control.pose_tool(0, 0, (0.03, 0.015, z))
+        v0 = state.v[0].copy()
+        stats = solver.step(state, state, control, dt)
+        assert stats.converged.all(), stats.messages
+        rate = (model.mass[:, None] * (state.v[0] - v0)).sum(axis=0) / dt
+        np.testing.assert_allclose(rate, weight + stats.tool_force[0, 0], atol=1e-6 * np.linalg.norm(weight))
+    assert state.x[0, :, 2].min() > 0.004  # it was lifted
+
+
+@pytest.mark.parametrize("speed", [0.01, 0.03])
+def test_a_paddle_driven_into_a_slab_below_its_speed_limit_lets_no_vertex_through(speed):
+    """A 4 mm paddle driven down at ``speed`` (m/s) onto a slab on a stiff floor, in 0.05 s
+    steps: no vertex passes its middle plane, as long as it moves less than its half
+    thickness in a step (here 40 mm/s; heml_gym.tools states the limit)."""
+    model = _slab_model(tools=[PADDLE], supports=[hg.PlaneSupport(height=0.0)])
+    solver = _solver(model, "quasi_newton", newton_tol=1e-4, contact_stiffness=1e6)
+    state, control = model.state(), model.control()
+    top = 0.010
+    for _ in range(40):
+        top = max(top - speed * 0.05, 0.004)  # down to half the slab's height, then held
+        control.pose_tool(0, 0, (0.03, 0.015, top + 0.002))
+        stats = solver.step(state, state, control, 0.05)
+        assert not stats.diverged.any()
+        under = (np.abs(state.x[0, :, 0] - 0.03) < 0.05) & (np.abs(state.x[0, :, 1] - 0.015) < 0.03)
+        assert np.all(state.x[0, under, 2] <= top + 0.002 + 1e-9)  # none above the paddle's middle
+    assert -stats.tool_force[0, 0, 2] > 0.1  # N: it squeezes the slab

@@ -70,8 +70,9 @@ class StepStats:
     ``fallback (N,)``: the quasi-Newton solver took the step (or a sub-step of it) again by
     Newton's method, its fallback (``refinement`` then counts the Newton steps).
     ``tool_force (N, T, 3)``: the force (N) each rigid tool (:mod:`heml_gym.tools`) exerts
-    on the tissue at the step's end (backward Euler's: its contact penalty at the
-    solution, before the projection onto its surface); None for a model without tools.
+    on the tissue, averaged over the step's sub-steps (each sub-step's contact penalty at
+    its solution, backward Euler's force: the impulse over the step divided by its
+    length); None for a model without tools.
     """
 
     substeps: int

@@ -230,7 +230,8 @@ class ImplicitSolver(Solver):
         stats = StepStats.empty(m.n_worlds, m.n_vertices, substeps)
         stats.residual[:] = 0.0
         h = dt / substeps
-        self._tool_force = np.zeros((m.n_worlds, len(m.tools), 3))
+        self._tool_force = np.zeros((m.n_worlds, len(m.tools), 3))  # the last sub-step's end force
+        self._tool_sum = np.zeros((m.n_worlds, len(m.tools), 3))  # their mean over the step, times substeps
         for s in np.flatnonzero(active):
             x0, v0 = state_out.x[s].copy(), state_out.v[s].copy()
             tol = self.newton_tol * self.force_scale(s, control)
@@ -261,7 +262,7 @@ class ImplicitSolver(Solver):
                                      f"tolerance of {tol:.3g} N, after {stats.newton_iterations[s]} iterations "
                                      f"(sub-steps refined {stats.refinement[s]}x)")
         if len(m.tools):
-            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], self._tool_force, 0.0)
+            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], self._tool_sum / substeps, 0.0)
         return stats
 
     def _retaken_substep(self, s, state, control, h, path, tol, stats) -> bool:
@@ -276,6 +277,7 @@ class ImplicitSolver(Solver):
             state.x[s], state.v[s] = x_start, v_start
             stats.residual[s] = residual_before
             reaction = np.zeros_like(x_start)
+            tool_force = np.zeros((len(self.model.tools), 3))
             converged = True
             try:
                 for j in range(1, factor + 1):
@@ -285,6 +287,7 @@ class ImplicitSolver(Solver):
                     stats.residual[s] = max(stats.residual[s], result.residual)
                     converged &= result.converged
                     reaction += r / factor
+                    tool_force += self._tool_force[s] / factor
                     reason, elements = self.divergence(state.x[s], state.v[s])
                     if reason:
                         raise _Diverged(reason, elements)
@@ -297,6 +300,7 @@ class ImplicitSolver(Solver):
             stats.refinement[s] = max(stats.refinement[s], factor)
             if converged or last:
                 stats.reaction[s] += reaction
+                self._tool_sum[s] += tool_force
                 return converged
         return False  # (not reached: the last attempt returns or raises)
 

@@ -430,6 +430,7 @@ class QuasiNewtonSolver(Solver):
         stats.reaction[:] = 0.0
         feasible = np.ones(N, dtype=bool)
         args = self._kernel_args(state_out, control, held, tol)
+        tool_sum = np.zeros((N, len(m.tools), 3)) if len(m.tools) else None  # the tools' impulses over dt
         with np.errstate(all="ignore"):
             for k in range(1, substeps + 1):
                 run = active & feasible
@@ -439,6 +440,7 @@ class QuasiNewtonSolver(Solver):
                 residual_before, converged_before = stats.residual.copy(), stats.converged.copy()
                 contribution = np.zeros_like(x)
                 out = self._advance(args, run, h, 1.0 / (substeps - k + 1), k == 1, r_prev, contribution)
+                tool_part = np.where(run[:, None, None], args["tool_force"], 0.0) if tool_sum is not None else None
                 self._count(stats, run, out, feasible)
                 retry = run & (out[:, 2] < 0.5)  # unconverged, or no feasible start
                 refined, by_fallback = np.ones(N, dtype=np.int64), np.zeros(N, dtype=bool)  # this sub-step's
@@ -455,6 +457,7 @@ class QuasiNewtonSolver(Solver):
                     self._x_prev[retry], self._v_prev[retry] = history[0][retry], history[1][retry]
                     self._history_h[retry] = history[2][retry]
                     finer = np.zeros_like(x)
+                    finer_tool = np.zeros_like(tool_part) if tool_part is not None else None
                     feasible[retry] = True
                     stats.converged[retry] = True  # this re-take's verdict (earlier sub-steps': below)
                     stats.residual[retry] = residual_before[retry]
@@ -465,14 +468,20 @@ class QuasiNewtonSolver(Solver):
                         part = np.zeros_like(x)
                         out = advance(args, go, h / factor, 1.0 / remaining, k == 1 and j == 1, r_prev, part)
                         finer += part
+                        if finer_tool is not None:
+                            finer_tool[go] += args["tool_force"][go]
                         self._count(stats, go, out, feasible)
                     contribution[retry] = finer[retry] / factor
+                    if tool_part is not None:
+                        tool_part[retry] = finer_tool[retry] / factor
                     refined[retry] = factor
                     retry &= ~(feasible & stats.converged)
                 stats.converged &= converged_before
                 stats.refinement = np.maximum(stats.refinement, refined)
                 stats.fallback |= by_fallback
                 stats.reaction += contribution
+                if tool_sum is not None:
+                    tool_sum += tool_part
         stats.reaction /= substeps
         check = active & ~(feasible & stats.converged)  # (the others: only those divergence may flag)
         check[self.suspect_worlds(x, v, np.flatnonzero(active))] = True
@@ -499,8 +508,8 @@ class QuasiNewtonSolver(Solver):
                                      f"tolerance of {tol[s]:.3g} N, after {stats.newton_iterations[s]} iterations "
                                      f"in all (sub-steps refined {stats.refinement[s]}x)")
         stats.reaction[~active] = 0.0
-        if len(m.tools):
-            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], args["tool_force"], 0.0)
+        if tool_sum is not None:  # step-mean: each sub-step's end force (backward Euler's) weighted by its length
+            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], tool_sum / substeps, 0.0)
         return stats
 
     @staticmethod
