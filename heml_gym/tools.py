@@ -8,6 +8,11 @@ Hessian blocks in Newton's matrix and the L-BFGS preconditioner's contact set), 
 projection onto its surface. A solver reports the force each tool exerts on the tissue
 (:attr:`heml_gym.solvers.StepStats.tool_force`). Units: m, N.
 
+Limits: contact is on the tissue's vertices, so a tool thinner than the mesh's cells can
+slip between them; and a vertex carried more than half a tool's thickness into it within
+one sub-step comes out on the far side (tunnelling): keep a tool's speed below its half
+thickness per sub-step (a 4 mm paddle in the tasks' 0.05 s sub-steps: 40 mm/s).
+
     Capsule(radius=0.005, half_length=0.1)       # a shaft or a probe, along its local z
     Box(half_extents=(0.03, 0.02, 0.002))        # a paddle retractor, thin along z
 
