@@ -223,3 +223,31 @@ def test_a_paddle_driven_into_a_slab_below_its_speed_limit_lets_no_vertex_throug
         under = (np.abs(state.x[0, :, 0] - 0.03) < 0.05) & (np.abs(state.x[0, :, 1] - 0.015) < 0.03)
         assert np.all(state.x[0, under, 2] <= top + 0.002 + 1e-9)  # none above the paddle's middle
     assert -stats.tool_force[0, 0, 2] > 0.1  # N: it squeezes the slab
+
+
+@pytest.mark.parametrize("integrator", ["quasi_newton", "implicit"])
+def test_tools_thrown_about_never_give_a_nan(integrator):
+    """Seeded streams of a paddle and a probe posed anywhere (through the tissue, into the
+    floor, at any turn) each step: every step's state and tool forces are finite, or the
+    world is reported diverged with its state kept."""
+    tools = [PADDLE, hg.Capsule(0.004, 0.02)]
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        model = _slab_model(tools=tools, supports=[hg.PlaneSupport(height=0.0)],
+                            fixed=np.flatnonzero(SLAB.vertices[:, 0] == 0.0))
+        solver = _solver(model, integrator, newton_tol=1e-3)
+        state, control = model.state(), model.control()
+        for _ in range(12):
+            for t in range(2):
+                axis = rng.normal(size=3)
+                control.pose_tool(0, t, rng.uniform((-0.02, -0.02, -0.01), (0.08, 0.05, 0.03)),
+                                  rotation(axis / np.linalg.norm(axis), rng.uniform(0, np.pi)))
+            before = state.x.copy()
+            stats = solver.step(state, state, control, 0.05)
+            assert np.isfinite(state.x).all() and np.isfinite(state.v).all()
+            if stats.diverged[0]:
+                np.testing.assert_array_equal(state.x, before)
+                assert stats.messages[0]
+                np.testing.assert_array_equal(stats.tool_force, 0.0)
+            else:
+                assert np.isfinite(stats.tool_force).all()
