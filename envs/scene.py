@@ -331,7 +331,10 @@ class GripperSpec:
     wall), outside the start box, and the grasper's action is then ``(pitch_rate,
     yaw_rate, insertion_rate, grasp)``: tilts about the port in units of ``angular_speed``
     (rad/s), at most ``max_tilt`` (rad) from the line to the middle of the start box
-    (:class:`~heml_gym.envs.instruments.port.Port`); null: velocities along x, y, z."""
+    (:class:`~heml_gym.envs.instruments.port.Port`); null: velocities along x, y, z.
+    ``shaft_radius`` (m; a port only): the shaft, from the port to ``SHAFT_GAP`` behind the
+    jaws, is a rigid capsule the tissue cannot enter (:mod:`heml_gym.tools`; its push in
+    ``info`` as ``shaft_force``); null: it passes through the tissue."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)
@@ -343,6 +346,7 @@ class GripperSpec:
     port: Vec3 | None = None
     angular_speed: float = 0.5
     max_tilt: float = 1.2
+    shaft_radius: float | None = None
 
     def __post_init__(self):
         if self.jaw_ends not in ("vertex", "weighted"):
@@ -368,6 +372,12 @@ class GripperSpec:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= high:
                 raise invalid(self, name, f"must be a number in (0, {high:g}], got {value!r}")
+        r = self.shaft_radius
+        if r is not None and (isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r)
+                              or r <= 0):
+            raise invalid(self, "shaft_radius", f"must be a positive length in metres or null, got {r!r}")
+        if r is not None and self.port is None:
+            raise invalid(self, "shaft_radius", "a shaft that touches tissue needs a port (give port)")
         if self.port is not None:
             if not isinstance(self.port, (list, tuple)) or len(self.port) != 3 or not _finite(self.port):
                 raise invalid(self, "port", f"must be three finite coordinates in metres or null, got {self.port!r}")

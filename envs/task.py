@@ -15,9 +15,11 @@ import math
 
 import numpy as np
 
+from heml_gym.tools import Capsule
 from heml_gym.world import World
 
 from .instruments import Grasper
+from .instruments.port import SHAFT_HALF_LENGTH
 from .measures import finite
 from .scene import BuiltScene, GripperSpec
 from .spec import SpecError
@@ -54,19 +56,28 @@ class TissueTask:
         self.n = n = int(n_worlds)
         self.settings = settings
         dt = settings.control_dt
-        self.world = World.from_physics(scene.mesh, scene.physics, n, dt, fixed=scene.fixed, supports=scene.supports)
-        if self.world.substeps > 1_000_000:
-            raise SpecError(f"settings.control_dt: {dt} s needs {self.world.substeps} explicit sub-steps per env "
-                            "step; use a shorter control_dt or the implicit integrator")
         if grippers is None:
-            self.instruments = [Grasper(self.world, scene, settings, name=name, spec=spec)
-                                for name, spec in scene.graspers]
+            specs = [(name, spec) for name, spec in scene.graspers]
         else:
             if (not isinstance(grippers, dict) or not grippers
                     or not all(isinstance(spec, GripperSpec) for spec in grippers.values())):
                 raise SpecError(f"grippers: must map each grasper's name to its GripperSpec, got {grippers!r}")
-            self.instruments = [Grasper(self.world, scene, settings, name=str(name), spec=spec)
-                                for name, spec in grippers.items()]
+            specs = [(str(name), spec) for name, spec in grippers.items()]
+        # the shafts that touch tissue are the world's rigid tools, in the graspers' order
+        shafts = [spec.shaft_radius for _, spec in specs if spec.shaft_radius is not None]
+        tools = [Capsule(r, SHAFT_HALF_LENGTH) for r in shafts]
+        if tools and scene.physics.integrator not in ("quasi_newton", "implicit"):
+            raise SpecError(f"scene.gripper.shaft_radius: a shaft that touches tissue is stepped by the quasi_newton "
+                            f"or implicit integrator, not {scene.physics.integrator}")
+        self.world = World.from_physics(scene.mesh, scene.physics, n, dt, fixed=scene.fixed, supports=scene.supports,
+                                        tools=tools)
+        if self.world.substeps > 1_000_000:
+            raise SpecError(f"settings.control_dt: {dt} s needs {self.world.substeps} explicit sub-steps per env "
+                            "step; use a shorter control_dt or the implicit integrator")
+        tool_of = iter(range(len(tools)))
+        self.instruments = [Grasper(self.world, scene, settings, name=name, spec=spec,
+                                    shaft_tool=next(tool_of) if spec.shaft_radius is not None else None)
+                            for name, spec in specs]
         if sum(g.spec.wrist_reach is not None for g in self.instruments) > 1:
             raise SpecError("grippers: at most one grasper may be on a free wrist (wrist_reach): a world has "
                             "one wrist")
@@ -196,7 +207,7 @@ class TissueTask:
         stats = self.world.step(self.settings.control_dt, active=active)
         failed = stats.diverged | ~stats.converged
         for g in self.instruments:
-            g.after_step(stats.reaction, failed)
+            g.after_step(stats.reaction, failed, stats.tool_force)
         self.steps += 1
         return StepOutcome(parts, first, stats, failed)
 

@@ -47,18 +47,20 @@ class World:
         self.stuck = np.zeros((self.n, self.mesh.n_vertices), dtype=bool)
 
     @classmethod
-    def from_physics(cls, mesh, physics, n_worlds: int, control_dt: float, fixed=None, supports=()) -> "World":
+    def from_physics(cls, mesh, physics, n_worlds: int, control_dt: float, fixed=None, supports=(),
+                     tools=()) -> "World":
         """The world of a physics description (``physics``: an object with the fields of
         ``heml_gym.envs.PhysicsSpec``: ``material_for(E)``, ``young_modulus`` (low, high),
         ``field``, ``density``, ``gravity``, ``damping``, ``stiffness_regions``,
         ``integrator``, ``scheme``, ``safety``, ``newton_tol``, ``max_newton``,
         ``hessian_scale``, ``max_dt``), stepped ``control_dt`` seconds at a time. Every world
         starts with the stiffest tissue the range allows; explicit sub-steps are fixed by it,
-        so that a world's trajectory does not depend on its neighbours."""
+        so that a world's trajectory does not depend on its neighbours. ``tools``: rigid tools
+        (:mod:`heml_gym.tools`) the world's control poses."""
         ph = physics
         E_high = ph.young_modulus[1]
         model = Model(mesh, ph.material_for(E_high), n_worlds=int(n_worlds), field=ph.field, density=ph.density,
-                      fixed=fixed, gravity=ph.gravity, damping=ph.damping, supports=supports)
+                      fixed=fixed, gravity=ph.gravity, damping=ph.damping, supports=supports, tools=tools)
         if ph.stiffness_regions:  # E varies over the tissue: each region's share of the drawn E
             relative = np.asarray(ph.stiffness_regions["relative"], dtype=np.float64)
             model.set_stiffness_map(relative[box_regions(mesh, ph.stiffness_regions["grid"])])

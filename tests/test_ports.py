@@ -108,3 +108,49 @@ def test_a_bad_port_is_one_line_naming_it(changes, message):
     with pytest.raises(SpecError, match=message) as caught:
         envs.check_env_kwargs(envs.TISSUE_RETRACTION, {"scene": {"gripper": changes}})
     assert "\n" not in str(caught.value)
+
+
+def _deepest_in_shaft(task, grasper, radius):
+    from heml_gym.envs.instruments.port import SHAFT_HALF_LENGTH
+    from heml_gym.tools import Capsule, Tools
+
+    centres, rotations = grasper.port.shaft_poses(grasper.position)
+    pose = np.concatenate([centres[0], rotations[0].ravel()])[None]
+    return Tools([Capsule(radius, SHAFT_HALF_LENGTH)]).signed_distance(task.x[0], pose)[0].min()
+
+
+def test_a_shaft_that_touches_tissue_pushes_it_aside_where_one_that_does_not_passes_through():
+    """A low port beside the flap: the shaft, slid in and tilted, lies across the flap's
+    edge. With ``shaft_radius`` the tissue stays out of it (to the penalty's 0.1 mm) and
+    the shaft reports its push; without, it passes 4 mm deep through the tissue."""
+    deepest, pushed = {}, {}
+    for radius in (0.005, None):
+        env = gym.make(envs.TISSUE_RETRACTION, scene={"gripper": {"port": [0.25, 0.06, 0.02], "shaft_radius": radius}})
+        env.reset(seed=HELD_OUT)
+        task = env.unwrapped.task
+        grasper = task.instruments[0]
+        deepest[radius], pushed[radius] = 0.0, 0.0
+        for _ in range(25):
+            _, _, _, _, info = env.step(np.array([0.3, 0.0, 1.0, -1.0], dtype=np.float32))
+            assert np.all(info["solver_converged"])
+            deepest[radius] = min(deepest[radius], _deepest_in_shaft(task, grasper, 0.005))
+            pushed[radius] = max(pushed[radius], float(info.get("shaft_force", 0.0)))
+    assert deepest[0.005] > -1e-4 and pushed[0.005] > 0.1  # m, N
+    assert deepest[None] < -3e-3 and "shaft_force" not in info
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"shaft_radius": 0.005}, r"scene\.gripper\.shaft_radius: a shaft that touches tissue needs a port"),
+    ({"port": PORT, "shaft_radius": 0.0}, r"scene\.gripper\.shaft_radius: must be a positive length"),
+])
+def test_a_bad_shaft_is_one_line_naming_it(changes, message):
+    with pytest.raises(SpecError, match=message) as caught:
+        envs.check_env_kwargs(envs.TISSUE_RETRACTION, {"scene": {"gripper": changes}})
+    assert "\n" not in str(caught.value)
+
+
+def test_a_touching_shaft_under_an_integrator_that_cannot_step_it_is_one_line():
+    with pytest.raises(SpecError, match=r"^scene\.gripper\.shaft_radius: .* quasi_newton or implicit") as caught:
+        gym.make(envs.TISSUE_RETRACTION, scene={"gripper": {"port": PORT, "shaft_radius": 0.005}},
+                 physics={"integrator": "explicit"}).reset(seed=0)
+    assert "\n" not in str(caught.value)

@@ -23,7 +23,9 @@ class Grasper:
     and supports); ``settings``: the task's ``TaskSettings`` (``max_speed``,
     ``control_dt``, ``grasp_reach``, ``jaw_radius``, ``release_command``); ``name``:
     prefixes its ``info`` keys (None: none, for a task's only grasper); ``spec``: its
-    ``GripperSpec`` (jaws, start box, workspace; None: the scene's ``gripper``). Closing holds the grasp region's vertices within ``grasp_reach`` of the
+    ``GripperSpec`` (jaws, start box, workspace; None: the scene's ``gripper``);
+    ``shaft_tool``: the world's rigid tool its shaft is (a port's shaft that touches
+    tissue), None: none. Closing holds the grasp region's vertices within ``grasp_reach`` of the
     jaws (all of it, or what jaws of ``jaw_length`` cover, their ends by springs when
     ``jaw_ends`` is ``weighted``), or without a region the surface vertices within
     ``jaw_radius``; tissue that is stuck or held by another instrument is not taken.
@@ -38,7 +40,7 @@ class Grasper:
     OBSERVATION = (tuple((f"gripper_{a}", "m") for a in "xyz") + (("grasping", "-"),)
                    + tuple((f"grasp_force_{a}", "N") for a in "xyz"))
 
-    def __init__(self, world, scene, settings, name: str | None = None, spec=None):
+    def __init__(self, world, scene, settings, name: str | None = None, spec=None, shaft_tool: int | None = None):
         gripper = self.spec = scene.spec.gripper if spec is None else spec
         if gripper.wrist_reach is not None and not world.solver.takes_wrist:
             raise SpecError(f"scene.gripper.wrist_reach: jaws on a free wrist are stepped by the quasi_newton "
@@ -61,6 +63,8 @@ class Grasper:
         self.start_low, self.start_high = np.asarray(gripper.start_low), np.asarray(gripper.start_high)
         #: the trocar its shaft passes through (None: it moves freely in x, y, z)
         self.port = Port.of(gripper)
+        self.shaft_tool = shaft_tool
+        self.shaft_force = np.zeros((world.n, 3))  # the shaft's push on the tissue, mean over the last step (N)
         if self.port is not None:
             self.ACTION = self.PORT_ACTION
         self.workspace_low, self.workspace_high = np.asarray(gripper.workspace_low), np.asarray(gripper.workspace_high)
@@ -84,6 +88,8 @@ class Grasper:
         self.held_share[i] = 0.0
         self.grasped_once[i] = False
         self.force[i] = 0.0
+        self.shaft_force[i] = 0.0
+        self._pose_shaft([i])
 
     def place(self, i: int, position) -> None:
         """Start world ``i``'s jaws at ``position`` (m, (3,), inside the workspace)."""
@@ -94,6 +100,7 @@ class Grasper:
             raise SpecError(f"gripper: {g.tolist()} lies outside the workspace "
                             f"{list(self.workspace_low)}..{list(self.workspace_high)} m")
         self.position[i] = g
+        self._pose_shaft([i])
 
     # --------------------------------------------------------------------- step
     def grasp(self, actions: np.ndarray) -> np.ndarray:
@@ -149,10 +156,22 @@ class Grasper:
             control.drive(i, idx, self.position[i] + self.offsets[i, idx])
             if control.turns[i].any():
                 control.drive_wrist(i, self.position[i] + self.pivot_offset[i])
+        self._pose_shaft(range(self.world.n))
 
-    def after_step(self, reaction: np.ndarray, failed: np.ndarray) -> None:
-        """Take the step's outcome: where a free wrist turned the held patch, and the
-        tissue's pull on the jaws (the held vertices' reactions, 0 where the step failed)."""
+    def _pose_shaft(self, worlds) -> None:
+        """Pose the shaft's rigid tool for the jaws where they are (a touching shaft only)."""
+        if self.shaft_tool is None:
+            return
+        centres, rotations = self.port.shaft_poses(self.position[worlds])
+        for k, i in enumerate(worlds):
+            self.world.control.pose_tool(i, self.shaft_tool, centres[k], rotations[k])
+
+    def after_step(self, reaction: np.ndarray, failed: np.ndarray, tool_force: np.ndarray | None = None) -> None:
+        """Take the step's outcome: where a free wrist turned the held patch, the tissue's
+        pull on the jaws (the held vertices' reactions, 0 where the step failed) and, for a
+        touching shaft, its push on the tissue (``tool_force``: the step's, ``(N, T, 3)``)."""
+        if self.shaft_tool is not None and tool_force is not None:
+            self.shaft_force = np.where(failed[:, None], 0.0, tool_force[:, self.shaft_tool])
         x, turns = self.world.state.x, self.world.control.turns
         for i in np.flatnonzero(self.grasping & turns.any(axis=1)):  # the patch has turned
             self.offsets[i, self.held[i]] = x[i, self.held[i]] - self.position[i]
@@ -170,12 +189,18 @@ class Grasper:
     def info(self, worlds=None) -> dict:
         """``grasp_force`` (N, its magnitude) and ``grasping`` of ``worlds`` (default all)."""
         worlds = slice(None) if worlds is None else worlds
-        return {self.key("grasp_force"): np.linalg.norm(self.force[worlds], axis=1),
-                self.key("grasping"): self.grasping[worlds].copy()}
+        out = {self.key("grasp_force"): np.linalg.norm(self.force[worlds], axis=1),
+               self.key("grasping"): self.grasping[worlds].copy()}
+        if self.shaft_tool is not None:  # a touching shaft's push on the tissue (N, its magnitude)
+            out[self.key("shaft_force")] = np.linalg.norm(self.shaft_force[worlds], axis=1)
+        return out
 
     def start_info(self, worlds) -> dict:
         """:meth:`info` at an episode's start: nothing held yet."""
-        return {self.key("grasp_force"): np.zeros(len(worlds)), self.key("grasping"): self.grasping[worlds].copy()}
+        out = {self.key("grasp_force"): np.zeros(len(worlds)), self.key("grasping"): self.grasping[worlds].copy()}
+        if self.shaft_tool is not None:
+            out[self.key("shaft_force")] = np.zeros(len(worlds))
+        return out
 
     # ---------------------------------------------------------------- the jaws
     def _jaw_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:

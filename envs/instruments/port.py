@@ -23,6 +23,10 @@ import numpy as np
 
 #: the shortest insertion (m): the tip stays this far inside the port
 MIN_INSERTION = 1e-3
+#: the jaws' length (m) beyond the end of a shaft that touches tissue
+SHAFT_GAP = 0.015
+#: a touching shaft's half-length (m): it reaches from its end back through the port and far beyond
+SHAFT_HALF_LENGTH = 0.3
 
 
 class Port:
@@ -75,6 +79,20 @@ class Port:
         c[:, :2] = np.clip(c[:, :2] + commands[:, :2] * self.angular_speed * dt, -self.max_tilt, self.max_tilt)
         c[:, 2] = np.maximum(c[:, 2] + commands[:, 2] * max_speed * dt, MIN_INSERTION)
         return self.tips(c)
+
+    def shaft_poses(self, tips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where a shaft capsule of half-length :data:`SHAFT_HALF_LENGTH` is for tips ``(N,
+        3)`` (m): its end :data:`SHAFT_GAP` behind each tip on the line from the port, the
+        rest back through the port and beyond. Returns centres ``(N, 3)`` (m) and rotations
+        ``(N, 3, 3)`` whose third column is the shaft's direction (the capsule's axis)."""
+        d = np.atleast_2d(tips) - self.port
+        u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        centres = np.atleast_2d(tips) - (SHAFT_GAP + SHAFT_HALF_LENGTH) * u
+        helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+        a = np.cross(helper, u)
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+        b = np.cross(u, a)
+        return centres, np.stack([a, b, u], axis=2)
 
     def commands_for(self, tips: np.ndarray, velocity: np.ndarray, max_speed: float) -> np.ndarray:
         """The port commands ``(N, 3)`` in [-1, 1] that move tips ``(N, 3)`` (m) at
