@@ -387,6 +387,49 @@ class GripperSpec:
 
 
 @dataclass
+class HookSpec:
+    """An electrosurgical hook: its tip starts uniformly in ``start_low``..``start_high`` and
+    is kept inside ``workspace_low``..``workspace_high`` (m); ``port`` as a grasper's. While
+    energised it delivers ``power`` (W) to the tissue within ``reach`` (m) of its tip,
+    shared equally among the surface vertices there; a stuck vertex is released once it
+    has taken ``release_energy`` (J/m^2) times its share of the surface. The defaults: 30 W,
+    a monopolar hook's usual setting; 2.6e6 J/m^2, what it takes to vaporise a 1 mm layer
+    of water-like tissue (2.26 kJ/g latent heat plus 0.26 kJ/g to heat it from 37 to 100
+    C, at 1 g/cm^3)."""
+
+    start_low: Vec3 = (0.0, 0.0, 0.0)
+    start_high: Vec3 = (0.0, 0.0, 0.0)
+    workspace_low: Vec3 = (-1.0, -1.0, -1.0)
+    workspace_high: Vec3 = (1.0, 1.0, 1.0)
+    port: Vec3 | None = None
+    angular_speed: float = 0.5
+    max_tilt: float = 1.2
+    reach: float = 0.004
+    power: float = 30.0
+    release_energy: float = 2.6e6
+
+    def __post_init__(self):
+        for name in ("reach", "power", "release_energy", "angular_speed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
+                                                                                     and value > 0):
+                raise invalid(self, name, f"must be a positive number, got {value!r}")
+        if not (isinstance(self.max_tilt, (int, float)) and 0 < self.max_tilt <= 1.5):
+            raise invalid(self, "max_tilt", f"must be a number in (0, 1.5], got {self.max_tilt!r}")
+        for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
+            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
+            if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
+                raise invalid(self, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
+        if self.port is not None and (not isinstance(self.port, (list, tuple)) or len(self.port) != 3
+                                      or not _finite(self.port)):
+            raise invalid(self, "port", f"must be three finite coordinates in metres or null, got {self.port!r}")
+        if self.port is not None and all(lo <= p <= hi for p, lo, hi in zip(self.port, self.start_low,
+                                                                             self.start_high)):
+            raise invalid(self, "port", f"{list(self.port)} lies inside the start box: the shaft would have "
+                                        "no direction")
+
+
+@dataclass
 class CameraSpec:
     """The task camera (the target's exposure is seen from it): ``eye`` (m) looking at
     ``look_at`` (m; null: the tissue's centre), ``up``, vertical field of view ``fov_y``

@@ -96,6 +96,14 @@ class World:
         self.control.detach(i, np.flatnonzero(self.stuck[i]))
         self.stuck[i] = False
 
+    def release(self, i: int, vertices: np.ndarray) -> None:
+        """Release ``vertices`` of world ``i`` from what they are stuck to (those not stuck
+        are left as they are: held by an instrument, or free)."""
+        v = np.asarray(vertices, dtype=np.int64)
+        v = v[self.stuck[i, v]]
+        self.control.detach(i, v)
+        self.stuck[i, v] = False
+
     def hold_stiffness(self, i: int, vertices: np.ndarray, share: np.ndarray) -> np.ndarray:
         """The hold stiffness (N/m) of ``vertices`` of world ``i`` held with ``share`` (0..1):
         0 (held exactly) for a whole share, else ``share / (1 - share)`` times
