@@ -42,6 +42,12 @@ STATE_HIGH = np.array([hi for _, _, hi, _ in STATE_SPEC], dtype=np.float32)
 GRASPER_SIZE = len(Grasper.OBSERVATION)
 
 
+def hook_bounds(fields) -> tuple[np.ndarray, np.ndarray]:
+    """``(low, high)`` float32 of state entries ``fields`` (``(name, unit)``), by unit."""
+    return (np.array([_BOUNDS_BY_UNIT[unit][0] for _, unit in fields], dtype=np.float32),
+            np.array([_BOUNDS_BY_UNIT[unit][1] for _, unit in fields], dtype=np.float32))
+
+
 def _positive(obj, name, value, allow_zero=False):
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
         value >= 0 if allow_zero else value > 0)
@@ -145,6 +151,10 @@ class BatchedRetraction(TissueTask):
         self._state_low, self._state_high = [
             bound if k == 1 else np.concatenate([np.tile(bound[:GRASPER_SIZE], k), bound[GRASPER_SIZE:]])
             for bound in (STATE_LOW, STATE_HIGH)]
+        if self.hooks:  # the hooks' entries last
+            low, high = hook_bounds(self.hook_fields())
+            self._state_low = np.concatenate([self._state_low, low])
+            self._state_high = np.concatenate([self._state_high, high])
         self._exposure = Exposure(scene, self.settings.exposure_samples)
         self._fold = FoldLift(scene)
         self.target = np.zeros((n, 3))
@@ -244,13 +254,14 @@ class BatchedRetraction(TissueTask):
         """The state vector of every world, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
         tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
         obs = np.concatenate([*self.instrument_observation(), self.target, tracked, self.max_strain[:, None],
-                              self.exposure[:, None]], axis=1)
+                              self.exposure[:, None], *self.hook_observation()], axis=1)
         obs = np.clip(finite(obs, nan=0.0), self._state_low, self._state_high)
         return obs.astype(np.float32)
 
     def state_fields(self) -> list[tuple[str, str]]:
         """``(name, unit)`` of each state entry (:data:`STATE_SPEC`'s, a grasper's once per instrument)."""
-        return self.instrument_fields() + [(name, unit) for name, _, _, unit in STATE_SPEC[GRASPER_SIZE:]]
+        return (self.instrument_fields() + [(name, unit) for name, _, _, unit in STATE_SPEC[GRASPER_SIZE:]]
+                + self.hook_fields())
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the state observation (from :data:`STATE_SPEC`, its grasper's

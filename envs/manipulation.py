@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core import GRASPER_SIZE, POSITION_BOUND, STATE_HIGH, STATE_LOW, TaskSettings, as_settings
+from .core import GRASPER_SIZE, POSITION_BOUND, STATE_HIGH, STATE_LOW, TaskSettings, as_settings, hook_bounds
 from .measures import finite
 from .scene import BuiltScene
 from .spec import SpecError
@@ -80,8 +80,9 @@ class BatchedManipulation(TissueTask):
         self.success = np.zeros(n, dtype=bool)
         low, high = (np.array([b for _, b, _, _ in MANIPULATION_SPEC], dtype=np.float32),
                      np.array([b for _, _, b, _ in MANIPULATION_SPEC], dtype=np.float32))
-        self._state_low = np.concatenate([np.tile(STATE_LOW[:GRASPER_SIZE], k), low])
-        self._state_high = np.concatenate([np.tile(STATE_HIGH[:GRASPER_SIZE], k), high])
+        hook_low, hook_high = hook_bounds(self.hook_fields())  # (the hooks' entries last)
+        self._state_low = np.concatenate([np.tile(STATE_LOW[:GRASPER_SIZE], k), low, hook_low])
+        self._state_high = np.concatenate([np.tile(STATE_HIGH[:GRASPER_SIZE], k), high, hook_high])
 
     target = property(lambda self: self.goal)  # what the camera draws: the goal
 
@@ -154,12 +155,13 @@ class BatchedManipulation(TissueTask):
         """The ``observation`` part: each grasper's 7 entries, the 4 tracked points (m) and
         the largest gauge strain, ``(N, 7 K + 13)`` float32, clipped to its bounds."""
         tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
-        obs = np.concatenate([*self.instrument_observation(), tracked, self.max_strain[:, None]], axis=1)
+        obs = np.concatenate([*self.instrument_observation(), tracked, self.max_strain[:, None],
+                              *self.hook_observation()], axis=1)
         return np.clip(finite(obs, nan=0.0), self._state_low, self._state_high).astype(np.float32)
 
     def state_fields(self) -> list[tuple[str, str]]:
         """``(name, unit)`` of each ``observation`` entry."""
-        return self.instrument_fields() + [(name, unit) for name, _, _, unit in MANIPULATION_SPEC]
+        return self.instrument_fields() + [(name, unit) for name, _, _, unit in MANIPULATION_SPEC] + self.hook_fields()
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the ``observation`` part."""

@@ -481,7 +481,9 @@ class Scene:
     graspers by name, in action order (each name prefixes its ``info`` keys; null: one,
     ``gripper``, whose keys carry no name). With ``graspers``, ``gripper`` only frames
     single-grasper tools; ``marker``: one point of the tissue (the vertex nearest to it) that a
-    goal-conditioned task brings to its goal, drawn per episode in ``target``'s region.
+    goal-conditioned task brings to its goal, drawn per episode in ``target``'s region;
+    ``hooks``: electrosurgical hooks by name (:class:`HookSpec`), after the graspers in the
+    action and at the end of the state observation (null: none).
     """
 
     name: str
@@ -499,6 +501,7 @@ class Scene:
     adhesion: AdhesionSpec | None = None
     graspers: dict[str, GripperSpec] | None = None
     marker: RegionSpec | None = None
+    hooks: dict[str, HookSpec] | None = None
 
     def __post_init__(self):
         if not self.name:
@@ -513,6 +516,13 @@ class Scene:
                     raise invalid(self, "graspers", f"{name}: must be a GripperSpec or a mapping of its fields")
             if sum(spec.wrist_reach is not None for spec in self.graspers.values()) > 1:
                 raise invalid(self, "graspers", "at most one grasper may have jaws on a free wrist (wrist_reach)")
+        for name, spec in (self.hooks or {}).items():
+            if not (isinstance(name, str) and name.isidentifier()):
+                raise invalid(self, "hooks", f"names must be identifiers (they prefix info keys), got {name!r}")
+            if not isinstance(spec, HookSpec):
+                raise invalid(self, "hooks", f"{name}: must be a HookSpec or a mapping of its fields")
+            if name in (self.graspers or {}):
+                raise invalid(self, "hooks", f"{name}: a grasper has that name")
         if self.tracked.points is None or len(self.tracked.points) != 4:
             raise invalid(self, "tracked", "must give exactly 4 points")
         if not (math.isfinite(self.strain_gauge) and self.strain_gauge > 0):
@@ -610,6 +620,8 @@ class BuiltScene:
         self.gripper_low, self.gripper_high = np.asarray(g.start_low), np.asarray(g.start_high)
         #: the graspers, ``[(name, GripperSpec), ...]`` in action order (one, unnamed: ``gripper``)
         self.graspers = [(None, g)] if spec.graspers is None else list(spec.graspers.items())
+        #: the electrosurgical hooks, ``[(name, HookSpec), ...]`` in action order (after the graspers)
+        self.hooks = list((spec.hooks or {}).items())
         #: where any grasper may go (m): the union of their workspaces
         self.workspace_low = np.min([s.workspace_low for _, s in self.graspers], axis=0).astype(np.float64)
         self.workspace_high = np.max([s.workspace_high for _, s in self.graspers], axis=0).astype(np.float64)

@@ -153,6 +153,20 @@ class PortCommands:
         return action
 
 
+class HooksIdle:
+    """A scripted policy for the graspers of a scene with hooks: its action, then each
+    hook's switched off and still (``hooks``: how many)."""
+
+    def __init__(self, policy, hooks: int):
+        self.policy, self.idle = policy, np.tile(np.array([0.0, 0.0, 0.0, -1.0], dtype=np.float32), hooks)
+
+    def reset(self):
+        self.policy.reset()
+
+    def __call__(self, obs) -> np.ndarray:
+        return np.concatenate([np.asarray(self.policy(obs), dtype=np.float32), self.idle])
+
+
 def scripted_policy(scene):
     """The scripted baseline of a scene (a :class:`~heml_gym.envs.scene.Scene`: its fold
     hinge and direction are used) or of a scene family by name ("TissueRetraction",
@@ -179,7 +193,8 @@ def scripted_policy(scene):
     else:
         policy = _fold_policy(scene, specs[0])
     ports = [Port.of(spec) for spec in specs]
-    return policy if all(p is None for p in ports) else PortCommands(policy, ports)
+    policy = policy if all(p is None for p in ports) else PortCommands(policy, ports)
+    return HooksIdle(policy, len(scene.hooks)) if getattr(scene, "hooks", None) else policy
 
 
 def _fold_policy(scene, gripper, at_start: bool = False) -> FoldBackPolicy:

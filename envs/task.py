@@ -18,7 +18,7 @@ import numpy as np
 from heml_gym.tools import Capsule
 from heml_gym.world import World
 
-from .instruments import Grasper
+from .instruments import Grasper, Hook
 from .instruments.port import SHAFT_HALF_LENGTH
 from .measures import finite
 from .scene import BuiltScene, GripperSpec
@@ -82,7 +82,9 @@ class TissueTask:
             raise SpecError("grippers: at most one grasper may be on a free wrist (wrist_reach): a world has "
                             "one wrist")
         self.grasper = self.instruments[0]
-        self.action_size = sum(g.action_size for g in self.instruments)
+        #: the scene's electrosurgical hooks, after the graspers in the action
+        self.hooks = [Hook(self.world, scene, settings, spec, name=name) for name, spec in scene.hooks]
+        self.action_size = sum(g.action_size for g in self.instruments) + sum(h.action_size for h in self.hooks)
         self.gauges = StrainGauges(scene.mesh, scene.strain_gauge)
         self.adhesion_width = np.zeros(n)
         self.max_strain = np.zeros(n)
@@ -144,6 +146,8 @@ class TissueTask:
             self._draw(i, rng)
             for g in self.instruments:
                 g.reset(i, rng)
+            for h in self.hooks:
+                h.reset(i, rng)
             self.steps[i] = 0
             self.damage[i] = 0.0
             if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
@@ -200,14 +204,20 @@ class TissueTask:
             raise ValueError(f"actions: must have shape ({self.n}, {self.action_size}) (each world's "
                              f"{len(self.instruments)} instrument(s) in turn), got {a.shape}")
         a = np.clip(a.reshape(self.n, self.action_size), -1.0, 1.0)
-        parts = np.split(a, np.cumsum([g.action_size for g in self.instruments])[:-1], axis=1)
+        sizes = [g.action_size for g in self.instruments] + [h.action_size for h in self.hooks]
+        parts = np.split(a, np.cumsum(sizes)[:-1], axis=1)
+        parts, hook_parts = parts[:len(self.instruments)], parts[len(self.instruments):]
         first = [g.grasp(part) for g, part in zip(self.instruments, parts)]
         for g, part in zip(self.instruments, parts):
             g.move(part)
+        for h, part in zip(self.hooks, hook_parts):
+            h.act(part)
         stats = self.world.step(self.settings.control_dt, active=active)
         failed = stats.diverged | ~stats.converged
         for g in self.instruments:
             g.after_step(stats.reaction, failed, stats.tool_force)
+        for h in self.hooks:  # on the tissue where the step left it; what it frees moves from the next step
+            h.burn(self.settings.control_dt, np.flatnonzero(~failed if active is None else active & ~failed))
         self.steps += 1
         return StepOutcome(parts, first, stats, failed)
 
@@ -249,7 +259,17 @@ class TissueTask:
         if len(self.instruments) > 1:
             info["grasp_force"] = sum(part[g.key("grasp_force")] for g, part in zip(self.instruments, parts))
             info["grasping"] = np.any([part[g.key("grasping")] for g, part in zip(self.instruments, parts)], axis=0)
+        for h in self.hooks:
+            info.update(h.info(worlds))
         return info
+
+    def hook_observation(self) -> list[np.ndarray]:
+        """The hooks' part of the state observation (each: tip position, m; energised, 0/1)."""
+        return [part for h in self.hooks for part in h.observation()]
+
+    def hook_fields(self) -> list[tuple[str, str]]:
+        """``(name, unit)`` of the hooks' state entries."""
+        return [(f"{h.name}_{entry}", unit) for h in self.hooks for entry, unit in Hook.OBSERVATION]
 
     def wrist_info(self, worlds) -> dict:
         """``wrist_angle`` (rad): how far the jaws on a free wrist have turned since they

@@ -38,6 +38,8 @@ class Hook:
     ACTION = ("velocity_x", "velocity_y", "velocity_z", "energy")
     PORT_ACTION = ("pitch_rate", "yaw_rate", "insertion_rate", "energy")
     action_size = len(ACTION)
+    #: its part of the state observation, entry by entry: (name, unit)
+    OBSERVATION = tuple((f"tip_{a}", "m") for a in "xyz") + (("energised", "-"),)
 
     def __init__(self, world, scene, settings, spec, name: str = "hook"):
         self.world, self.scene, self.settings, self.spec, self.name = world, scene, settings, spec, name
