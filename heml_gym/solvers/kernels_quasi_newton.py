@@ -307,18 +307,20 @@ def potential_and_gradient(x, want_gradient, g, f, dist, normal, body, law, supp
                 if want_gradient:
                     g[i, d] += ks * e
     if supports.tool_kind.shape[0]:
-        phi += _tool_penalty(x, want_gradient, g, held, mass, c, supports)
+        phi += tool_penalty(x, want_gradient, g, held, supports, np.zeros((0, 3)))
     return phi
 
 
 @nb.njit(cache=True)
-def _tool_penalty(x, want_gradient, g, held, mass, c, supports):
+def tool_penalty(x, want_gradient, g, held, supports, forces):
     """The rigid tools' contact penalty ``sum_t sum_i k_i / 2 min(d_it, 0)^2`` (J), ``k_i =
     tool_k[i]`` (N/m), on the free vertices (each tool on its own, so that a vertex
-    squeezed between two feels both), its gradient added into ``g``. ``supports``: a
-    world's view (one row of poses)."""
+    squeezed between two feels both); if ``want_gradient``, its gradient added into ``g``;
+    each tool's force on the tissue, ``k_i |d_it| n_it`` (N), added into ``forces (T, 3)``
+    when it has rows. ``supports``: a world's view (one row of poses)."""
     phi = 0.0
     kind, size, pose = supports.tool_kind, supports.tool_size, supports.tool_pose[0]
+    report = forces.shape[0] > 0
     for i in range(x.shape[0]):
         if held[i]:
             continue
@@ -331,6 +333,10 @@ def _tool_penalty(x, want_gradient, g, held, mass, c, supports):
                     g[i, 0] += k * d * nx
                     g[i, 1] += k * d * ny
                     g[i, 2] += k * d * nz
+                if report:
+                    forces[t, 0] -= k * d * nx
+                    forces[t, 1] -= k * d * ny
+                    forces[t, 2] -= k * d * nz
     return phi
 
 
@@ -476,23 +482,12 @@ def begin_substep(x, v, targets, holds, ext, body, law, sub, history, r_prev, wo
 
 
 @nb.njit(cache=True)
-def tool_contact_forces(x, held, mass, c, supports, out):
+def tool_contact_forces(x, held, supports, out):
     """``out (T, 3)`` = the force (N) of each rigid tool of a world's ``supports`` (its view:
-    one row of poses) on the free vertices inside it at ``x``: its contact penalty's,
-    ``k_i |d_i| n_i`` with ``k_i = tool_k[i]`` (backward Euler's contact force at
-    the step's end)."""
+    one row of poses) on the free vertices inside it at ``x`` (:func:`tool_penalty`'s;
+    backward Euler's contact force at the step's end)."""
     out[:, :] = 0.0
-    kind, size, pose = supports.tool_kind, supports.tool_size, supports.tool_pose[0]
-    for i in range(x.shape[0]):
-        if held[i]:
-            continue
-        k = supports.tool_k[0, i]
-        for t in range(kind.shape[0]):
-            d, nx, ny, nz = tool_signed_distance(kind[t], size[t], pose[t], x[i, 0], x[i, 1], x[i, 2])
-            if d < 0.0:
-                out[t, 0] -= k * d * nx
-                out[t, 1] -= k * d * ny
-                out[t, 2] -= k * d * nz
+    tool_penalty(x, False, out[:0], held, supports, out)
 
 
 @nb.njit(cache=True)
@@ -725,7 +720,7 @@ def _lbfgs_world(x, v, targets, holds, ext, body, law, supports, hessian, memory
     if has_wrist:
         wrist.angle[0] = angle_at_x
     if supports.tool_kind.shape[0]:
-        tool_contact_forces(x, held, body.mass, c, supports, tool_force)
+        tool_contact_forces(x, held, supports, tool_force)
     end_substep(x, v, work, dist, normal, n_supports, last_at_x, reaction, r_prev, body, law, sub, history, holds)
     memory.memory[0] = stored
     memory.memory[1] = newest

@@ -647,7 +647,7 @@ class QuasiNewtonSolver(Solver):
             return float(result.iterations), math.inf, 0.0, 1.0
         kq.potential_and_gradient(x, True, g, f, dist, normal, *potential_args)  # f, dist, normal at x
         if len(m.tools):
-            kq.tool_contact_forces(x, held, body.mass, c, supports, a["tool_force"][s])
+            kq.tool_contact_forces(x, held, supports, a["tool_force"][s])
         kq.end_substep(x, v, work, dist, normal, n_supports, True, reaction, r_prev, body, law, sub, history, holds)
         return float(result.iterations), result.residual, float(result.converged), 1.0
 
