@@ -39,6 +39,7 @@ SWEEPS = [
     ("organ_bc_sweep", "configs/organ_bc.yaml", "BC", "heml_gym/OrganRetraction-v2", 1, "0,1,2,3,4"),
     ("bimanual_bc_sweep", "configs/bimanual_bc.yaml", "BC", "heml_gym/BimanualRetraction-v0", 1, "0,1,2,3,4"),
     ("bimanual_ppo", "configs/bimanual_ppo.yaml", "PPO", "heml_gym/BimanualRetraction-v0", 1, "0,1,2,3,4"),
+    ("bimanual_sac", "configs/bimanual_sac.yaml", "SAC", "heml_gym/BimanualRetraction-v0", 1, "0,1,2,3,4"),
     ("manipulation_bc_sweep", "configs/manipulation_bc.yaml", "BC", "heml_gym/TissueManipulation-v0", 1,
      "0,1,2,3,4"),
     ("manipulation_sac_her", "configs/manipulation_sac_her.yaml", "SAC+HER", "heml_gym/TissueManipulation-v0", 1,
