@@ -122,8 +122,8 @@ import numpy as np
 
 from heml_gym.envs.camera import SEGMENT_IDS
 from heml_gym.envs.core import RewardWeights
-from heml_gym.envs.palette import (ATTACHMENT, FORCE, HELD, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN,
-                                   STRAINED, SUPPORT, TARGET, TISSUE)
+from heml_gym.envs.palette import (ATTACHMENT, FORCE, HELD, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET,
+                                   JAWS_CLOSED, JAWS_OPEN, RELEASED, STRAINED, STUCK, SUPPORT, TARGET, TISSUE)
 
 __all__ = ["ACTION_NAMES", "BLUEPRINT_VIEWS", "CAMERA_SIZE", "FORCE_ARROW_FRACTION", "OUTCOME_VALUES", "REWARD_TERMS",
            "SEGMENT_COLOURS", "SERIES", "THRESHOLDS", "record_rollouts", "series_entity", "strain_colours"]
@@ -438,6 +438,13 @@ class _SceneLogger:
                                             fill_mode="solid"))
         held = x[snap.held]
         rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=HELD))
+        if len(snap.stuck) or len(snap.released):  # the adhesion: what remains, and what a hook freed
+            rec.log("world/adhesion/stuck", rr.Points3D(x[snap.stuck].reshape(-1, 3), radii=0.0015, colors=STUCK))
+            rec.log("world/adhesion/released", rr.Points3D(x[snap.released].reshape(-1, 3), radii=0.0015,
+                                                             colors=RELEASED))
+        if len(snap.hooks):
+            rec.log("world/hook", rr.Points3D(np.asarray(snap.hooks).reshape(-1, 3), radii=0.003,
+                                              colors=[HOOK_ON if on else HOOK_OFF for on in snap.energised]))
         forces = np.nan_to_num(np.asarray(snap.grasp_forces, dtype=np.float64)).reshape(-1, 3)
         vectors = forces * self.force_scale
         jaw_tops = grippers + np.array(JAW_OFFSET) + np.array([0.0, 0.0, JAW_HALF_SIZE[2]])

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .palette import JAWS_CLOSED, JAWS_OPEN, STRAINED, TARGET, TISSUE
+from .palette import HOOK_OFF, HOOK_ON, JAWS_CLOSED, JAWS_OPEN, STRAINED, TARGET, TISSUE
 from .render import Camera, box, compose, icosphere, rasterize
 
 _COUNTER = itertools.count()
@@ -47,6 +47,9 @@ class SceneRenderer:
         for position, closed in zip(t.grippers[i], t.grasping_all[i]):  # every grasper's jaws
             jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
             parts.append((jaws[0], jaws[1], JAWS_CLOSED if closed else JAWS_OPEN))
+        for tip, on in zip(t.hook_tips[i], t.hooks_energised[i]):  # every hook's tip
+            hook = icosphere(0.003, tip, subdivisions=1)
+            parts.append((hook[0], hook[1], HOOK_ON if on else HOOK_OFF))
         x_all, faces_all, colours = compose(parts)
         n = len(x_all)
         return (np.concatenate([x_all, x]), np.concatenate([faces_all, f + n]),

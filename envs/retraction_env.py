@@ -16,7 +16,7 @@ attachment, camera, thresholds) and :meth:`snapshot` (what a frame shows).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -113,7 +113,9 @@ class SceneSnapshot:
     ``grasping``, ``held`` (vertex indices held by any grasper), ``grasp_force (3,)`` N (of
     the tissue on the first grasper), ``target (3,)`` m (a goal task's goal),
     ``young_modulus`` Pa, ``step``; every grasper's ``grippers (K, 3)`` m, ``closed (K,)``
-    and ``grasp_forces (K, 3)`` N, in action order."""
+    and ``grasp_forces (K, 3)`` N, in action order; the vertices still ``stuck`` (adhesion)
+    and those ``released`` by a hook this episode (indices); every hook's tip ``hooks (H,
+    3)`` m and whether it is ``energised (H,)``."""
 
     positions: np.ndarray
     gripper: np.ndarray
@@ -126,6 +128,10 @@ class SceneSnapshot:
     grippers: np.ndarray
     closed: np.ndarray
     grasp_forces: np.ndarray
+    stuck: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    released: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    hooks: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    energised: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 class _SceneAccess:
@@ -235,7 +241,8 @@ class _SceneAccess:
         return SceneSnapshot(t.x[i].copy(), t.gripper[i].copy(), bool(t.grasping[i]), np.flatnonzero(held),
                              t.grasp_force[i].copy(), t.target[i].copy(), float(t.young_modulus[i]),
                              int(t.steps[i]), t.grippers[i].copy(), t.grasping_all[i].copy(),
-                             np.stack([g.force[i] for g in t.instruments]))
+                             np.stack([g.force[i] for g in t.instruments]), np.flatnonzero(t.world.stuck[i]),
+                             np.flatnonzero(t.released[i]), t.hook_tips[i].copy(), t.hooks_energised[i].copy())
 
 
 class _Resolving:

@@ -90,6 +90,7 @@ class TissueTask:
         self.max_strain = np.zeros(n)
         self.damage = np.zeros(n)  # strain x s: the episode's summed info["cost"]
         self.young_modulus = np.full(n, scene.physics.young_modulus[1])
+        self.stuck_at_start = np.zeros((n, scene.mesh.n_vertices), dtype=bool)  # the episode's adhesion
         self.steps = np.zeros(n, dtype=np.int64)
         self.rngs = [np.random.default_rng() for _ in range(n)]
 
@@ -119,6 +120,22 @@ class TissueTask:
     def grippers(self) -> np.ndarray:
         """Every grasper's jaws, ``(N, K, 3)`` m (K instruments, in action order)."""
         return np.stack([g.position for g in self.instruments], axis=1)
+
+    @property
+    def released(self) -> np.ndarray:
+        """``(N, n)`` bool: tissue stuck at the episode's start that a hook has freed."""
+        return self.stuck_at_start & ~self.world.stuck
+
+    @property
+    def hook_tips(self) -> np.ndarray:
+        """Every hook's tip, ``(N, H, 3)`` m."""
+        return np.stack([h.position for h in self.hooks], axis=1) if self.hooks else np.zeros((self.n, 0, 3))
+
+    @property
+    def hooks_energised(self) -> np.ndarray:
+        """Whether each hook is energised, ``(N, H)`` bool."""
+        return (np.stack([h.energised for h in self.hooks], axis=1) if self.hooks
+                else np.zeros((self.n, 0), dtype=bool))
 
     @property
     def grasping_all(self) -> np.ndarray:
@@ -152,6 +169,7 @@ class TissueTask:
             self.damage[i] = 0.0
             if s.adhesion_vertices is not None:  # drawn last: the other draws stay as without adhesion
                 self._stick(i, rng.uniform(*s.spec.adhesion.width))
+            self.stuck_at_start[i] = self.world.stuck[i]
         self._measure_start(np.atleast_1d(worlds))
 
     def _draw(self, i: int, rng: np.random.Generator) -> None:
@@ -186,6 +204,7 @@ class TissueTask:
                 raise SpecError(f"adhesion_width: must be a distance >= 0 (m), got {adhesion_width!r}")
             self.world.unstick(i)
             self._stick(i, w)
+            self.stuck_at_start[i] = self.world.stuck[i]
         self._measure_start(np.array([i]))
 
     def _stick(self, i: int, width: float) -> None:

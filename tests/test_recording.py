@@ -368,3 +368,30 @@ def test_the_new_tasks_record_every_grasper_and_their_progress(env_id, tmp_path)
         distance = np.array(data["/" + series_entity(SERIES["goal_distance"][0], 0)]["Scalars:scalars"])[:, 0]
         assert len(distance) == summary["steps"] + 1 and distance[-1] < distance[0]
         assert summary["final_exposure"] == [None]
+
+
+def test_a_recording_draws_the_hook_and_the_attachment_it_frees(tmp_path):
+    """An episode with a hook swept along the stuck strip, energised: the recording holds
+    the hook's tip (in the env's place) and the stuck and released vertices, which
+    partition the episode's adhesion, the released growing."""
+    import gymnasium as gym
+
+    hook = {"start_low": [0.015, 0.0, 0.0], "start_high": [0.015, 0.0, 0.0], "workspace_low": [-0.05, -0.05, 0.0],
+            "workspace_high": [0.2, 0.17, 0.15], "reach": 0.012, "release_energy": 5e3}
+    env = gym.make("heml_gym/TissueRetraction-v1", scene={"hooks": {"hook": hook}, "adhesion": {"width": [0.02, 0.02]}},
+                   settings={"max_steps": 50}, max_episode_steps=50)
+
+    def sweep(obs):
+        return np.array([0, 0, 0, -1, 0, 0.5, 0, 1], dtype=np.float32)
+
+    sweep.reset = lambda: None
+    path = tmp_path / "hook.rrd"
+    record_rollouts(env, sweep, path=path, episodes=1, seed=SEED)
+    data = _temporal(RrdReader(path).stream().collect())
+    tips = data["/world/hook"]["Points3D:positions"]
+    np.testing.assert_allclose(np.array(tips[-1]).reshape(-1, 3), env.unwrapped.task.hook_tips[0], atol=1e-6)
+    stuck = [len(p) for p in data["/world/adhesion/stuck"]["Points3D:positions"]]
+    released = [len(p) for p in data["/world/adhesion/released"]["Points3D:positions"]]
+    total = int(env.unwrapped.task.stuck_at_start[0].sum())
+    assert all(s + r == total for s, r in zip(stuck, released))
+    assert released[0] == 0 and released[-1] > 0.8 * total and np.all(np.diff(released) >= 0)
