@@ -55,7 +55,7 @@ def report(data: dict) -> str:
         diff = np.linalg.norm(f - finest) / np.linalg.norm(finest)
         table.append([" x ".join(map(str, r["cells"])), f"{r['tets']:,}", f"{-f[2]:.4f}", f"{f[0]:.4f}",
                       f"{100 * diff:.1f} %", f"{r['iterations_per_step']:.0f}"])
-    return "\n".join([f"# A capsule pressed into a slab, coarse to fine\n\n{generated_by(data)}.\n",
+    return "\n".join([f"{generated_by(data)}.\n",
                       "A slab 60 x 30 x 8 mm (E 5 kPa, nu 0.45) on the plane z = 0, its end x = 0 fixed; a bar "
                       f"of radius {RADIUS * 1e3:.0f} mm across its middle, lowered {DEPTH * 1e3:.0f} mm into it over "
                       "1 s and held 2 s (quasi_newton, 0.05 s steps, tool_stiffness 100). The bar's force at the end, "

@@ -106,7 +106,7 @@ def report(data: dict) -> str:
             r = rows[f"{mode}|{v}"]
             table.append([mode, v, f"{r['ms_per_step']:.2f}", f"{r['iterations_per_step']:.1f}",
                           f"{r['us_per_iteration']:.0f}", f"{r['holding_fraction']:.2f}"])
-    lines = [f"# What a second grasper costs\n\n{generated_by(data)}; {data['note']}\n",
+    lines = [f"{generated_by(data)}; {data['note']}\n",
              f"{ENV_ID}, single env, one thread, {data['streams']} streams of {data['steps']} env steps per mode "
              "(seeds 7000+), the two envs alternating per stream. Medians over the streams.\n",
              markdown_table(["actions", "env", "ms per env step", "L-BFGS iterations per env step",

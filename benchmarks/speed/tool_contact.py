@@ -78,7 +78,7 @@ def report(data: dict) -> str:
               f"{r['ratio']:.1f}x", f"{r['iterations_with']:.0f} / {r['iterations_without']:.0f}",
               " / ".join(f"{f:.3f}" for f in r["force"]), r["unconverged_steps"]] for r in data["rows"]]
     return "\n".join([
-        f"# Rigid tool contact: cost and force\n\n{generated_by(data)}; {data['note']}\n",
+        f"{generated_by(data)}; {data['note']}\n",
         f"The TissueRetraction flap (12 x 12 x 2 cells, E 4 kPa, on the plane z = 0), quasi_newton, 0.1 s steps "
         f"in two sub-steps, {STEPS} steps; medians of {data['repeats']} runs, with and without the tool in turn.\n",
         markdown_table(["tool", "tool_stiffness", "ms per step with it", "without", "cost", "L-BFGS iterations "
