@@ -26,7 +26,8 @@ import numba as nb
 import numpy as np
 from numba import prange
 
-from .palette import BACKGROUND, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, SUPPORT, TARGET, TISSUE, unit
+from .palette import (BACKGROUND, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, SUPPORT,
+                      TARGET, TISSUE, unit)
 from .render import box, draw_triangles, icosphere, look_at
 from .spec import invalid
 
@@ -248,8 +249,13 @@ class CameraRenderer:
         """``(rgb, depth, segmentation)`` of every world (arrays owned by the renderer)."""
         t = self.task
         jaw = np.where(t.grasping_all[:, :, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
+        places = t.grippers
+        if getattr(t, "hooks", None):  # each hook's tip drawn as the jaws are, orange when energised
+            places = np.concatenate([places, t.hook_tips], axis=1)
+            jaw = np.concatenate([jaw, np.where(t.hooks_energised[:, :, None], np.array(unit(HOOK_ON)),
+                                                np.array(unit(HOOK_OFF)))], axis=1)
         kernel = render_worlds if t.n > 1 and nb.get_num_threads() > 1 else render_worlds_serial
-        poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(t.grippers),
+        poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(places),
                            np.ascontiguousarray(jaw), self.eyes, self.rots)
         kernel(poses, self.meshes, self.lens, Images(self.rgb, self.depth, self.segmentation[..., 0]))
         return self.rgb, self.depth, self.segmentation

@@ -175,3 +175,26 @@ def test_the_scripted_expert_leaves_the_hooks_off_and_still_succeeds():
     assert isinstance(policy, HooksIdle)
     result = run_episodes(env, policy, 5, seed=62_000)
     assert sum(result["successes"]) >= 4, result
+
+
+def test_the_task_camera_draws_the_hook_orange_when_energised():
+    """A hook above the flap, in view of the task camera: its box is drawn, in the
+    instrument's segment, orange while energised and grey while off."""
+    import gymnasium as gym
+
+    import heml_gym.envs as envs
+    from heml_gym.envs.camera import SEGMENT_IDS
+    from heml_gym.envs.palette import HOOK_ON
+
+    above = dict(HOOK, start_low=[0.06, 0.09, 0.03], start_high=[0.06, 0.09, 0.03])
+    env = gym.make(envs.TISSUE_RETRACTION, scene={"hooks": {"hook": above}}, obs_mode="rgbd")
+    env.reset(seed=1)
+    for energy, lit in ((1.0, True), (-1.0, False)):
+        env.step(np.array([0, 0, 0, -1, 0, 0, 0, energy], dtype=np.float32))
+        rgb, seg = env.unwrapped.camera_renderer.rgb[0], env.unwrapped.camera_renderer.segmentation[0, ..., 0]
+        instrument = seg == SEGMENT_IDS["instrument"]
+        # the lit box's pixels are shades of its colour: their hue is the colour's
+        hue = rgb[instrument].astype(float) / np.maximum(rgb[instrument].max(axis=1, keepdims=True), 1)
+        orange = np.abs(hue - np.asarray(HOOK_ON, dtype=float) / max(HOOK_ON)).max(axis=1) < 0.05
+        assert orange.any() == lit  # orange pixels while energised only (the grasper's jaws are grey)
+        assert instrument.sum() > orange.sum() > 0 if lit else instrument.any()
