@@ -214,6 +214,19 @@ def write_json(name: str, data: dict, envs=None, folder: Path | None = None) -> 
     return path
 
 
+def study_main(name: str, doc: str, measure, report, argv=None, envs=None) -> dict:
+    """A study's command line: ``measure()`` (the data, without ``machine``) stored as
+    ``name`` with the machine and reported (:func:`store_and_report`); ``--from-json``
+    rewrites the report from the stored data instead. ``doc``: the script's help."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored result")
+    args = ap.parse_args(argv)
+    data = None if args.from_json else {"machine": machine_info(), **measure()}
+    return store_and_report(name, data, report, envs)
+
+
 def store_and_report(name: str, data: dict | None, report, envs=None) -> dict:
     """A study's last step: ``data`` stored as ``name.json`` (with its task versions), or,
     when None (``--from-json``), the stored ``name.json`` read back; then ``report(data)``

@@ -12,13 +12,12 @@ in the middle of its range), the largest gauge strain, the paddle's push.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
 import numpy as np
 
 import heml_gym as hg
-from heml_gym.benchmarks.common import generated_by, machine_info, markdown_table, store_and_report
+from heml_gym.benchmarks.common import generated_by, markdown_table, study_main
 
 PADDLE_HALF = (0.02, 0.04, 0.002)
 PLACES = (-0.06, -0.05, -0.035)  # m: the paddle's centre in x (the lobe's thin edge is at -0.08)
@@ -75,17 +74,14 @@ def report(data: dict) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored result")
-    args = ap.parse_args(argv)
-    data = None
-    if not args.from_json:
+    def measure():
         from heml_gym.envs import TaskSettings
 
-        data = {"machine": machine_info(), "command": "python benchmarks/accuracy/push_feasibility.py",
+        return {"command": "python benchmarks/accuracy/push_feasibility.py",
                 "damage_strain": TaskSettings().damage_strain,
                 "runs": [lift(x0, E) for x0 in PLACES for E in MODULI]}
-    store_and_report("push_feasibility", data, report)
+
+    study_main("push_feasibility", __doc__, measure, report, argv)
 
 
 if __name__ == "__main__":

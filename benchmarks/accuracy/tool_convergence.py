@@ -12,14 +12,13 @@ of 6 tets): the bar's force at the end (N) and its difference from the finest me
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 
 import heml_gym as hg
 from heml_gym import materials as M
-from heml_gym.benchmarks.common import generated_by, machine_info, markdown_table, store_and_report
+from heml_gym.benchmarks.common import generated_by, markdown_table, study_main
 from heml_gym.control import rotation
 
 MESHES = ((6, 3, 2), (12, 6, 4), (24, 12, 8), (36, 18, 12))
@@ -65,14 +64,8 @@ def report(data: dict) -> str:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--from-json", action="store_true", help="rewrite the table from the stored result")
-    args = ap.parse_args(argv)
-    data = None
-    if not args.from_json:
-        data = {"machine": machine_info(), "command": "python benchmarks/accuracy/tool_convergence.py",
-                "rows": [press(cells) for cells in MESHES]}
-    store_and_report("tool_convergence", data, report)
+    study_main("tool_convergence", __doc__, lambda: {"command": "python benchmarks/accuracy/tool_convergence.py",
+                                                     "rows": [press(cells) for cells in MESHES]}, report, argv)
 
 
 if __name__ == "__main__":
