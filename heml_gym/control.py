@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .tools import PARKED
+
 __all__ = ["Control", "rotation"]
 
 
@@ -72,7 +74,7 @@ class Control:
         self.wrist_angle = np.zeros(n_worlds)
         self.wrist_stiffness = np.zeros(n_worlds)
         self.tool_pose = np.zeros((n_worlds, n_tools, 12))
-        self.tool_pose[:, :, 2] = 1e6  # parked (heml_gym.tools.PARKED)
+        self.tool_pose[:, :, :3] = PARKED
         self.tool_pose[:, :, 3:] = np.eye(3).ravel()
 
     def pose_tool(self, world: int, tool: int, position, rotation=None) -> None:

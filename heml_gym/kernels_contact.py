@@ -430,21 +430,6 @@ def tool_signed_distance(kind, size, pose, px, py, pz):
 
 
 @nb.njit(cache=True)
-def tool_distances(points, kind, size, pose, distance, normal):
-    """Lower ``distance (n,)`` and ``normal (n, 3)`` (as :func:`signed_distances` leaves
-    them) where a posed tool is nearer: ``kind (T,)``, ``size (T, 3)``, ``pose (T, 12)``
-    (one world's, see :func:`tool_signed_distance`)."""
-    for i in range(points.shape[0]):
-        for t in range(kind.shape[0]):
-            d, nx, ny, nz = tool_signed_distance(kind[t], size[t], pose[t], points[i, 0], points[i, 1], points[i, 2])
-            if d < distance[i]:
-                distance[i] = d
-                normal[i, 0] = nx
-                normal[i, 1] = ny
-                normal[i, 2] = nz
-
-
-@nb.njit(cache=True)
 def tool_each(points, kind, size, pose, distance, normal):
     """Each posed tool's signed distance (m) of each point and its outward normal, into
     ``distance (T, k)`` and ``normal (T, k, 3)`` (``pose (T, 12)``: one world's)."""

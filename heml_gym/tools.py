@@ -2,10 +2,11 @@
 
 A tool is a rigid body the tissue cannot enter, like a support, but it moves: each world
 poses it anew before a step (:meth:`heml_gym.Control.pose_tool`), and the solver sees it
-where it is posed at the step's end. Contact is the supports': frictionless, a penalty
-on the free vertices inside it in the potential the implicit solvers minimise (with its
-Hessian blocks in Newton's matrix and the L-BFGS preconditioner's contact set), then a
-projection onto its surface. A solver reports the force each tool exerts on the tissue
+where it is posed at the step's end. Contact is frictionless: a penalty on the free
+vertices inside it in the potential the implicit solvers minimise (with its Hessian blocks
+in Newton's matrix and the L-BFGS preconditioner's contact set), its stiffness a multiple
+of the tissue's own at each vertex; unlike a support's, there is no projection onto its
+surface afterwards. A solver reports the force each tool exerts on the tissue
 (:attr:`heml_gym.solvers.StepStats.tool_force`). Units: m, N.
 
 Limits: contact is on the tissue's vertices, so a tool thinner than the mesh's cells can
@@ -26,7 +27,7 @@ import math
 
 import numpy as np
 
-from .kernels_contact import BOX, CAPSULE, tool_distances, tool_each
+from .kernels_contact import BOX, CAPSULE, tool_each
 
 __all__ = ["Tool", "Capsule", "Box", "Tools", "PARKED"]
 
@@ -91,7 +92,7 @@ class Tools:
     @classmethod
     def from_arrays(cls, kind, size) -> "Tools":
         """The tools of packed ``kind (T,)`` and ``size (T, 3)`` (as the kernels read them)."""
-        return cls([Capsule(r, h) if k == CAPSULE else Box(sz) for k, sz, (r, h, _) in zip(kind, size, size)])
+        return cls([Capsule(sz[0], sz[1]) if k == CAPSULE else Box(sz) for k, sz in zip(kind, size)])
 
     def __len__(self) -> int:
         return len(self.items)
@@ -100,10 +101,12 @@ class Tools:
         """Smallest signed distance (m) of ``points (k, 3)`` to the tools posed at ``pose
         (T, 12)`` (``inf`` without tools) and that tool's outward normal, ``((k,), (k, 3))``."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        d = np.full(len(p), math.inf)
-        n = np.zeros((len(p), 3))
-        tool_distances(p, self.kind, self.size, np.ascontiguousarray(pose, dtype=np.float64), d, n)
-        return d, n
+        if not len(self):
+            return np.full(len(p), math.inf), np.zeros((len(p), 3))
+        each, normals = self.each_distance(p, pose)
+        nearest = np.argmin(each, axis=0)
+        k = np.arange(len(p))
+        return each[nearest, k], normals[nearest, k]
 
     def each_distance(self, points, pose) -> tuple[np.ndarray, np.ndarray]:
         """Signed distance (m) of ``points (k, 3)`` to each tool posed at ``pose (T, 12)``

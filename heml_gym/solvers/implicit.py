@@ -341,9 +341,15 @@ class ImplicitSolver(Solver):
             d, normal = supports.signed_distance(x)
             return np.where(free_v, np.minimum(d, 0.0), 0.0), normal
 
+        last_tools = [None, None]  # (x, its penalty): potential, gradient and Hessian ask at the same x
+
         def tools(x):
             """The rigid tools' penalty at x (:class:`heml_gym.tools.ToolPenalty`), None without tools"""
-            return m.tools.penalty(x, control.tool_pose[s], k_tool, free_v) if len(m.tools) else None
+            if not len(m.tools):
+                return None
+            if last_tools[0] is None or not np.array_equal(last_tools[0], x):
+                last_tools[:] = [np.array(x, copy=True), m.tools.penalty(x, control.tool_pose[s], k_tool, free_v)]
+            return last_tools[1]
 
         def potential(x):
             d = x.reshape(-1) - x_hat

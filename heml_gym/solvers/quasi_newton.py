@@ -326,7 +326,7 @@ class QuasiNewtonSolver(Solver):
             contact = (d.reshape(len(worlds), n) <= self._contact_margin) & ~held[worlds]
             normal = normal.reshape(len(worlds), n, 3)
         tool_diag = None
-        if len(m.tools):  # each tool on its own, as in the potential: its penalty's diagonal per unit c m_i
+        if len(m.tools):  # each tool on its own, as in the potential: its penalty's diagonal (N/m)
             tool_diag = np.zeros((len(worlds), 3, n))  # N/m
             tool_k = self.tool_penalty_stiffness()
             tool_contact = np.zeros((len(worlds), n), dtype=bool)
