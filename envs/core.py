@@ -26,7 +26,8 @@ FORCE_BOUND = 20.0  # N
 #: The state observation, entry by entry: (name, low, high, unit). The bounds of the
 #: observation space and the clipping of every entry come from this table.
 #: the bounds of a grasper's entries by their unit: positions (m), the grasping flag (-), forces (N)
-_BOUNDS_BY_UNIT = {"m": (-POSITION_BOUND, POSITION_BOUND), "-": (0.0, 1.0), "N": (-FORCE_BOUND, FORCE_BOUND)}
+_BOUNDS_BY_UNIT = {"m": (-POSITION_BOUND, POSITION_BOUND), "-": (0.0, 1.0), "N": (-FORCE_BOUND, FORCE_BOUND),
+                   "rad": (-math.pi, math.pi)}
 STATE_SPEC = (
     [(name, *_BOUNDS_BY_UNIT[unit], unit) for name, unit in Grasper.OBSERVATION]  # the grasper's part
     + [(f"target_{a}", -POSITION_BOUND, POSITION_BOUND, "m") for a in "xyz"]
@@ -146,11 +147,10 @@ class BatchedRetraction(TissueTask):
         super().__init__(scene, n_worlds, as_settings(settings, TaskSettings, "settings"), grippers)
         self.weights = as_settings(weights, RewardWeights, "weights")
         n = self.n
-        # the state's bounds: a grasper's entries once per grasper, then the task's
-        k = len(self.instruments)
-        self._state_low, self._state_high = [
-            bound if k == 1 else np.concatenate([np.tile(bound[:GRASPER_SIZE], k), bound[GRASPER_SIZE:]])
-            for bound in (STATE_LOW, STATE_HIGH)]
+        # the state's bounds: each instrument's entries by their units, then the task's
+        low, high = hook_bounds(self.instrument_fields())
+        self._state_low = np.concatenate([low, STATE_LOW[GRASPER_SIZE:]])
+        self._state_high = np.concatenate([high, STATE_HIGH[GRASPER_SIZE:]])
         if self.hooks:  # the hooks' entries last
             low, high = hook_bounds(self.hook_fields())
             self._state_low = np.concatenate([self._state_low, low])

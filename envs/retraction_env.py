@@ -253,6 +253,7 @@ class _Resolving:
     #: The batched task the env runs, and its settings' class.
     task_class = BatchedRetraction
     settings_class = TaskSettings
+    weights_class = RewardWeights
 
     @classmethod
     def resolve(cls, scene=None, physics=None, **size) -> Scene:
@@ -274,7 +275,7 @@ class _Resolving:
         """Validate the data arguments of the constructor (as ``gym.make`` would pass
         them) without building the scene's mesh; returns the resolved scene."""
         settings = as_settings(settings, cls.settings_class, "settings")
-        as_settings(weights, RewardWeights, "weights")
+        as_settings(weights, cls.weights_class, "weights")
         if camera is not None:
             as_settings(camera, ImageSpec, "camera")
         return apply_difficulty(difficulty, settings, cls.resolve(scene, physics, **size))[1]

@@ -122,6 +122,10 @@ class PhysicsSpec:
     equal boxes, and each box's E relative to the episode's drawn E (``nx ny nz`` numbers,
     x fastest; a tet is in the box that holds its centre, :func:`heml_gym.mesh.box_regions`);
     empty (the default): uniform. HEML fields only; ``heml-gym calibrate --regions`` fits it.
+    ``tool_stiffness``: the contact penalty of rigid tools (paddles, touching shafts) in
+    units of the tissue's own stiffness at each vertex (quasi_newton and implicit; the
+    force a tool reports is within about its inverse of the exact one: 100, 1 %; 10 costs
+    fewer solver iterations and reads about 7-24 % soft, ``docs/studies/instruments.md``).
     """
 
     material: str = "NeoHookean"
@@ -140,6 +144,7 @@ class PhysicsSpec:
     scheme: str = "backward_euler"
     hessian_scale: float = 1.0
     stiffness_regions: dict = dataclass_field(default_factory=dict)  # (`field` is the force field here)
+    tool_stiffness: float = 100.0
 
     def __post_init__(self):
         if self.material not in LAWS:
@@ -179,6 +184,9 @@ class PhysicsSpec:
         if not (isinstance(self.hessian_scale, (int, float)) and not isinstance(self.hessian_scale, bool)
                 and math.isfinite(self.hessian_scale) and self.hessian_scale > 0):
             raise invalid(self, "hessian_scale", f"must be a positive number, got {self.hessian_scale!r}")
+        t = self.tool_stiffness
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (math.isfinite(t) and t > 0):
+            raise invalid(self, "tool_stiffness", f"must be a positive number, got {t!r}")
         self._check_stiffness_regions()
 
     def _check_stiffness_regions(self) -> None:
@@ -430,6 +438,41 @@ class HookSpec:
 
 
 @dataclass
+class PaddleSpec:
+    """A paddle retractor: a rigid blade of ``half_extents`` (m; thin along its local z)
+    that pushes tissue and holds nothing. Its centre starts uniformly in
+    ``start_low``..``start_high`` and is kept inside ``workspace_low``..``workspace_high``
+    (m); it moves at up to ``max_speed`` (m/s) and tilts about its local y (its pitch) at up
+    to ``angular_speed`` (rad/s), at most ``max_tilt`` (rad) from level. The default speed,
+    30 mm/s, keeps the default 4 mm blade from passing through tissue (a vertex carried more
+    than half its thickness per 0.05 s solver step would; :mod:`heml_gym.tools`)."""
+
+    start_low: Vec3 = (0.0, 0.0, 0.0)
+    start_high: Vec3 = (0.0, 0.0, 0.0)
+    workspace_low: Vec3 = (-1.0, -1.0, -1.0)
+    workspace_high: Vec3 = (1.0, 1.0, 1.0)
+    half_extents: Vec3 = (0.02, 0.04, 0.002)
+    max_speed: float = 0.03
+    angular_speed: float = 0.5
+    max_tilt: float = 0.6
+
+    def __post_init__(self):
+        if not _finite(self.half_extents) or len(self.half_extents) != 3 or min(self.half_extents) <= 0:
+            raise invalid(self, "half_extents", f"must be three positive lengths in metres, got {self.half_extents}")
+        for name, high in (("max_speed", math.inf), ("angular_speed", math.inf), ("max_tilt", 1.5)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= high:
+                raise invalid(self, name, f"must be a number in (0, {high:g}], got {value!r}")
+        for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
+            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
+            if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
+                raise invalid(self, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
+        if any(a < wl or b > wh for a, b, wl, wh in zip(self.start_low, self.start_high, self.workspace_low,
+                                                          self.workspace_high)):
+            raise invalid(self, "start_low", "the start box must lie inside the workspace")
+
+
+@dataclass
 class CameraSpec:
     """The task camera (the target's exposure is seen from it): ``eye`` (m) looking at
     ``look_at`` (m; null: the tissue's centre), ``up``, vertical field of view ``fov_y``
@@ -483,7 +526,10 @@ class Scene:
     single-grasper tools; ``marker``: one point of the tissue (the vertex nearest to it) that a
     goal-conditioned task brings to its goal, drawn per episode in ``target``'s region;
     ``hooks``: electrosurgical hooks by name (:class:`HookSpec`), after the graspers in the
-    action and at the end of the state observation (null: none).
+    action and at the end of the state observation (null: none); ``paddles``: paddle
+    retractors by name (:class:`PaddleSpec`), after the graspers and before the hooks in
+    the action and the state observation (null: none). A scene with paddles may have no
+    grasper (``graspers: {}``); ``gripper`` then only frames single-instrument tools.
     """
 
     name: str
@@ -502,13 +548,15 @@ class Scene:
     graspers: dict[str, GripperSpec] | None = None
     marker: RegionSpec | None = None
     hooks: dict[str, HookSpec] | None = None
+    paddles: dict[str, PaddleSpec] | None = None
 
     def __post_init__(self):
         if not self.name:
             raise invalid(self, "name", "must be a non-empty string")
         if self.graspers is not None:
-            if not self.graspers:
-                raise invalid(self, "graspers", "must name at least one grasper, or be null (one: gripper)")
+            if not self.graspers and not self.paddles:
+                raise invalid(self, "graspers", "must name at least one grasper, or be null (one: gripper); "
+                                                "only a scene with paddles may have none")
             for name, spec in self.graspers.items():
                 if not (isinstance(name, str) and name.isidentifier()):
                     raise invalid(self, "graspers", f"names must be identifiers (they prefix info keys), got {name!r}")
@@ -523,6 +571,13 @@ class Scene:
                 raise invalid(self, "hooks", f"{name}: must be a HookSpec or a mapping of its fields")
             if name in (self.graspers or {}):
                 raise invalid(self, "hooks", f"{name}: a grasper has that name")
+        for name, spec in (self.paddles or {}).items():
+            if not (isinstance(name, str) and name.isidentifier()):
+                raise invalid(self, "paddles", f"names must be identifiers (they prefix info keys), got {name!r}")
+            if not isinstance(spec, PaddleSpec):
+                raise invalid(self, "paddles", f"{name}: must be a PaddleSpec or a mapping of its fields")
+            if name in (self.graspers or {}) or name in (self.hooks or {}):
+                raise invalid(self, "paddles", f"{name}: a grasper or hook has that name")
         if self.tracked.points is None or len(self.tracked.points) != 4:
             raise invalid(self, "tracked", "must give exactly 4 points")
         if not (math.isfinite(self.strain_gauge) and self.strain_gauge > 0):
@@ -622,9 +677,12 @@ class BuiltScene:
         self.graspers = [(None, g)] if spec.graspers is None else list(spec.graspers.items())
         #: the electrosurgical hooks, ``[(name, HookSpec), ...]`` in action order (after the graspers)
         self.hooks = list((spec.hooks or {}).items())
-        #: where any grasper may go (m): the union of their workspaces
-        self.workspace_low = np.min([s.workspace_low for _, s in self.graspers], axis=0).astype(np.float64)
-        self.workspace_high = np.max([s.workspace_high for _, s in self.graspers], axis=0).astype(np.float64)
+        #: the paddle retractors, ``[(name, PaddleSpec), ...]`` in action order (after the graspers)
+        self.paddles = list((spec.paddles or {}).items())
+        #: where any grasper (or paddle) may go (m): the union of their workspaces
+        moving = [s for _, s in self.graspers + self.paddles]
+        self.workspace_low = np.min([s.workspace_low for s in moving], axis=0).astype(np.float64)
+        self.workspace_high = np.max([s.workspace_high for s in moving], axis=0).astype(np.float64)
         self.hinge = tuple(spec.fold.hinge)
         self.fold_direction = float(spec.fold.direction)
         self.fold_angle = float(spec.fold.angle)

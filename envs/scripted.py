@@ -87,6 +87,39 @@ MAX_FOLD_ANGLE = {"TissueRetraction": 1.9, "OrganRetraction": 1.2, "BimanualRetr
 PARTIAL_JAWS_RADIUS_SCALE = {"TissueRetraction": 0.9, "BimanualRetraction": 0.9}
 
 
+class PushPolicy:
+    """Scripted expert of a paddle task (PushRetraction): slide the level blade in along x at
+    floor level to ``under_x`` (m; its centre), then lift it at ``lift_speed`` (m/s) until
+    the exposure reaches ``hold_exposure`` and hold it there (lifting on if the exposure
+    drops below it again, never above ``max_height``, m). Reads the state observation:
+    the blade's centre (entries 0-2), its tilt (3) and the exposure."""
+
+    def __init__(self, under_x: float = -0.035, lift_speed: float = 0.015, hold_exposure: float = 0.85,
+                 max_height: float = 0.07, max_speed: float = 0.03, angular_speed: float = 0.5,
+                 control_dt: float = 0.1):
+        self.under_x, self.hold_exposure, self.max_height = float(under_x), float(hold_exposure), float(max_height)
+        self.lift = float(lift_speed) / max_speed
+        self.scale = 1.0 / (max_speed * control_dt)
+        self.tilt_scale = 1.0 / (angular_speed * control_dt)
+        self.exposed = False
+
+    def reset(self):
+        self.exposed = False
+
+    def __call__(self, obs) -> np.ndarray:
+        state = np.asarray(obs["state"] if isinstance(obs, dict) else obs, dtype=np.float64)
+        centre, tilt = state[0:3], state[3]
+        action = np.zeros(4)
+        action[3] = np.clip(-tilt * self.tilt_scale, -1.0, 1.0)  # keep the blade level
+        if centre[0] < self.under_x - ALIGNED:  # slide in under the lobe
+            action[0] = np.clip((self.under_x - centre[0]) * self.scale, -1.0, 1.0)
+            return action.astype(np.float32)
+        self.exposed = state[EXPOSURE] >= self.hold_exposure
+        if not self.exposed and centre[2] < self.max_height:
+            action[2] = self.lift
+        return action.astype(np.float32)
+
+
 class SeveralGraspersPolicy:
     """One policy per grasper of a task with several (``policies``, in action order), each
     run on its own view of the state observation: its grasper's 7 entries and the task's
@@ -170,21 +203,26 @@ class HooksIdle:
 def scripted_policy(scene):
     """The scripted baseline of a scene (a :class:`~heml_gym.envs.scene.Scene`: its fold
     hinge and direction are used) or of a scene family by name ("TissueRetraction",
-    "OrganRetraction", "BimanualRetraction" or "TissueManipulation", their default
-    scenes). With several graspers, each folds from the middle of its start box
+    "OrganRetraction", "BimanualRetraction", "TissueManipulation" or "PushRetraction",
+    their default scenes). A scene of paddles alone is pushed (:class:`PushPolicy`). With several graspers, each folds from the middle of its start box
     (:class:`SeveralGraspersPolicy`); a scene with a marked point is a goal task
     (:class:`ReachGoalPolicy`); graspers on ports take its commands through
     :class:`PortCommands`."""
     if isinstance(scene, str):
         from . import bimanual_retraction, organ_retraction, tissue_retraction
 
+        from .push_retraction import push_scene
         from .tissue_manipulation import manipulation_scene
 
         defaults = {"TissueRetraction": tissue_retraction.tissue_scene, "OrganRetraction": organ_retraction.organ_scene,
-                    "BimanualRetraction": bimanual_retraction.bimanual_scene, "TissueManipulation": manipulation_scene}
+                    "BimanualRetraction": bimanual_retraction.bimanual_scene, "TissueManipulation": manipulation_scene,
+                    "PushRetraction": push_scene}
         if scene not in defaults:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
+    if getattr(scene, "paddles", None) and not scene.graspers:  # a paddle task
+        spec = next(iter(scene.paddles.values()))
+        return PushPolicy(max_speed=spec.max_speed, angular_speed=spec.angular_speed)
     specs = [scene.gripper] if scene.graspers is None else list(scene.graspers.values())
     if scene.marker is not None:  # a goal-conditioned task
         policy = ReachGoalPolicy()

@@ -18,7 +18,7 @@ import numpy as np
 from heml_gym.tools import Capsule
 from heml_gym.world import World
 
-from .instruments import Grasper, Hook
+from .instruments import Grasper, Hook, Paddle
 from .instruments.port import SHAFT_HALF_LENGTH
 from .measures import finite
 from .scene import BuiltScene, GripperSpec
@@ -26,6 +26,11 @@ from .spec import SpecError
 from .strain_gauges import StrainGauges
 
 STRAIN_BOUND = 5.0  # gauge strain reported for tissue whose strain is not finite
+
+
+def _wrist(instrument):
+    """An instrument's free wrist's reach (m), None without one (paddles have none)."""
+    return getattr(instrument.spec, "wrist_reach", None)
 
 
 class StepOutcome:
@@ -63,12 +68,13 @@ class TissueTask:
                     or not all(isinstance(spec, GripperSpec) for spec in grippers.values())):
                 raise SpecError(f"grippers: must map each grasper's name to its GripperSpec, got {grippers!r}")
             specs = [(str(name), spec) for name, spec in grippers.items()]
-        # the shafts that touch tissue are the world's rigid tools, in the graspers' order
+        # the world's rigid tools: the shafts that touch tissue, in the graspers' order, then the paddles
         shafts = [spec.shaft_radius for _, spec in specs if spec.shaft_radius is not None]
-        tools = [Capsule(r, SHAFT_HALF_LENGTH) for r in shafts]
+        tools = [Capsule(r, SHAFT_HALF_LENGTH) for r in shafts] + [Paddle.blade(spec) for _, spec in scene.paddles]
         if tools and scene.physics.integrator not in ("quasi_newton", "implicit"):
-            raise SpecError(f"scene.gripper.shaft_radius: a shaft that touches tissue is stepped by the quasi_newton "
-                            f"or implicit integrator, not {scene.physics.integrator}")
+            what = "scene.paddles: a paddle" if scene.paddles else "scene.gripper.shaft_radius: a shaft"
+            raise SpecError(f"{what} that touches tissue is stepped by the quasi_newton or implicit integrator, "
+                            f"not {scene.physics.integrator}")
         self.world = World.from_physics(scene.mesh, scene.physics, n, dt, fixed=scene.fixed, supports=scene.supports,
                                         tools=tools)
         if self.world.substeps > 1_000_000:
@@ -78,7 +84,10 @@ class TissueTask:
         self.instruments = [Grasper(self.world, scene, settings, name=name, spec=spec,
                                     shaft_tool=next(tool_of) if spec.shaft_radius is not None else None)
                             for name, spec in specs]
-        if sum(g.spec.wrist_reach is not None for g in self.instruments) > 1:
+        #: the scene's paddle retractors, after the graspers (instruments too: they move and push)
+        self.instruments += [Paddle(self.world, scene, settings, spec, name=name, tool=len(shafts) + k)
+                             for k, (name, spec) in enumerate(scene.paddles)]
+        if sum(_wrist(g) is not None for g in self.instruments) > 1:
             raise SpecError("grippers: at most one grasper may be on a free wrist (wrist_reach): a world has "
                             "one wrist")
         self.grasper = self.instruments[0]
@@ -271,13 +280,17 @@ class TissueTask:
         return info
 
     def instrument_info(self, worlds=None, start: bool = False) -> dict:
-        """Each instrument's ``info`` entries; with several, also ``grasp_force`` (their
-        forces' magnitudes summed, N) and ``grasping`` (any holds tissue)."""
+        """Each instrument's ``info`` entries; with several (or none a grasper), also
+        ``grasp_force`` (the graspers' forces' magnitudes summed, N) and ``grasping`` (any
+        holds tissue)."""
         parts = [g.start_info(worlds) if start else g.info(worlds) for g in self.instruments]
         info = {k: v for part in parts for k, v in part.items()}
-        if len(self.instruments) > 1:
-            info["grasp_force"] = sum(part[g.key("grasp_force")] for g, part in zip(self.instruments, parts))
-            info["grasping"] = np.any([part[g.key("grasping")] for g, part in zip(self.instruments, parts)], axis=0)
+        graspers = [(g, part) for g, part in zip(self.instruments, parts) if g.kind == "grasper"]
+        if len(self.instruments) > 1 or not graspers:  # (a task of paddles only: nothing held, 0 N)
+            k = self.n if worlds is None else len(np.atleast_1d(worlds))
+            info["grasp_force"] = sum((part[g.key("grasp_force")] for g, part in graspers), np.zeros(k))
+            info["grasping"] = np.any([part[g.key("grasping")] for g, part in graspers] or [np.zeros(k, dtype=bool)],
+                                      axis=0)
         for h in self.hooks:
             info.update(h.info(worlds))
         return info
@@ -293,7 +306,7 @@ class TissueTask:
     def wrist_info(self, worlds) -> dict:
         """``wrist_angle`` (rad): how far the jaws on a free wrist have turned since they
         closed (0 when open), where the scene has them."""
-        if all(g.spec.wrist_reach is None for g in self.instruments):
+        if all(_wrist(g) is None for g in self.instruments):
             return {}
         turned = self.control.turns[worlds].any(axis=1)
         return {"wrist_angle": np.where(turned, self.control.wrist_angle[worlds], 0.0)}

@@ -53,7 +53,7 @@ class World:
         ``heml_gym.envs.PhysicsSpec``: ``material_for(E)``, ``young_modulus`` (low, high),
         ``field``, ``density``, ``gravity``, ``damping``, ``stiffness_regions``,
         ``integrator``, ``scheme``, ``safety``, ``newton_tol``, ``max_newton``,
-        ``hessian_scale``, ``max_dt``), stepped ``control_dt`` seconds at a time. Every world
+        ``hessian_scale``, ``max_dt``, ``tool_stiffness``), stepped ``control_dt`` seconds at a time. Every world
         starts with the stiffest tissue the range allows; explicit sub-steps are fixed by it,
         so that a world's trajectory does not depend on its neighbours. ``tools``: rigid tools
         (:mod:`heml_gym.tools`) the world's control poses."""
@@ -66,7 +66,8 @@ class World:
             model.set_stiffness_map(relative[box_regions(mesh, ph.stiffness_regions["grid"])])
         solver = make_solver(model, ph.integrator, scheme=ph.scheme, safety=ph.safety, newton_tol=ph.newton_tol,
                              max_iterations=ph.max_newton,
-                             hessian_scale=ph.hessian_scale if ph.integrator == "quasi_newton" else 1.0)
+                             hessian_scale=ph.hessian_scale if ph.integrator == "quasi_newton" else 1.0,
+                             tool_stiffness=getattr(ph, "tool_stiffness", 100.0))
         if ph.integrator == "explicit":
             substeps = solver.substeps(control_dt, model.critical_dt(material=ph.material_for(E_high)))
         else:

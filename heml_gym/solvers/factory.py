@@ -55,7 +55,7 @@ def check_solver_choice(integrator: str, field: str | None = None, scheme: str =
 def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str = "backward_euler",
                 safety: float = 0.5, newton_tol: float = 1e-3, max_iterations: int | None = None,
                 max_speed: float = 1e3, linear_solver: str = "pcg", refinements=(4, 16),
-                hessian_scale: float = 1.0) -> Solver:
+                hessian_scale: float = 1.0, tool_stiffness: float = 100.0) -> Solver:
     """The solver ``integrator`` for ``model``, every setting with one meaning:
 
     * ``safety``: explicit sub-steps are at most this fraction of the critical step;
@@ -73,6 +73,9 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
       units of ``lambda + mu`` (``quasi_newton`` only; speed, not accuracy, see
       :class:`~heml_gym.QuasiNewtonSolver`; on other fields, of the rest stiffness, see
       :class:`~heml_gym.ImplicitSolver`'s ``method="lbfgs"``);
+    * ``tool_stiffness``: the rigid tools' contact penalty in units of the tissue's own
+      stiffness at each vertex (``quasi_newton`` and ``implicit``; see
+      :meth:`~heml_gym.solvers.base.Solver.tool_penalty_stiffness`);
     * ``max_speed`` (m/s): a vertex faster than this counts as exploded.
 
     Errors name the setting (:class:`SolverChoiceError`, or the solver's own ValueError
@@ -88,10 +91,12 @@ def make_solver(model: Model, integrator: str = "quasi_newton", *, scheme: str =
         if scheme != "backward_euler":
             raise SolverChoiceError("scheme", f"{scheme!r} needs HEML force fields, got {type(other).__name__}")
         return ImplicitSolver(model, newton_tol=newton_tol, max_newton=200 if max_iterations is None else max_iterations,
-                              method="lbfgs", hessian_scale=hessian_scale, max_speed=max_speed, refinements=refinements)
+                              method="lbfgs", hessian_scale=hessian_scale, max_speed=max_speed, refinements=refinements,
+                              tool_stiffness=tool_stiffness)
     if integrator == "quasi_newton":
         return QuasiNewtonSolver(model, newton_tol=newton_tol, max_iter=50 if max_iterations is None else max_iterations,
                                  refinements=refinements, max_speed=max_speed, scheme=scheme,
-                                 hessian_scale=hessian_scale)
+                                 hessian_scale=hessian_scale, tool_stiffness=tool_stiffness)
     return ImplicitSolver(model, newton_tol=newton_tol, max_newton=20 if max_iterations is None else max_iterations,
-                          linear_solver=linear_solver, max_speed=max_speed, refinements=refinements)
+                          linear_solver=linear_solver, max_speed=max_speed, refinements=refinements,
+                          tool_stiffness=tool_stiffness)

@@ -1,0 +1,154 @@
+"""A paddle retractor: a rigid blade that pushes and lifts tissue and holds none.
+
+One :class:`Paddle` stands for the same instrument in each of a :class:`heml_gym.World`'s
+N worlds. It is one of the world's rigid tools (:class:`heml_gym.Box`, thin along its
+local z), posed each step where its action takes it. Its action is a velocity along x,
+y, z in units of its ``max_speed`` and a tilt rate about its local y in units of its
+``angular_speed``. Its part of the state observation is its centre, its tilt and the
+force it exerts on the tissue (mean over the step). Where it presses, it also reports
+the contact pressure: its push over the area of tissue it touches. Units: m, s, rad, N, Pa.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from heml_gym.tools import Box
+
+from ..spec import SpecError
+from .hook import surface_areas
+
+
+def tilt_rotation(angle: float) -> np.ndarray:
+    """The rotation (3, 3) that pitches the blade by ``angle`` (rad) about y: its local z
+    (the blade's normal) turns from +z towards +x."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+class Paddle:
+    """A paddle retractor in every world of ``world``: ``scene`` (the built scene),
+    ``settings`` (the task's ``control_dt``), ``spec`` (a ``PaddleSpec``), ``name``
+    (prefixes its ``info`` keys), ``tool`` (its index among the world's rigid tools).
+
+    It has a grasper's attributes where a task reads them (``position``, ``force``,
+    ``grasping`` and ``held``: always empty), so that a task treats every instrument
+    alike."""
+
+    kind = "paddle"
+    ACTION = ("velocity_x", "velocity_y", "velocity_z", "tilt_rate")
+    action_size = len(ACTION)
+    #: its part of the state observation, entry by entry: (name, unit)
+    OBSERVATION = (tuple((f"centre_{a}", "m") for a in "xyz") + (("tilt", "rad"),)
+                   + tuple((f"push_force_{a}", "N") for a in "xyz"))
+
+    @staticmethod
+    def blade(spec) -> Box:
+        """The rigid tool a paddle of ``spec`` is."""
+        return Box(tuple(spec.half_extents))
+
+    def __init__(self, world, scene, settings, spec, name: str = "paddle", tool: int = 0):
+        self.world, self.scene, self.settings, self.spec, self.name, self.tool = world, scene, settings, spec, name, tool
+        self.start_low, self.start_high = np.asarray(spec.start_low), np.asarray(spec.start_high)
+        self.workspace_low, self.workspace_high = np.asarray(spec.workspace_low), np.asarray(spec.workspace_high)
+        mesh = scene.mesh
+        area = surface_areas(mesh.vertices, scene.surface_faces)  # m^2 per vertex, at rest
+        free = np.ones(mesh.n_vertices, dtype=bool)
+        free[scene.fixed] = False
+        self._surface = np.flatnonzero((area > 0) & free)  # the vertices that can feel its pressure
+        self._area = area[self._surface]
+        n, nv = world.n, mesh.n_vertices
+        self.position = np.zeros((n, 3))
+        self.tilt = np.zeros(n)
+        self.force = np.zeros((n, 3))  # its push on the tissue, mean over the last step (N)
+        self.pressure = np.zeros(n)  # contact pressure at the step's end (Pa)
+        self.grasping = np.zeros(n, dtype=bool)  # (a paddle holds nothing)
+        self.grasped_once = np.zeros(n, dtype=bool)
+        self.held = np.zeros((n, nv), dtype=bool)
+        self.held_share = np.zeros((n, nv))
+        self.offsets = np.zeros((n, nv, 3))
+        self.shaft_force = np.zeros((n, 3))
+
+    def key(self, entry: str) -> str:
+        """The ``info`` key of ``entry`` for this paddle (its name first)."""
+        return f"{self.name}_{entry}"
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, i: int, rng: np.random.Generator) -> None:
+        """World ``i``'s blade level, at a start drawn from its start box."""
+        self.position[i] = rng.uniform(self.start_low, self.start_high)
+        self.tilt[i] = 0.0
+        self.force[i] = 0.0
+        self.pressure[i] = 0.0
+        self._pose([i])
+
+    def place(self, i: int, position) -> None:
+        """Start world ``i``'s blade centre at ``position`` (m, (3,), inside the workspace)."""
+        p = np.asarray(position, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise SpecError(f"gripper: the paddle's start must be 3 finite coordinates (m), got {position!r}")
+        if np.any(p < self.workspace_low - 1e-12) or np.any(p > self.workspace_high + 1e-12):
+            raise SpecError(f"gripper: {p.tolist()} lies outside the paddle's workspace "
+                            f"{list(self.workspace_low)}..{list(self.workspace_high)} m")
+        self.position[i] = p
+        self._pose([i])
+
+    def _pose(self, worlds) -> None:
+        for i in worlds:
+            self.world.control.pose_tool(i, self.tool, self.position[i], tilt_rotation(self.tilt[i]))
+
+    # --------------------------------------------------------------------- step
+    def grasp(self, actions: np.ndarray) -> np.ndarray:
+        """A paddle grasps nothing: no world grasps for the first time."""
+        return np.zeros(self.world.n, dtype=bool)
+
+    def move(self, actions: np.ndarray) -> None:
+        """Move the blade by the velocity command (``actions[:, :3]``, in units of
+        ``max_speed``) and tilt it by the tilt command (``actions[:, 3]``, in units of
+        ``angular_speed``) over one control step, within the workspace and ``max_tilt``."""
+        sp, dt = self.spec, self.settings.control_dt
+        self.position = np.clip(self.position + actions[:, :3] * sp.max_speed * dt, self.workspace_low,
+                                self.workspace_high)
+        self.tilt = np.clip(self.tilt + actions[:, 3] * sp.angular_speed * dt, -sp.max_tilt, sp.max_tilt)
+        self._pose(range(self.world.n))
+
+    def after_step(self, reaction, failed, tool_force) -> None:
+        """Read the blade's push (the step's mean) and its contact pressure at the step's
+        end; 0 where the step failed."""
+        self.force = np.where(failed[:, None], 0.0, tool_force[:, self.tool])
+        self.pressure = np.where(failed, 0.0, self.contact_pressure())
+
+    def contact_pressure(self, worlds=None) -> np.ndarray:
+        """Contact pressure (Pa) on the tissue now, per world: the blade's push (the solver's
+        contact law at each touching surface vertex, summed) over the touching vertices'
+        share of the surface at rest; 0 where it touches nothing. This mean over the contact
+        converges as the mesh refines; a vertex's own force over its area would not (the
+        blade's edges load single vertices)."""
+        worlds = range(self.world.n) if worlds is None else worlds
+        tools = self.world.model.tools
+        stiffness = self.world.solver.tool_penalty_stiffness()
+        out = np.zeros(len(worlds))
+        for k, i in enumerate(worlds):
+            x = self.world.state.x[i, self._surface]
+            d, _ = tools.each_distance(x, self.world.control.tool_pose[i])
+            depth = np.maximum(-d[self.tool], 0.0)
+            touching = depth > 0.0
+            if touching.any():
+                out[k] = float((stiffness[i, self._surface] * depth).sum() / self._area[touching].sum())
+        return np.nan_to_num(out, nan=0.0, posinf=0.0)
+
+    # --------------------------------------------------------- what it reports
+    def observation(self) -> list[np.ndarray]:
+        """Its part of a state observation: centre (m), tilt (rad), push force (N)."""
+        return [self.position, self.tilt[:, None], self.force]
+
+    def info(self, worlds=None) -> dict:
+        """``{name}_push_force`` (N, its magnitude), ``{name}_contact_pressure`` (Pa) and
+        ``{name}_tilt`` (rad) of ``worlds`` (default all)."""
+        w = slice(None) if worlds is None else worlds
+        return {self.key("push_force"): np.linalg.norm(self.force[w], axis=1), self.key("contact_pressure"): self.pressure[w].copy(),
+                self.key("tilt"): self.tilt[w].copy()}
+
+    def start_info(self, worlds=None) -> dict:
+        """:meth:`info` at an episode's start (before any step)."""
+        return self.info(worlds)
