@@ -7,6 +7,12 @@ y, z in units of its ``max_speed`` and a tilt rate about its local y in units of
 ``angular_speed``. Its part of the state observation is its centre, its tilt and the
 force it exerts on the tissue (mean over the step). Where it presses, it also reports
 the contact pressure: its push over the area of tissue it touches. Units: m, s, rad, N, Pa.
+
+To the solver the blade is solid to :data:`BACKING` (30 mm) below its face. Contact is on
+the tissue's vertices, and a blade thinner than the mesh's cells moved sideways under
+tissue would otherwise catch vertices deeper than half its thickness and push them out
+through its underside (the lobe then falls through the blade). A paddle lifts from
+below, so no tissue belongs under its face; the backing changes nothing else.
 """
 
 from __future__ import annotations
@@ -16,7 +22,9 @@ import numpy as np
 from heml_gym.tools import Box
 
 from ..spec import SpecError
-from .hook import surface_areas
+
+#: m: the depth below the blade's face that is solid to the solver (at least the blade's thickness)
+BACKING = 0.03
 
 
 def tilt_rotation(angle: float) -> np.ndarray:
@@ -44,19 +52,26 @@ class Paddle:
 
     @staticmethod
     def blade(spec) -> Box:
-        """The rigid tool a paddle of ``spec`` is."""
-        return Box(tuple(spec.half_extents))
+        """The rigid tool a paddle of ``spec`` is to the solver: its blade, extended
+        :data:`BACKING` below its face (see the module docstring)."""
+        hx, hy, hz = spec.half_extents
+        return Box((hx, hy, max(hz, BACKING / 2)))
+
+    def _centre_offset(self) -> float:
+        """How far (m) the solver's box's centre lies below the blade's centre, along the blade's normal."""
+        hz = self.spec.half_extents[2]
+        return max(hz, BACKING / 2) - hz
 
     def __init__(self, world, scene, settings, spec, name: str = "paddle", tool: int = 0):
         self.world, self.scene, self.settings, self.spec, self.name, self.tool = world, scene, settings, spec, name, tool
         self.start_low, self.start_high = np.asarray(spec.start_low), np.asarray(spec.start_high)
         self.workspace_low, self.workspace_high = np.asarray(spec.workspace_low), np.asarray(spec.workspace_high)
         mesh = scene.mesh
-        area = surface_areas(mesh.vertices, scene.surface_faces)  # m^2 per vertex, at rest
         free = np.ones(mesh.n_vertices, dtype=bool)
         free[scene.fixed] = False
-        self._surface = np.flatnonzero((area > 0) & free)  # the vertices that can feel its pressure
-        self._area = area[self._surface]
+        surface = np.zeros(mesh.n_vertices, dtype=bool)
+        surface[np.unique(scene.surface_faces)] = True
+        self._surface = np.flatnonzero(surface & free)  # the vertices that can feel its pressure
         n, nv = world.n, mesh.n_vertices
         self.position = np.zeros((n, 3))
         self.tilt = np.zeros(n)
@@ -94,8 +109,10 @@ class Paddle:
         self._pose([i])
 
     def _pose(self, worlds) -> None:
+        below = self._centre_offset()
         for i in worlds:
-            self.world.control.pose_tool(i, self.tool, self.position[i], tilt_rotation(self.tilt[i]))
+            rotation = tilt_rotation(self.tilt[i])
+            self.world.control.pose_tool(i, self.tool, self.position[i] - below * rotation[:, 2], rotation)
 
     # --------------------------------------------------------------------- step
     def grasp(self, actions: np.ndarray) -> np.ndarray:
@@ -120,21 +137,36 @@ class Paddle:
 
     def contact_pressure(self, worlds=None) -> np.ndarray:
         """Contact pressure (Pa) on the tissue now, per world: the blade's push (the solver's
-        contact law at each touching surface vertex, summed) over the touching vertices'
-        share of the surface at rest; 0 where it touches nothing. This mean over the contact
+        contact law at each touching surface vertex, summed) over the area of tissue it
+        touches (each touching vertex's third of its surface triangles, projected on the
+        blade's face there); 0 where it touches nothing. This mean over the contact
         converges as the mesh refines; a vertex's own force over its area would not (the
         blade's edges load single vertices)."""
         worlds = range(self.world.n) if worlds is None else worlds
         tools = self.world.model.tools
         stiffness = self.world.solver.tool_penalty_stiffness()
+        faces = self.scene.surface_faces
         out = np.zeros(len(worlds))
         for k, i in enumerate(worlds):
-            x = self.world.state.x[i, self._surface]
-            d, _ = tools.each_distance(x, self.world.control.tool_pose[i])
+            x = self.world.state.x[i]
+            d, normal = tools.each_distance(x[self._surface], self.world.control.tool_pose[i])
             depth = np.maximum(-d[self.tool], 0.0)
             touching = depth > 0.0
-            if touching.any():
-                out[k] = float((stiffness[i, self._surface] * depth).sum() / self._area[touching].sum())
+            if not touching.any():
+                continue
+            inside = np.zeros(len(x), dtype=bool)
+            inside[self._surface[touching]] = True
+            blade_normal = np.zeros((len(x), 3))
+            blade_normal[self._surface] = normal[self.tool]
+            a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
+            area_vector = 0.5 * np.cross(b - a, c - a)  # (f, 3): area (m^2) times the unit normal
+            area = 0.0
+            for corner in range(3):  # each touching corner's third, projected on the blade's face
+                v = faces[:, corner]
+                on = inside[v]
+                area += np.abs(np.einsum("fa,fa->f", area_vector[on], blade_normal[v[on]])).sum() / 3.0
+            push = (stiffness[i, self._surface] * depth).sum()
+            out[k] = push / area if area > 0 else 0.0
         return np.nan_to_num(out, nan=0.0, posinf=0.0)
 
     # --------------------------------------------------------- what it reports
