@@ -10,6 +10,9 @@ Importing this package registers:
   goal-conditioned (``GoalEnv``)
 * ``heml_gym/PushRetraction-v0`` (:class:`~heml_gym.envs.push_retraction.PushRetractionEnv`): a
   paddle retractor, no grasp
+* ``heml_gym/GallbladderDissection-v0``
+  (:class:`~heml_gym.envs.gallbladder_dissection.GallbladderDissectionEnv`): a grasper and an
+  electrosurgical hook, to the critical view of safety (200 steps)
 
 each with a batched implementation for ``gymnasium.make_vec(...,
 vectorization_mode="vector_entry_point")`` and ``max_episode_steps`` its settings'
@@ -37,7 +40,7 @@ from .spec import SpecError
 
 __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec", "GripperSpec",
            "CameraSpec", "SupportSpec", "build_scene", "check_env_kwargs", "RewardWeights", "TaskSettings", "ManipulationSettings", "SpecError", "STATE_FIELDS", "STATE_SPEC",
-           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "BIMANUAL_RETRACTION", "TISSUE_MANIPULATION", "PUSH_RETRACTION", "ENV_IDS", "GOAL_ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
+           "TISSUE_RETRACTION", "ORGAN_RETRACTION", "BIMANUAL_RETRACTION", "TISSUE_MANIPULATION", "PUSH_RETRACTION", "GALLBLADDER_DISSECTION", "ENV_IDS", "GOAL_ENV_IDS", "RETIRED_IDS", "SAME_STATE_TASK", "MAX_EPISODE_STEPS", "episode_steps",
            "unknown_env_message"]
 
 #: Arguments set by other means than ``env.kwargs`` (the run config's own keys, gym.make's).
@@ -80,7 +83,9 @@ ORGAN_RETRACTION = "heml_gym/OrganRetraction-v2"
 BIMANUAL_RETRACTION = "heml_gym/BimanualRetraction-v0"
 TISSUE_MANIPULATION = "heml_gym/TissueManipulation-v0"
 PUSH_RETRACTION = "heml_gym/PushRetraction-v0"
-ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION, BIMANUAL_RETRACTION, TISSUE_MANIPULATION, PUSH_RETRACTION)
+GALLBLADDER_DISSECTION = "heml_gym/GallbladderDissection-v0"
+ENV_IDS = (TISSUE_RETRACTION, ORGAN_RETRACTION, BIMANUAL_RETRACTION, TISSUE_MANIPULATION, PUSH_RETRACTION,
+           GALLBLADDER_DISSECTION)
 #: The goal-conditioned tasks (``GoalEnv`` observations: observation, achieved_goal, desired_goal).
 GOAL_ENV_IDS = (TISSUE_MANIPULATION,)
 MAX_EPISODE_STEPS = TaskSettings().max_steps
@@ -151,4 +156,11 @@ gym.register(
     entry_point="heml_gym.envs.push_retraction:PushRetractionEnv",
     vector_entry_point="heml_gym.envs.push_retraction:PushRetractionVectorEnv",
     max_episode_steps=MAX_EPISODE_STEPS,
+)
+
+gym.register(
+    id=GALLBLADDER_DISSECTION,
+    entry_point="heml_gym.envs.gallbladder_dissection:GallbladderDissectionEnv",
+    vector_entry_point="heml_gym.envs.gallbladder_dissection:GallbladderDissectionVectorEnv",
+    max_episode_steps=200,
 )

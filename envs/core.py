@@ -203,6 +203,7 @@ class BatchedRetraction(TissueTask):
         # success: the target exposed with the tissue below damage strain, held for hold_time
         # (the condition first met counts as 0 s; each further step in a row adds control_dt)
         meets = (self.exposure >= st.success_exposure) & (self.max_strain < st.damage_strain) & ~failed
+        meets &= self._also_needed()
         self.held_steps = np.where(meets, self.held_steps + 1, 0)
         success = meets & (self.held_steps > self.steps_to_hold)
         terms["reward_hold"] = np.where(meets & ~success, w.hold * st.control_dt, 0.0)
@@ -221,6 +222,10 @@ class BatchedRetraction(TissueTask):
                 "tissue_torn": torn, **self.solver_info(stats), **self.wrist_info(all_worlds),
                 **self.episode_info(all_worlds)}
         return reward, terminated, truncated, info
+
+    def _also_needed(self) -> np.ndarray:
+        """What a task adds to the success condition, per world (here: nothing more)."""
+        return np.ones(self.n, dtype=bool)
 
     def start_info(self, worlds) -> dict:
         """The ``info`` of ``worlds`` (indices) at the start of their episodes (after

@@ -33,13 +33,14 @@ from heml_gym.solvers import SolverChoiceError, check_solver_choice
 from .spec import SpecError, from_mapping, invalid, merge, to_mapping
 
 __all__ = ["Scene", "TissueSpec", "PhysicsSpec", "RegionSpec", "FoldSpec", "AdhesionSpec", "TargetSpec",
-           "GripperSpec", "CameraSpec", "SupportSpec", "BuiltScene", "build_scene", "LAWS", "ORGANS"]
+           "GripperSpec", "HookSpec", "PaddleSpec", "StructureSpec", "CameraSpec", "SupportSpec", "BuiltScene", "build_scene", "LAWS", "ORGANS"]
 
 #: Material laws by class name (``physics.material``).
 LAWS = {cls.__name__: cls for cls in materials.ALL_MATERIALS}
 #: Procedural organs (``tissue.organ``): name -> mesher in :mod:`heml_gym.organs`.
 ORGANS = {"liver_lobe": organs.liver_lobe_mesh, "kidney": organs.kidney_mesh, "uterus": organs.uterus_mesh,
-          "fat_flap": organs.fat_flap_mesh, "irregular_cube": organs.irregular_cube_mesh}
+          "fat_flap": organs.fat_flap_mesh, "irregular_cube": organs.irregular_cube_mesh,
+          "gallbladder": organs.gallbladder_mesh}
 
 Vec3 = tuple[float, float, float]
 OptVec3 = tuple[float | None, float | None, float | None]
@@ -318,6 +319,34 @@ class TargetSpec:
 
 
 @dataclass
+class StructureSpec:
+    """A critical structure that must not be harmed (a duct, a vessel): the cylinder of
+    ``radius`` (m) about the segment ``start``..``end`` (m). An energised instrument within
+    ``margin`` (m) of its surface harms it."""
+
+    start: Vec3 = (0.0, 0.0, 0.0)
+    end: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = 0.003
+    margin: float = 0.005
+
+    def __post_init__(self):
+        if not (_finite(self.start) and _finite(self.end)) or tuple(self.start) == tuple(self.end):
+            raise invalid(self, "start", f"start {self.start} and end {self.end} must be distinct finite points")
+        for name in ("radius", "margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
+                                                                                     and value > 0):
+                raise invalid(self, name, f"must be a positive length in metres, got {value!r}")
+
+    def distance(self, points) -> np.ndarray:
+        """Distance (m) of ``points (k, 3)`` to the structure's surface (negative inside)."""
+        a, b = np.asarray(self.start, dtype=np.float64), np.asarray(self.end, dtype=np.float64)
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        t = np.clip((p - a) @ (b - a) / float((b - a) @ (b - a)), 0.0, 1.0)
+        return np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1) - self.radius
+
+
+@dataclass
 class GripperSpec:
     """The gripper starts uniformly in ``start_low``..``start_high`` and is kept inside
     ``workspace_low``..``workspace_high`` (m). ``jaw_length`` (m): closed jaws hold only the
@@ -528,7 +557,8 @@ class Scene:
     ``hooks``: electrosurgical hooks by name (:class:`HookSpec`), after the graspers in the
     action and at the end of the state observation (null: none); ``paddles``: paddle
     retractors by name (:class:`PaddleSpec`), after the graspers and before the hooks in
-    the action and the state observation (null: none). A scene with paddles may have no
+    the action and the state observation (null: none); ``critical``: a structure that no
+    energised instrument may come near (:class:`StructureSpec`; null: none). A scene with paddles may have no
     grasper (``graspers: {}``); ``gripper`` then only frames single-instrument tools.
     """
 
@@ -549,6 +579,7 @@ class Scene:
     marker: RegionSpec | None = None
     hooks: dict[str, HookSpec] | None = None
     paddles: dict[str, PaddleSpec] | None = None
+    critical: StructureSpec | None = None
 
     def __post_init__(self):
         if not self.name:

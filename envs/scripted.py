@@ -120,6 +120,76 @@ class PushPolicy:
         return action.astype(np.float32)
 
 
+class DissectionPolicy:
+    """Scripted expert of GallbladderDissection: the grasper closes on the fundus and lifts
+    it to ``lift_height`` (m); the hook, energised inside the lower third, sweeps the stuck
+    strip in two lanes (y = +-``lane`` m, ``sweep_height`` m above the bed: towards the
+    neck in the +y lane to ``neck_x``, back in the -y lane to ``far_x``) at ``sweep_speed``
+    (m/s) until ``done_fraction`` of the lower third is released; then the hook switches
+    off and rises, and the grasper folds the sac back about its neck (``step_angle`` rad
+    per step, on an arc ``radius_scale`` of the jaws' distance from the neck: with slack)
+    until both ducts show (``hold_exposure``) and holds there. Reads the state
+    observation only (its entries by name: :class:`~heml_gym.envs.gallbladder_dissection.BatchedDissection`)."""
+
+    GRASPER, GRASPING, EXPOSURE, RELEASED, HOOK = slice(0, 3), 3, 23, 24, slice(25, 28)
+
+    def __init__(self, lift_height: float = 0.032, lane: float = 0.0045, sweep_height: float = 0.0005,
+                 neck_x: float = 0.003, far_x: float = 0.030, sweep_speed: float = 0.005, done_fraction: float = 0.97,
+                 step_angle: float = 0.04, max_angle: float = 1.3, hold_exposure: float = 0.9, radius_scale: float = 1.0,
+                 max_speed: float = 0.05, control_dt: float = 0.1):
+        self.lift_height, self.lane, self.sweep_height = lift_height, lane, sweep_height
+        self.neck_x, self.far_x, self.done_fraction = neck_x, far_x, done_fraction
+        self.sweep = sweep_speed / max_speed
+        self.step_angle, self.max_angle, self.hold_exposure = step_angle, max_angle, hold_exposure
+        self.radius_scale = radius_scale
+        self.scale = 1.0 / (max_speed * control_dt)
+        self.radius = None
+
+    def reset(self):
+        self.radius = None
+
+    def __call__(self, obs) -> np.ndarray:
+        state = np.asarray(obs["state"] if isinstance(obs, dict) else obs, dtype=np.float64)
+        done = state[self.RELEASED] >= self.done_fraction
+        return np.concatenate([self._grasper(state, done), self._hook(state, done)]).astype(np.float32)
+
+    def _grasper(self, state, done) -> np.ndarray:
+        jaws = state[self.GRASPER]
+        if state[self.GRASPING] < 0.5:
+            self.radius = None
+            return np.array([0.0, 0.0, 0.0, 1.0])
+        if not done:  # lift the fundus while the hook frees the neck
+            return np.array([0.0, 0.0, np.clip((self.lift_height - jaws[2]) * self.scale, -1.0, 1.0), 1.0])
+        if self.radius is None:
+            self.radius = self.radius_scale * float(np.hypot(jaws[0], jaws[2]))
+        angle = math.atan2(jaws[2], jaws[0])
+        if state[self.EXPOSURE] < self.hold_exposure:
+            angle = min(angle + self.step_angle, self.max_angle)
+        goal = self.radius * np.array([math.cos(angle), 0.0, math.sin(angle)])
+        return np.concatenate([np.clip((goal - jaws) * self.scale, -1.0, 1.0), [1.0]])
+
+    def _hook(self, state, done) -> np.ndarray:
+        tip = state[self.HOOK]
+        if done:  # off, up and away from the tissue
+            return np.array([0.0, 0.0, 1.0 if tip[2] < 0.04 else 0.0, -1.0])
+        move = np.zeros(3)
+        move[2] = np.clip((self.sweep_height - tip[2]) * self.scale, -1.0, 1.0)
+        if tip[1] > 0.0:  # the +y lane, towards the neck, then across
+            move[1] = np.clip((self.lane - tip[1]) * self.scale, -1.0, 1.0)
+            if tip[0] > self.neck_x:
+                move[0] = -self.sweep
+            else:
+                move[1] = -1.0
+        else:  # the -y lane, away from the neck, then across
+            move[1] = np.clip((-self.lane - tip[1]) * self.scale, -1.0, 1.0)
+            if tip[0] < self.far_x:
+                move[0] = self.sweep
+            else:
+                move[1] = 1.0
+        energy = 1.0 if tip[0] <= self.far_x + 0.002 else -1.0  # on only over the stuck strip
+        return np.concatenate([move, [energy]])
+
+
 class SeveralGraspersPolicy:
     """One policy per grasper of a task with several (``policies``, in action order), each
     run on its own view of the state observation: its grasper's 7 entries and the task's
@@ -211,15 +281,18 @@ def scripted_policy(scene):
     if isinstance(scene, str):
         from . import bimanual_retraction, organ_retraction, tissue_retraction
 
+        from .gallbladder_dissection import dissection_scene
         from .push_retraction import push_scene
         from .tissue_manipulation import manipulation_scene
 
         defaults = {"TissueRetraction": tissue_retraction.tissue_scene, "OrganRetraction": organ_retraction.organ_scene,
                     "BimanualRetraction": bimanual_retraction.bimanual_scene, "TissueManipulation": manipulation_scene,
-                    "PushRetraction": push_scene}
+                    "PushRetraction": push_scene, "GallbladderDissection": dissection_scene}
         if scene not in defaults:
             raise ValueError(f"no scripted policy for scene {scene!r} (known: {', '.join(defaults)})")
         scene = defaults[scene]()
+    if getattr(scene, "critical", None) is not None and getattr(scene, "hooks", None):  # a dissection
+        return DissectionPolicy()
     if getattr(scene, "paddles", None) and not scene.graspers:  # a paddle task
         spec = next(iter(scene.paddles.values()))
         return PushPolicy(max_speed=spec.max_speed, angular_speed=spec.angular_speed)

@@ -20,7 +20,8 @@ from heml_gym.benchmarks.common import ROOT, markdown_table, store_and_report
 
 #: env name -> its BC config
 CONFIGS = {"tissue": "configs/tissue_bc.yaml", "organ": "configs/organ_bc.yaml", "bimanual": "configs/bimanual_bc.yaml",
-           "manipulation": "configs/manipulation_bc.yaml", "push": "configs/push_bc.yaml"}
+           "manipulation": "configs/manipulation_bc.yaml", "push": "configs/push_bc.yaml",
+           "dissection": "configs/dissection_bc.yaml"}
 
 
 def table(result: dict, name: str) -> str:
