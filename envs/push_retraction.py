@@ -72,7 +72,7 @@ As OrganRetraction's (``obs_mode``, ``camera``, ``render_mode``, ``settings`` (a
 
 ## Scripted expert
 
-Slides the blade in under the lobe to x = -35 mm at floor level, lifts it at 15 mm/s
+Slides the blade in under the lobe to x = -35 mm at floor level, lifts it at 30 mm/s
 until the target is exposed (0.85), and holds it there
 (:class:`heml_gym.envs.scripted.PushPolicy`; ``heml-gym eval scripted --env
 heml_gym/PushRetraction-v0``).

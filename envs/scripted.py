@@ -94,7 +94,7 @@ class PushPolicy:
     drops below it again, never above ``max_height``, m). Reads the state observation:
     the blade's centre (entries 0-2), its tilt (3) and the exposure."""
 
-    def __init__(self, under_x: float = -0.035, lift_speed: float = 0.015, hold_exposure: float = 0.85,
+    def __init__(self, under_x: float = -0.035, lift_speed: float = 0.03, hold_exposure: float = 0.85,
                  max_height: float = 0.07, max_speed: float = 0.03, angular_speed: float = 0.5,
                  control_dt: float = 0.1):
         self.under_x, self.hold_exposure, self.max_height = float(under_x), float(hold_exposure), float(max_height)
