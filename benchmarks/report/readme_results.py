@@ -313,6 +313,18 @@ def learned(env_id: str, agents_data: dict | None) -> str:
     return ", ".join(parts) or "not trained yet"
 
 
+def _instruments(task) -> str:
+    """A task's instruments in words: "grasper", "2 graspers (left, right)", "paddle", "grasper, hook"."""
+    graspers = [g for g in task.instruments if g.kind == "grasper"]
+    parts = []
+    if len(graspers) == 1:
+        parts.append("grasper")
+    elif graspers:
+        parts.append(f"{len(graspers)} graspers ({', '.join(g.name for g in graspers)})")
+    parts += [g.kind for g in task.instruments if g.kind != "grasper"] + [h.kind for h in task.hooks]
+    return ", ".join(parts)
+
+
 def task_table() -> str:
     """The README's table of tasks: from the registry (spaces, settings) and the stored
     results (scripted and learned success, speed)."""
@@ -331,13 +343,15 @@ def task_table() -> str:
         action = f"`{type(space).__name__}({', '.join(str(n) for n in space.shape)},)`"
         if hasattr(s, "goal_tolerance"):  # a goal task
             success = f"marked point within {s.goal_tolerance * 1e3:g} mm of a goal drawn per episode"
+        elif hasattr(s, "release_fraction"):  # a dissection: the critical view of safety
+            success = (f"critical view: >= {s.release_fraction:.0%} of the lower third freed, both ducts exposed "
+                       f">= {s.success_exposure:.0%}, held {s.hold_time:g} s, no energy near the bile duct")
         else:
             success = (f"exposure >= {s.success_exposure:.0%}, gauge strain < {s.damage_strain:g}"
                        + (f", held {s.hold_time:g} s" if s.hold_time else ""))
         scripted = (agents_data or {}).get("scripted", {}).get(env_id)
         scripted_text = (f"{scripted['success_rate']:.0%} of {scripted['episodes']}" if scripted else "not measured")
-        k = len(u.instruments)
-        instruments = "grasper" if k == 1 else f"{k} graspers ({', '.join(u.instruments)})"
+        instruments = _instruments(u.task)
         if env_id in GOAL_ENV_IDS:
             action = action + ", goal-conditioned"
         rows.append([f"`{env_id}`", instruments, action, ", ".join(OBS_MODES), success, scripted_text,
