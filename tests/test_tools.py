@@ -165,11 +165,32 @@ def test_a_model_without_tools_reports_no_tool_force_and_an_unposed_tool_touches
     np.testing.assert_array_equal(stats.tool_force, 0.0)
 
 
-@pytest.mark.parametrize("solver", [hg.ExplicitSolver, hg.StaticSolver])
+@pytest.mark.parametrize("solver", [hg.ExplicitSolver])
 def test_a_solver_that_does_not_step_tools_refuses_them_in_one_line(solver):
     with pytest.raises(ValueError, match=r"^tools: .* does not step rigid tools yet") as caught:
         solver(_slab_model(tools=[PADDLE]))
     assert "\n" not in str(caught.value)
+
+
+def test_statics_and_the_implicit_solvers_find_the_same_equilibrium_on_a_tool():
+    """A cantilever (the slab fixed at x = 0, no floor) sagging under gravity onto a paddle
+    under its free end that holds it 2 mm above where it rests: the static solver's
+    equilibrium is where backward Euler (Newton's and L-BFGS's) comes to rest, and the
+    paddle carries the same share of the weight."""
+    bar = hg.Box((0.01, 0.02, 0.002))  # under the last two columns of vertices (x 50 and 60 mm)
+    pose = ((0.055, 0.015, 0.0), None)  # its top 2 mm above the slab's underside at rest
+    fixed = np.flatnonzero(SLAB.vertices[:, 0] == 0.0)
+    model = _slab_model(tools=[bar], fixed=fixed)
+    state, control = model.state(), model.control()
+    control.pose_tool(0, 0, *pose)
+    stats = hg.StaticSolver(model, load_steps=4, tol=1e-9).solve(state, control)
+    assert stats.converged.all(), stats.messages
+    weight = DENSITY * 0.06 * 0.03 * 0.008 * 9.81
+    assert 0.05 * weight < stats.tool_force[0, 0, 2] < weight  # it carries part of the weight
+    for integrator in ("quasi_newton", "implicit"):
+        rest, rest_stats = _settle(_slab_model(tools=[bar], fixed=fixed), integrator, steps=120, pose=pose)
+        assert np.abs(rest.x - state.x).max() < 1e-5, integrator  # m
+        np.testing.assert_allclose(rest_stats.tool_force, stats.tool_force, rtol=0.01, atol=1e-4 * weight)
 
 
 @pytest.mark.parametrize("call, message", [

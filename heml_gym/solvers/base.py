@@ -135,7 +135,7 @@ class Solver:
             raise TypeError(f"model must be a heml_gym.Model, got {type(model).__name__}")
         if len(model.tools) and not self.takes_tools:
             raise ValueError(f"tools: {type(self).__name__} does not step rigid tools yet; the quasi_newton and "
-                             "implicit integrators do")
+                             "implicit integrators and the static solver do")
         max_speed = float(max_speed)
         if not (math.isfinite(max_speed) and max_speed > 0):
             raise ValueError(f"max_speed must be a positive number of m/s, got {max_speed}")
