@@ -71,10 +71,6 @@ class TissueTask:
         # the world's rigid tools: the shafts that touch tissue, in the graspers' order, then the paddles
         shafts = [spec.shaft_radius for _, spec in specs if spec.shaft_radius is not None]
         tools = [Capsule(r, SHAFT_HALF_LENGTH) for r in shafts] + [Paddle.blade(spec) for _, spec in scene.paddles]
-        if tools and scene.physics.integrator not in ("quasi_newton", "implicit"):
-            what = "scene.paddles: a paddle" if scene.paddles else "scene.gripper.shaft_radius: a shaft"
-            raise SpecError(f"{what} that touches tissue is stepped by the quasi_newton or implicit integrator, "
-                            f"not {scene.physics.integrator}")
         self.world = World.from_physics(scene.mesh, scene.physics, n, dt, fixed=scene.fixed, supports=scene.supports,
                                         tools=tools)
         if self.world.substeps > 1_000_000:

@@ -4,9 +4,11 @@ A tool is a rigid body the tissue cannot enter, like a support, but it moves: ea
 poses it anew before a step (:meth:`heml_gym.Control.pose_tool`), and the solver sees it
 where it is posed at the step's end. Contact is frictionless: a penalty on the free
 vertices inside it in the potential the implicit solvers minimise (with its Hessian blocks
-in Newton's matrix and the L-BFGS preconditioner's contact set), its stiffness a multiple
-of the tissue's own at each vertex; unlike a support's, there is no projection onto its
-surface afterwards. A solver reports the force each tool exerts on the tissue
+in Newton's matrix and the L-BFGS preconditioner's contact set) and the static solver's,
+its stiffness a multiple of the tissue's own at each vertex; unlike a support's, there is
+no projection onto its surface afterwards. Explicit sub-steps instead put a vertex inside
+a tool back on its surface and take its velocity into it, as they do for a support. Every
+solver reports the force each tool exerts on the tissue
 (:attr:`heml_gym.solvers.StepStats.tool_force`). Units: m, N.
 
 Limits: contact is on the tissue's vertices, so a tool thinner than the mesh's cells can

@@ -149,8 +149,3 @@ def test_a_bad_shaft_is_one_line_naming_it(changes, message):
     assert "\n" not in str(caught.value)
 
 
-def test_a_touching_shaft_under_an_integrator_that_cannot_step_it_is_one_line():
-    with pytest.raises(SpecError, match=r"^scene\.gripper\.shaft_radius: .* quasi_newton or implicit") as caught:
-        gym.make(envs.TISSUE_RETRACTION, scene={"gripper": {"port": PORT, "shaft_radius": 0.005}},
-                 physics={"integrator": "explicit"}).reset(seed=0)
-    assert "\n" not in str(caught.value)

@@ -56,7 +56,7 @@ from heml_gym.benchmarks.common import IMAGES, RESULTS, checkout_file, codegen_t
 from heml_gym.envs.scripted import scripted_policy
 
 ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2", "heml_gym/BimanualRetraction-v0",
-           "heml_gym/TissueManipulation-v0")
+           "heml_gym/TissueManipulation-v0", "heml_gym/PushRetraction-v0", "heml_gym/GallbladderDissection-v0")
 STREAMS = ("random", "extreme", "toggling", "out_of_range", "push_release", "scripted")
 VECTOR_N = 8
 ACCEPTANCE_STREAMS = ("push_release", "random", "extreme")  # part 1b

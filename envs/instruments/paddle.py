@@ -25,6 +25,9 @@ from ..spec import SpecError
 
 #: m: the depth below the blade's face that is solid to the solver (at least the blade's thickness)
 BACKING = 0.03
+#: m: tissue this close to the blade touches it (the penalty of the implicit solvers lets it in
+#: a little; explicit sub-steps put it on the surface)
+TOUCH = 1e-6
 
 
 def tilt_rotation(angle: float) -> np.ndarray:
@@ -136,22 +139,20 @@ class Paddle:
         self.pressure = np.where(failed, 0.0, self.contact_pressure())
 
     def contact_pressure(self, worlds=None) -> np.ndarray:
-        """Contact pressure (Pa) on the tissue now, per world: the blade's push (the solver's
-        contact law at each touching surface vertex, summed) over the area of tissue it
-        touches (each touching vertex's third of its surface triangles, projected on the
-        blade's face there); 0 where it touches nothing. This mean over the contact
-        converges as the mesh refines; a vertex's own force over its area would not (the
-        blade's edges load single vertices)."""
+        """Contact pressure (Pa) per world: the blade's push (its force on the tissue, the
+        step's mean) over the area of tissue it touches at the step's end (each surface
+        vertex within :data:`TOUCH` of the blade or inside it, a third of each of its surface
+        triangles, projected on the blade's face there); 0 where it touches nothing. This
+        mean over the contact converges as the mesh refines; a vertex's own force over its
+        area would not (the blade's edges load single vertices)."""
         worlds = range(self.world.n) if worlds is None else worlds
         tools = self.world.model.tools
-        stiffness = self.world.solver.tool_penalty_stiffness()
         faces = self.scene.surface_faces
         out = np.zeros(len(worlds))
         for k, i in enumerate(worlds):
             x = self.world.state.x[i]
             d, normal = tools.each_distance(x[self._surface], self.world.control.tool_pose[i])
-            depth = np.maximum(-d[self.tool], 0.0)
-            touching = depth > 0.0
+            touching = d[self.tool] < TOUCH
             if not touching.any():
                 continue
             inside = np.zeros(len(x), dtype=bool)
@@ -165,8 +166,7 @@ class Paddle:
                 v = faces[:, corner]
                 on = inside[v]
                 area += np.abs(np.einsum("fa,fa->f", area_vector[on], blade_normal[v[on]])).sum() / 3.0
-            push = (stiffness[i, self._surface] * depth).sum()
-            out[k] = push / area if area > 0 else 0.0
+            out[k] = float(np.linalg.norm(self.force[i])) / area if area > 0 else 0.0
         return np.nan_to_num(out, nan=0.0, posinf=0.0)
 
     # --------------------------------------------------------- what it reports

@@ -60,6 +60,7 @@ class ExplicitSolver(Solver):
     """
 
     takes_hold_springs = True
+    takes_tools = True
 
     def __init__(self, model: Model, safety: float = 0.5, max_speed: float = 1e3, refinements=(4, 16)):
         super().__init__(model, max_speed)
@@ -97,9 +98,11 @@ class ExplicitSolver(Solver):
         fields = m.fields
         heml = all(isinstance(f, HemlForce) for f in fields) and not m.damping.beta
         one_big_mesh = m.n_worlds == 1 and fields[0].kernel_threads() > 1
+        tools = len(m.tools) > 0
+        tool_force = np.zeros((m.n_worlds, len(m.tools), 3)) if tools else None
         with np.errstate(all="ignore"):
-            if springs.any():  # (hold springs: sub-step by sub-step, the springs' pull added)
-                bad = self._stepwise(state, control, h, n_sub, x0, active, stats.reaction)
+            if springs.any() or tools:  # (hold springs, tools: sub-step by sub-step, the springs' pull added)
+                bad = self._stepwise(state, control, h, n_sub, x0, active, stats.reaction, tool_force)
             elif heml and not one_big_mesh and all(f.split for f in fields) and m.n_worlds > 1:
                 bad = self._lanes(state, control, h, n_sub, x0, stats.reaction)
             elif heml and not one_big_mesh:
@@ -114,10 +117,13 @@ class ExplicitSolver(Solver):
                 state.x[retry], state.v[retry] = x0[retry], v0[retry]
                 stats.reaction[retry] = 0.0
                 stats.refinement[retry] = factor
-                if heml and not one_big_mesh and not springs.any():
+                if heml and not one_big_mesh and not springs.any() and not tools:
                     again = self._fused(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction)
                 else:
-                    again = self._stepwise(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction)
+                    if tools:
+                        tool_force[retry] = 0.0
+                    again = self._stepwise(state, control, h / factor, n_sub * factor, x0, retry, stats.reaction,
+                                           tool_force)
                 bad[retry] = again[retry]
         inactive = ~active
         state.x[inactive] = x0[inactive]
@@ -130,6 +136,8 @@ class ExplicitSolver(Solver):
             stats.reaction[s] = 0.0
         stats.diverged = bad >= 0
         stats.converged = ~stats.diverged
+        if tools:
+            stats.tool_force = np.where((active & ~stats.diverged)[:, None, None], tool_force, 0.0)
         done = springs & ~stats.diverged[:, None]
         control.anchors[done] = control.targets[done]  # (the anchors reached their targets)
         return stats
@@ -192,10 +200,13 @@ class ExplicitSolver(Solver):
         reaction_out[:] = from_lanes(reaction)
         return bad_lanes.reshape(-1)[:N].copy()
 
-    def _stepwise(self, state, control, h, n_sub, x0, active, reaction):
+    def _stepwise(self, state, control, h, n_sub, x0, active, reaction, tool_force=None):
         """Sub-step by sub-step from Python: any force field, stiffness damping, hold
         springs (each spring-held vertex is free, pulled by ``k (anchor - x)`` with its
-        anchor on the straight path to its target; that pull is its reaction)."""
+        anchor on the straight path to its target; that pull is its reaction), rigid tools
+        (each free vertex inside one is put back on its surface, as the supports do, and
+        loses its velocity into it: the momentum it loses, over the sub-step, is the tool's
+        push, averaged over the step into ``tool_force (N, T, 3)``)."""
         m = self.model
         N, n = m.n_worlds, m.n_vertices
         supports = m.supports.kernel_args()
@@ -204,6 +215,7 @@ class ExplicitSolver(Solver):
         bad = np.full(N, -1, dtype=np.int64)
         beta = m.damping.beta
         exact = control.exactly_held()
+        free = ~(m.fixed[None, :] | exact) if tool_force is not None else None
         for s in np.flatnonzero(active):
             field = m.fields[s]
             x, v = state.x[s], state.v[s]
@@ -223,6 +235,29 @@ class ExplicitSolver(Solver):
                 if b >= 0:
                     bad[s] = b
                     break
+                if tool_force is not None:
+                    tool_force[s] += self._push_out_of_tools(x, v, control.tool_pose[s], free[s], h) / n_sub
                 sub_reaction[spring] = pull
                 reaction[s] += sub_reaction / n_sub
         return bad
+
+    def _push_out_of_tools(self, x, v, pose, free, h) -> np.ndarray:
+        """Put the ``free`` vertices of one world inside a tool (posed at ``pose``) back on
+        its surface, in place, and take away their velocity into it; returns each tool's
+        push on the tissue (N, ``(T, 3)``): the momentum it took over ``h``. Tools are
+        taken in turn, each from where the previous one left the vertices."""
+        m = self.model
+        tools = m.tools
+        push = np.zeros((len(tools), 3))
+        idx = np.flatnonzero(free)
+        for t in range(len(tools)):
+            d, normal = tools.each_distance(x[idx], pose)
+            inside = d[t] < 0.0
+            if not inside.any():
+                continue
+            i, nrm = idx[inside], normal[t, inside]
+            x[i] -= d[t, inside, None] * nrm
+            into = np.minimum(np.einsum("ka,ka->k", v[i], nrm), 0.0)  # m/s, the velocity into the tool
+            v[i] -= into[:, None] * nrm
+            push[t] = -(m.mass[i, None] * into[:, None] * nrm).sum(axis=0) / h
+        return push
