@@ -6,8 +6,9 @@ Rolls a policy (the scripted fold, a shipped pretrained policy, a run folder or 
 grasp force, gauge strain, exposure, cost, ...), loadable with ``minari.load_dataset(NAME)``.
 Datasets go under ``MINARI_DATASETS_PATH`` (``--root``), else ``~/.minari/datasets``.
 
-``--action-noise SIGMA`` adds Gaussian noise of standard deviation SIGMA to each grasper's
-three velocity commands the env executes (the grasp command is kept): the episodes then
+``--action-noise SIGMA`` adds Gaussian noise of standard deviation SIGMA to each instrument's
+motion commands the env executes (a grasper's three velocities, a paddle's tilt rate too;
+grasp and energy commands are kept): the episodes then
 visit the states around the demonstrator's path and show how it recovers from them, what
 behaviour cloning needs to hold its course (DART, Laskey et al. 2017). ``actions`` are
 what the env executed; the demonstrator's own action at step t is
@@ -26,6 +27,19 @@ import numpy as np
 from .dataset_ids import check_dataset_id, use_root
 
 __all__ = ["collect_demos", "record_config_demos"]
+
+def _motion_entries(task) -> list[np.ndarray]:
+    """Each instrument's motion commands, as indices into the action: velocities and rates
+    (a grasper's or hook's velocity, a port's tilt and insertion rates, a paddle's velocity
+    and tilt rate), not its grasp or energy command."""
+    out, offset = [], 0
+    for instrument in list(task.instruments) + list(task.hooks):
+        names = instrument.ACTION
+        out.append(np.array([offset + k for k, name in enumerate(names)
+                             if name.startswith("velocity_") or name.endswith("_rate")], dtype=np.int64))
+        offset += len(names)
+    return out
+
 
 def _policy(spec: str, env_id: str, scene):
     """``(policy, name)`` for ``--policy`` (``scene``: the env's, for the scripted fold)."""
@@ -91,6 +105,7 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
 
     env = gym.make(env_id, **(env_kwargs or {}))
     act, name = _policy(policy, env_id, env.unwrapped.scene)
+    motion = _motion_entries(env.unwrapped.task)
     buffers, returns, successes = [], [], 0
     noise = np.random.default_rng(seed)
     for k in range(episodes):  # (Minari's DataCollector would need jax; the buffers are written directly)
@@ -107,8 +122,9 @@ def collect_demos(env_id: str, policy: str, episodes: int, dataset_id: str, seed
             expert = action
             if action_noise:
                 action = action.copy()
-                for v in range(0, len(action), 4):  # each grasper's velocity command (4 entries each)
-                    action[v:v + 3] = np.clip(action[v:v + 3] + action_noise * noise.standard_normal(3), -1.0, 1.0)
+                for entries in motion:  # each instrument's motion commands (a grasper's velocity: 3 entries)
+                    action[entries] = np.clip(action[entries] + action_noise * noise.standard_normal(len(entries)),
+                                              -1.0, 1.0)
             obs, reward, terminated, truncated, info = env.step(action)
             if action_noise:
                 info = {**info, "expert_action": expert}
