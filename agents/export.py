@@ -145,6 +145,10 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
 
     env = gym.make(env_id)
     fields = env.unwrapped.task.state_fields()
+    task = env.unwrapped.task
+    instruments = list(task.instruments) + list(getattr(task, "hooks", []))
+    #: where each instrument's position starts in the state, in action order (graspers, paddles, hooks)
+    positions = [k for k, (name, _) in enumerate(fields) if name.endswith(("gripper_x", "centre_x", "tip_x"))]
     goal = isinstance(env.observation_space, gym.spaces.Dict)
     env.close()
     keys = (observation_keys(model) or sorted([*GOAL_PARTS, "observation"])) if goal else None  # (BC: sorted, as it reads)
@@ -202,9 +206,9 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
     metadata = {"env_id": env_id, "run": run,
                 "observation": state if not keys else (f"the concatenation of {', '.join(keys)}: achieved_goal and "
                                                        f"desired_goal 3-D points (m); observation the {state}"),
-                "action": ("[vx, vy, vz] gripper velocity as a fraction of max_speed in [-1, 1]; grasp command "
-                           "(> 0 closes, < release_command opens)") + (f"; for each of {graspers} graspers in turn"
-                                                                       if graspers > 1 else ""),
+                "action": ("; ".join(f"{getattr(i, 'name', None) or i.kind}: {', '.join(i.ACTION)}" for i in instruments)
+                           + " (velocities as a fraction of max_speed in [-1, 1]; a grasp command > 0 closes, "
+                             "< release_command opens; an energy command > 0 energises)"),
                 "max_speed_m_per_s": str(max_speed), "normalised_inside": str(normalizer is not None)}
     if keys:
         metadata["observation_keys"] = ",".join(keys)
@@ -228,7 +232,7 @@ def export_policy(model, normalizer, out, env_id: str, run: str = "", speed_limi
                                               [f"velocity_limited{g}"]))
                 v = f"velocity_limited{g}"
             if workspace is not None:
-                p = offset + 7 * g  # the grasper's position in the flat input
+                p = offset + positions[g]  # the instrument's position in the flat input
                 nodes.append(helper.make_node("Slice", ["observation", at(p), at(p + 3), axis1], [f"position{g}"]))
                 nodes += [helper.make_node("GreaterOrEqual", [f"position{g}", const("ws_high", hi)], [f"at_high{g}"]),
                           helper.make_node("LessOrEqual", [f"position{g}", const("ws_low", lo)], [f"at_low{g}"]),
