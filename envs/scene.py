@@ -50,6 +50,18 @@ def _finite(values) -> bool:
     return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
 
 
+def _check_start_and_workspace(spec, inside: bool = True) -> None:
+    """An instrument spec's ``start_low``..``start_high`` and ``workspace_low``..``workspace_high``
+    boxes: finite, low <= high, and (``inside``) the start box inside the workspace."""
+    for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
+        lo, hi = getattr(spec, lo_name), getattr(spec, hi_name)
+        if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
+            raise invalid(spec, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
+    if inside and any(a < wl or b > wh for a, b, wl, wh in zip(spec.start_low, spec.start_high, spec.workspace_low,
+                                                                spec.workspace_high)):
+        raise invalid(spec, "start_low", "the start box must lie inside the workspace")
+
+
 @dataclass
 class TissueSpec:
     """Where the tissue mesh comes from (``kind``), in metres.
@@ -398,13 +410,7 @@ class GripperSpec:
         if j is not None and (isinstance(j, bool) or not isinstance(j, (int, float)) or not math.isfinite(j)
                               or j <= 0):
             raise invalid(self, "jaw_length", f"must be a positive length in metres or null, got {j!r}")
-        for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
-            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
-            if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
-                raise invalid(self, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
-        if any(a < wl or b > wh for a, b, wl, wh in zip(self.start_low, self.start_high, self.workspace_low,
-                                                          self.workspace_high)):
-            raise invalid(self, "start_low", "the start box must lie inside the workspace")
+        _check_start_and_workspace(self)
         for name, high in (("angular_speed", math.inf), ("max_tilt", 1.5)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= high:
@@ -453,10 +459,7 @@ class HookSpec:
                 raise invalid(self, name, f"must be a positive number, got {value!r}")
         if not (isinstance(self.max_tilt, (int, float)) and 0 < self.max_tilt <= 1.5):
             raise invalid(self, "max_tilt", f"must be a number in (0, 1.5], got {self.max_tilt!r}")
-        for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
-            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
-            if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
-                raise invalid(self, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
+        _check_start_and_workspace(self, inside=False)
         if self.port is not None and (not isinstance(self.port, (list, tuple)) or len(self.port) != 3
                                       or not _finite(self.port)):
             raise invalid(self, "port", f"must be three finite coordinates in metres or null, got {self.port!r}")
@@ -492,13 +495,7 @@ class PaddleSpec:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= high:
                 raise invalid(self, name, f"must be a number in (0, {high:g}], got {value!r}")
-        for lo_name, hi_name in (("start_low", "start_high"), ("workspace_low", "workspace_high")):
-            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
-            if not (_finite(lo) and _finite(hi)) or any(a > b for a, b in zip(lo, hi)):
-                raise invalid(self, lo_name, f"{lo_name} {lo} and {hi_name} {hi} must be finite with low <= high")
-        if any(a < wl or b > wh for a, b, wl, wh in zip(self.start_low, self.start_high, self.workspace_low,
-                                                          self.workspace_high)):
-            raise invalid(self, "start_low", "the start box must lie inside the workspace")
+        _check_start_and_workspace(self)
 
 
 @dataclass
