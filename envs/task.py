@@ -276,13 +276,13 @@ class TissueTask:
         return info
 
     def instrument_info(self, worlds=None, start: bool = False) -> dict:
-        """Each instrument's ``info`` entries; with several (or none a grasper), also
-        ``grasp_force`` (the graspers' forces' magnitudes summed, N) and ``grasping`` (any
-        holds tissue)."""
+        """Each instrument's ``info`` entries; unless the only instrument is an unnamed
+        grasper (whose entries are these), also ``grasp_force`` (the graspers' forces'
+        magnitudes summed, N; 0 without graspers) and ``grasping`` (any holds tissue)."""
         parts = [g.start_info(worlds) if start else g.info(worlds) for g in self.instruments]
         info = {k: v for part in parts for k, v in part.items()}
         graspers = [(g, part) for g, part in zip(self.instruments, parts) if g.kind == "grasper"]
-        if len(self.instruments) > 1 or not graspers:  # (a task of paddles only: nothing held, 0 N)
+        if len(self.instruments) > 1 or not graspers or graspers[0][0].name is not None:  # (paddles alone: 0 N)
             k = self.n if worlds is None else len(np.atleast_1d(worlds))
             info["grasp_force"] = sum((part[g.key("grasp_force")] for g, part in graspers), np.zeros(k))
             info["grasping"] = np.any([part[g.key("grasping")] for g, part in graspers] or [np.zeros(k, dtype=bool)],

@@ -147,3 +147,14 @@ def test_the_shipped_scene_file_is_the_envs_default():
 
     root = Path(__file__).resolve().parents[1]
     assert Scene.load(root / "configs" / "scenes" / "gallbladder_dissection.yaml") == dissection_scene()
+
+
+def test_the_grasper_is_reported_by_name_and_in_the_sums_the_tools_read():
+    env = GallbladderDissectionEnv()
+    _, info = env.reset(seed=HELD_OUT)
+    assert env.instruments == ("grasper",) and env.task.hooks[0].name == "hook"
+    action = np.zeros(8, dtype=np.float32)
+    action[3] = 1.0  # close the jaws on the fundus
+    _, _, _, _, info = env.step(action)
+    assert info["grasper_grasping"] and info["grasping"]
+    assert info["grasp_force"] == pytest.approx(info["grasper_grasp_force"]) and info["grasp_force"] > 0
