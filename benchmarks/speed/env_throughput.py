@@ -58,7 +58,7 @@ from heml_gym.benchmarks.common import (IMAGES, RESULTS, codegen_target, machine
                     throughput_rate, throughput_rows, write_json)
 
 ENV_IDS = ("heml_gym/TissueRetraction-v1", "heml_gym/OrganRetraction-v2", "heml_gym/BimanualRetraction-v0",
-           "heml_gym/TissueManipulation-v0")
+           "heml_gym/TissueManipulation-v0", "heml_gym/PushRetraction-v0", "heml_gym/GallbladderDissection-v0")
 VECTOR_SIZES = (1, 4, 16, 64)
 BAR_SINGLE = 400.0  # env steps/s, TissueRetraction single env, one core (issue 13; 300 before)
 # env steps/s in total, TissueRetraction vectorised on 2 cores: 1,500 on AVX-512 (issue 13), 1,000 on an
