@@ -224,13 +224,11 @@ class BatchedDissection(BatchedRetraction):
                  "reward_critical": np.where(hit, -w.critical, 0.0)}
         hook_cost = np.where(failed, 0.0, st.collateral_cost * collateral) + np.where(hit, st.critical_cost, 0.0)
         self.damage = self.damage + hook_cost
-        success = info["is_success"] & ~hit
+        reward = np.where(hit & info["is_success"], reward - w.success, reward)  # no success where it was hit
         info.update(terms, strain_cost=info["cost"], hook_cost=hook_cost, cost=info["cost"] + hook_cost,
-                    damage=self.damage.copy(), critical_hit=hit, is_success=success,
+                    damage=self.damage.copy(), critical_hit=hit, is_success=info["is_success"] & ~hit,
                     released_fraction=self.released_fraction.copy(), duct_exposure=self.duct_exposure.copy(),
                     artery_exposure=self.artery_exposure.copy())
-        if hit.any():  # what success paid is taken back where the critical structure was hit
-            reward = np.where(hit & info["is_success"], reward - w.success, reward)
         truncated = truncated & ~hit
         return reward + sum(terms.values()), terminated | hit, truncated, info
 

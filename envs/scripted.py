@@ -101,10 +101,9 @@ class PushPolicy:
         self.lift = float(lift_speed) / max_speed
         self.scale = 1.0 / (max_speed * control_dt)
         self.tilt_scale = 1.0 / (angular_speed * control_dt)
-        self.exposed = False
 
     def reset(self):
-        self.exposed = False
+        pass
 
     def __call__(self, obs) -> np.ndarray:
         state = np.asarray(obs["state"] if isinstance(obs, dict) else obs, dtype=np.float64)
@@ -114,8 +113,7 @@ class PushPolicy:
         if centre[0] < self.under_x - ALIGNED:  # slide in under the lobe
             action[0] = np.clip((self.under_x - centre[0]) * self.scale, -1.0, 1.0)
             return action.astype(np.float32)
-        self.exposed = state[EXPOSURE] >= self.hold_exposure
-        if not self.exposed and centre[2] < self.max_height:
+        if state[EXPOSURE] < self.hold_exposure and centre[2] < self.max_height:
             action[2] = self.lift
         return action.astype(np.float32)
 

@@ -76,6 +76,8 @@ def _slab_model(tools=(), supports=(), gravity=GRAVITY, E=5e3, fixed=None):
 
 
 def _solver(model, integrator, **kwargs):
+    if integrator == "explicit":
+        return hg.ExplicitSolver(model, **kwargs)
     kwargs = {"newton_tol": 1e-9, **kwargs}
     return (hg.ImplicitSolver if integrator == "implicit" else hg.QuasiNewtonSolver)(model, **kwargs)
 
@@ -177,13 +179,7 @@ def test_a_solver_that_does_not_step_tools_refuses_them_in_one_line():
 def test_the_explicit_solver_rests_a_slab_on_a_tool_as_on_the_plane_and_reports_its_weight():
     """Explicit sub-steps put a vertex inside a tool back on its surface, as they do a
     support: the slab rests on the block's top face exactly, and the block carries its weight."""
-    model = _slab_model(tools=[BLOCK])
-    state, control = model.state(), model.control()
-    control.pose_tool(0, 0, *BLOCK_UNDER)
-    solver = hg.ExplicitSolver(model)
-    for _ in range(40):
-        stats = solver.step(state, state, control, 0.05)
-        assert not stats.diverged.any()
+    state, stats = _settle(_slab_model(tools=[BLOCK]), "explicit", pose=BLOCK_UNDER)
     weight = DENSITY * 0.06 * 0.03 * 0.008 * 9.81
     assert state.x[0, :, 2].min() > -1e-12  # on the face, not in it
     assert stats.tool_force[0, 0, 2] == pytest.approx(weight, rel=0.01)
@@ -210,13 +206,7 @@ def test_every_solver_finds_the_same_equilibrium_on_a_tool():
         assert np.abs(rest.x - state.x).max() < 1e-5, integrator  # m
         np.testing.assert_allclose(rest_stats.tool_force, stats.tool_force, rtol=0.01, atol=1e-4 * weight)
     # explicit sub-steps to rest (damped at 2 /s: 10 s), the paddle's face exact where the penalty lets 2 um in
-    model = _slab_model(tools=[bar], fixed=fixed)
-    rest, control = model.state(), model.control()
-    control.pose_tool(0, 0, *pose)
-    solver = hg.ExplicitSolver(model)
-    for _ in range(200):
-        rest_stats = solver.step(rest, rest, control, 0.05)
-        assert not rest_stats.diverged.any()
+    rest, rest_stats = _settle(_slab_model(tools=[bar], fixed=fixed), "explicit", steps=200, pose=pose)
     assert np.abs(rest.x - state.x).max() < 2e-5  # m
     np.testing.assert_allclose(rest_stats.tool_force, stats.tool_force, rtol=0.01, atol=1e-4 * weight)
 
