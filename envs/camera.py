@@ -26,7 +26,7 @@ import numba as nb
 import numpy as np
 from numba import prange
 
-from .palette import (BACKGROUND, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, SUPPORT,
+from .palette import (BACKGROUND, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, PADDLE, SUPPORT,
                       TARGET, TISSUE, unit)
 from .render import box, draw_triangles, icosphere, look_at
 from .spec import invalid
@@ -84,13 +84,15 @@ class SceneMeshes(NamedTuple):
 
 class WorldPoses(NamedTuple):
     """Per world (leading axis N): the tissue's vertices ``x`` (m), the target's place (m),
-    the K graspers' places ``grippers (N, K, 3)`` (m) and their jaws' colours ``(N, K, 3)``,
-    the camera's eye (m) and its world-to-camera rotation ``rots (N, 3, 3)``."""
+    the K instrument boxes' places ``grippers (N, K, 3)`` (m), their colours ``(N, K, 3)``
+    and their sizes ``box_scales (N, K, 3)`` (times the jaws' box, along x, y, z), the
+    camera's eye (m) and its world-to-camera rotation ``rots (N, 3, 3)``."""
 
     x: np.ndarray
     targets: np.ndarray
     grippers: np.ndarray
     jaw_colours: np.ndarray
+    box_scales: np.ndarray
     eyes: np.ndarray
     rots: np.ndarray
 
@@ -118,7 +120,7 @@ class Images(NamedTuple):
 
 @nb.njit(cache=True, inline="always")
 def _render_one(s, poses, meshes, lens, images):
-    x, targets, grippers, jaw_colours, eyes, rots = poses
+    x, targets, grippers, jaw_colours, box_scales, eyes, rots = poses
     faces, tissue_colour, sphere_v, sphere_f, target_colour, box_v, box_f, support_v, support_f, support_colour, \
         background = meshes
     focal, cx, cy, near, far, ambient = lens
@@ -144,8 +146,8 @@ def _render_one(s, poses, meshes, lens, images):
                    image, inv, labels)
     draw_triangles(sphere_v, sphere_f, target_colour, targets[s, 0], targets[s, 1], targets[s, 2], np.uint8(2), eye,
                    rot, focal, cx, cy, near, ambient, image, inv, labels)
-    for k in range(grippers.shape[1]):  # every grasper's jaws
-        draw_triangles(box_v, box_f, jaw_colours[s, k:k + 1], grippers[s, k, 0], grippers[s, k, 1],
+    for k in range(grippers.shape[1]):  # every instrument's box (jaws, a hook's tip, a part of a blade)
+        draw_triangles(box_v * box_scales[s, k], box_f, jaw_colours[s, k:k + 1], grippers[s, k, 0], grippers[s, k, 1],
                        grippers[s, k, 2], np.uint8(3), eye, rot, focal, cx, cy, near, ambient, image, inv, labels)
     for i in range(height):
         for j in range(width):
@@ -250,12 +252,28 @@ class CameraRenderer:
         t = self.task
         jaw = np.where(t.grasping_all[:, :, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
         places = t.grippers
+        scales = np.ones_like(places)
+        paddles = [k for k, g in enumerate(t.instruments) if g.kind == "paddle"]
+        if paddles:  # a paddle's blade drawn as flat boxes tiling its face, in place of jaws at its centre
+            keep = [k for k in range(len(t.instruments)) if k not in paddles]
+            blades, tiles = [], []
+            for k in paddles:
+                centres, half = t.instruments[k].blade_tiles()
+                tile = np.broadcast_to(np.asarray(half) / np.asarray(JAW_HALF_SIZE), centres.shape)
+                blades.append(centres - tile * np.asarray(JAW_OFFSET))  # (the box is drawn JAW_OFFSET, scaled, above)
+                tiles.append(tile)
+            places = np.concatenate([places[:, keep]] + blades, axis=1)
+            scales = np.concatenate([scales[:, keep]] + tiles, axis=1)
+            jaw = np.concatenate([jaw[:, keep]] + [np.broadcast_to(np.array(unit(PADDLE)), b.shape) for b in blades],
+                                 axis=1)
         if getattr(t, "hooks", None):  # each hook's tip drawn as the jaws are, orange when energised
             places = np.concatenate([places, t.hook_tips], axis=1)
+            scales = np.concatenate([scales, np.ones_like(t.hook_tips)], axis=1)
             jaw = np.concatenate([jaw, np.where(t.hooks_energised[:, :, None], np.array(unit(HOOK_ON)),
                                                 np.array(unit(HOOK_OFF)))], axis=1)
         kernel = render_worlds if t.n > 1 and nb.get_num_threads() > 1 else render_worlds_serial
         poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(places),
-                           np.ascontiguousarray(jaw), self.eyes, self.rots)
+                           np.ascontiguousarray(jaw), np.ascontiguousarray(scales, dtype=np.float64), self.eyes,
+                           self.rots)
         kernel(poses, self.meshes, self.lens, Images(self.rgb, self.depth, self.segmentation[..., 0]))
         return self.rgb, self.depth, self.segmentation

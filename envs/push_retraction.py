@@ -38,7 +38,7 @@ y -60..60 mm, z -2.5..100 mm (at -2.5 mm its top face is just below the floor's 
 | 23 | exposure of the target | 0 | 1 | - |
 
 ``obs_mode="pointcloud"``, ``"rgb"``, ``"depth"``, ``"rgbd"`` as for OrganRetraction (the
-camera draws the paddle's centre as it draws jaws).
+camera draws the paddle's blade; exposure counts what the tissue hides, not the blade).
 
 ## Rewards, Episode End, Harm
 

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .palette import HOOK_OFF, HOOK_ON, JAWS_CLOSED, JAWS_OPEN, STRAINED, TARGET, TISSUE
+from .instruments.paddle import tilt_rotation
+from .palette import HOOK_OFF, HOOK_ON, JAWS_CLOSED, JAWS_OPEN, PADDLE, STRAINED, TARGET, TISSUE
 from .render import Camera, box, compose, icosphere, rasterize
 
 _COUNTER = itertools.count()
@@ -44,7 +45,11 @@ class SceneRenderer:
         tissue_colours = ((1 - strain)[:, None] * TISSUE + strain[:, None] * STRAINED).astype(np.uint8)
         sphere = icosphere(t.scene.target_radius, t.target[i], subdivisions=1)
         parts = [(sphere[0], sphere[1], TARGET)]
-        for position, closed in zip(t.grippers[i], t.grasping_all[i]):  # every grasper's jaws
+        for g, position, closed in zip(t.instruments, t.grippers[i], t.grasping_all[i]):  # every grasper's jaws
+            if g.kind == "paddle":  # the blade, turned by its tilt
+                blade = box(position, g.spec.half_extents, tilt_rotation(g.tilt[i]))
+                parts.append((blade[0], blade[1], PADDLE))
+                continue
             jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
             parts.append((jaws[0], jaws[1], JAWS_CLOSED if closed else JAWS_OPEN))
         for tip, on in zip(t.hook_tips[i], t.hooks_energised[i]):  # every hook's tip

@@ -193,3 +193,37 @@ def test_the_shipped_scene_file_is_the_envs_default():
 
     root = Path(__file__).resolve().parents[1]
     assert Scene.load(root / "configs" / "scenes" / "push_retraction.yaml") == push_scene()
+
+
+def test_the_task_camera_draws_the_blade_across_its_width():
+    """Once the lobe is lifted, the blade's two ends, projected into the task camera, fall
+    on instrument pixels drawn in the paddle's colour (a single marker at its centre would
+    cover neither); ``render()`` draws the blade too."""
+    from heml_gym.envs.camera import SEGMENT_IDS
+    from heml_gym.envs.palette import PADDLE
+    from heml_gym.envs.render import Camera
+
+    env = PushRetractionEnv(obs_mode="rgbd", render_mode="rgb_array")
+    env.reset(seed=HELD_OUT)
+    policy = scripted_policy(env.scene)
+    policy.reset()
+    info = {"exposure": 0.0}
+    while info["exposure"] < 0.8:  # the lobe lifted off the target: the blade is in view beneath it
+        _, _, _, _, info = env.step(policy(env.task.state_observation()[0]))
+    renderer = env.camera_renderer
+    rgb, seg = renderer.rgb[0], renderer.segmentation[0, ..., 0]
+    paddle = env.task.instruments[0]
+    camera = Camera(renderer.eyes[0], renderer.rots[0], renderer.fov_y)
+    hy = paddle.spec.half_extents[1]
+    ends = paddle.position[0] + np.array([[0.0, -0.8 * hy, 0.0], [0.0, 0.8 * hy, 0.0]])
+    uv, _ = camera.project(ends, renderer.width, renderer.height)
+    for u, v in np.round(uv).astype(int):
+        window = (slice(max(v - 2, 0), v + 3), slice(max(u - 2, 0), u + 3))
+        assert (seg[window] == SEGMENT_IDS["instrument"]).any(), (u, v)
+        shade = rgb[window][seg[window] == SEGMENT_IDS["instrument"]].astype(float)
+        hue = shade / np.maximum(shade.max(axis=1, keepdims=True), 1)
+        assert np.abs(hue - PADDLE / PADDLE.max()).max(axis=1).min() < 0.05
+    frame = env.render()  # render() draws the blade as a box too
+    blue = np.abs(frame.astype(float) / np.maximum(frame.max(axis=2, keepdims=True), 1)
+                  - PADDLE / PADDLE.max()).max(axis=2) < 0.05
+    assert blue.sum() > 20

@@ -169,6 +169,17 @@ class Paddle:
             out[k] = float(np.linalg.norm(self.force[i])) / area if area > 0 else 0.0
         return np.nan_to_num(out, nan=0.0, posinf=0.0)
 
+    def blade_tiles(self, nx: int = 4, ny: int = 8) -> tuple[np.ndarray, tuple]:
+        """The blade cut into ``nx`` x ``ny`` tiles where it is now in each world: their
+        centres ``(N, nx ny, 3)`` (m) and half sizes (m), for cameras that draw boxes (a
+        tilted blade's tiles stay level: a drawing, not the contact shape)."""
+        hx, hy, hz = self.spec.half_extents
+        u, v = np.meshgrid((np.arange(nx) + 0.5) / nx * 2 * hx - hx, (np.arange(ny) + 0.5) / ny * 2 * hy - hy,
+                           indexing="ij")
+        local = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)  # (m, 3) in the blade's frame
+        rotations = np.stack([tilt_rotation(a) for a in self.tilt])  # (N, 3, 3)
+        return self.position[:, None, :] + np.einsum("nab,mb->nma", rotations, local), (hx / nx, hy / ny, hz)
+
     # --------------------------------------------------------- what it reports
     def observation(self) -> list[np.ndarray]:
         """Its part of a state observation: centre (m), tilt (rad), push force (N)."""
