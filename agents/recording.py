@@ -46,8 +46,12 @@ Entities
 ``world/support``             static :class:`rerun.Mesh3D`: what the tissue rests on,
                               translucent (``SUPPORT_ALPHA``) so that the target below it
                               stays visible.
+``world/critical``            static :class:`rerun.Capsules3D`: a scene's critical structure
+                              (``Scene.critical``) and, translucent, its margin.
 ``world/gripper``             :class:`rerun.Boxes3D`: the jaws, grey when open, green when
                               closed on tissue (no label: the state is in ``status``).
+``world/paddle``              :class:`rerun.Boxes3D`: a paddle retractor's blade, turned by
+                              its tilt (scenes with paddles).
 ``world/held``                :class:`rerun.Points3D`: the tissue vertices the jaws hold
                               (empty when none).
 ``world/grasp_force``         :class:`rerun.Arrows3D`: the force of the tissue on the
@@ -123,7 +127,7 @@ import numpy as np
 from heml_gym.envs.camera import SEGMENT_IDS
 from heml_gym.envs.core import RewardWeights
 from heml_gym.envs.palette import (ATTACHMENT, FORCE, HELD, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET,
-                                   JAWS_CLOSED, JAWS_OPEN, RELEASED, STRAINED, STUCK, SUPPORT, TARGET, TISSUE)
+                                   JAWS_CLOSED, JAWS_OPEN, PADDLE, RELEASED, STRAINED, STUCK, SUPPORT, TARGET, TISSUE)
 
 __all__ = ["ACTION_NAMES", "BLUEPRINT_VIEWS", "CAMERA_SIZE", "FORCE_ARROW_FRACTION", "OUTCOME_VALUES", "REWARD_TERMS",
            "SEGMENT_COLOURS", "SERIES", "THRESHOLDS", "record_rollouts", "series_entity", "strain_colours"]
@@ -354,6 +358,18 @@ class _SceneLogger:
         if len(sf):
             rec.log("world/support", rr.Mesh3D(vertex_positions=sv, triangle_indices=sf,
                                                albedo_factor=[*SUPPORT, SUPPORT_ALPHA]), static=True)
+        critical = getattr(self.env.task.scene.spec, "critical", None)
+        if critical is not None:  # a structure no energised instrument may come near (drawn with its margin)
+            start, end = np.asarray(critical.start, dtype=np.float64), np.asarray(critical.end, dtype=np.float64)
+            axis = (end - start) / np.linalg.norm(end - start)
+            turn = np.cross([0.0, 0.0, 1.0], axis)
+            angle = float(np.arccos(np.clip(axis[2], -1.0, 1.0)))
+            rotation = rr.RotationAxisAngle(axis=turn if np.linalg.norm(turn) > 1e-12 else [1.0, 0.0, 0.0],
+                                            radians=angle)
+            rec.log("world/critical", rr.Capsules3D(
+                lengths=[float(np.linalg.norm(end - start))] * 2, radii=[critical.radius, critical.radius + critical.margin],
+                translations=[start, start], rotation_axis_angles=[rotation, rotation],
+                colors=[[60, 200, 90], [60, 200, 90, 60]], labels=["critical structure", "its margin"]), static=True)
         rec.log("camera/segmentation", rr.AnnotationContext(
             [rr.AnnotationInfo(id=SEGMENT_IDS[name], label=name, color=colour)
              for name, colour in SEGMENT_COLOURS.items()]), static=True)
@@ -431,11 +447,19 @@ class _SceneLogger:
         rec.log("world/tissue", rr.Mesh3D.from_fields(vertex_positions=tri.reshape(-1, 3),
                                                       vertex_normals=np.repeat(normals, 3, axis=0),
                                                       vertex_colors=colours))
-        grippers = np.asarray(snap.grippers, dtype=np.float64).reshape(-1, 3)  # every grasper's jaws
-        rec.log("world/gripper", rr.Boxes3D(centers=grippers + np.array(JAW_OFFSET),
-                                            half_sizes=[np.array(JAW_HALF_SIZE)] * len(grippers),
-                                            colors=[JAWS_CLOSED if c else JAWS_OPEN for c in snap.closed],
+        grippers = np.asarray(snap.grippers, dtype=np.float64).reshape(-1, 3)  # every instrument's place
+        paddles = [k for k, g in enumerate(self.env.task.instruments) if g.kind == "paddle"]
+        jaws = [k for k in range(len(grippers)) if k not in paddles]
+        rec.log("world/gripper", rr.Boxes3D(centers=grippers[jaws] + np.array(JAW_OFFSET),
+                                            half_sizes=[np.array(JAW_HALF_SIZE)] * len(jaws),
+                                            colors=[JAWS_CLOSED if snap.closed[k] else JAWS_OPEN for k in jaws],
                                             fill_mode="solid"))
+        if paddles:  # each paddle's blade, turned by its tilt (about y)
+            blades = [self.env.task.instruments[k] for k in paddles]
+            rec.log("world/paddle", rr.Boxes3D(
+                centers=grippers[paddles], half_sizes=[b.spec.half_extents for b in blades],
+                rotation_axis_angles=[rr.RotationAxisAngle(axis=[0.0, 1.0, 0.0], radians=float(b.tilt[0]))
+                                      for b in blades], colors=[PADDLE] * len(blades), fill_mode="solid"))
         held = x[snap.held]
         rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=HELD))
         if len(snap.stuck) or len(snap.released):  # the adhesion: what remains, and what a hook freed

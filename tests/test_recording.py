@@ -395,3 +395,36 @@ def test_a_recording_draws_the_hook_and_the_attachment_it_frees(tmp_path):
     total = int(env.unwrapped.task.stuck_at_start[0].sum())
     assert all(s + r == total for s, r in zip(stuck, released))
     assert released[0] == 0 and released[-1] > 0.8 * total and np.all(np.diff(released) >= 0)
+
+
+def test_a_dissection_recording_draws_the_critical_structure_and_its_margin(tmp_path):
+    """The common bile duct of GallbladderDissection, logged once: two capsules on its axis,
+    the structure's radius and that radius plus the margin, each as long as the duct."""
+    import gymnasium as gym
+
+    env = gym.make("heml_gym/GallbladderDissection-v0", settings={"max_steps": 2}, max_episode_steps=2)
+    path = tmp_path / "dissection.rrd"
+    record_rollouts(env, scripted_policy(env.unwrapped.scene), path=path, episodes=1, seed=SEED)
+    critical = env.unwrapped.scene.critical
+    static = _static(RrdReader(path).stream().collect())["/world/critical"]
+    (radii,) = static["Capsules3D:radii"]
+    (lengths,) = static["Capsules3D:lengths"]
+    np.testing.assert_allclose(radii, [critical.radius, critical.radius + critical.margin], rtol=1e-6)
+    np.testing.assert_allclose(lengths, np.linalg.norm(np.subtract(critical.end, critical.start)), rtol=1e-6)
+
+
+def test_a_push_recording_draws_the_paddles_blade_where_it_is(tmp_path):
+    """PushRetraction's paddle is logged as its blade (its half extents, at its centre), and
+    no jaws are drawn: the task has no grasper."""
+    import gymnasium as gym
+
+    env = gym.make("heml_gym/PushRetraction-v0", settings={"max_steps": 5}, max_episode_steps=5)
+    path = tmp_path / "push.rrd"
+    record_rollouts(env, scripted_policy(env.unwrapped.scene), path=path, episodes=1, seed=SEED)
+    data = _temporal(RrdReader(path).stream().collect())
+    paddle = env.unwrapped.task.instruments[0]
+    np.testing.assert_allclose(np.array(data["/world/paddle"]["Boxes3D:centers"][-1]).reshape(-1, 3),
+                               paddle.position, atol=1e-6)
+    np.testing.assert_allclose(np.array(data["/world/paddle"]["Boxes3D:half_sizes"][-1]).reshape(-1, 3),
+                               [paddle.spec.half_extents], rtol=1e-6)
+    assert all(len(c or []) == 0 for c in data["/world/gripper"]["Boxes3D:centers"])
