@@ -44,15 +44,15 @@ camera draws the paddle's blade; exposure counts what the tissue hides, not the 
 
 OrganRetraction's terms and thresholds (exposure, lift, strain, stretch, effort, hold,
 success; no grasp bonus), and ``reward_pressure``: minus ``weights.pressure`` (5) times
-the peak contact pressure's excess over the safe pressure, relative to it. **Harm**
+the contact pressure's excess over the safe pressure, relative to it. **Harm**
 (``info["cost"]``, per step): the gauge strain's excess over the safe strain (0.18)
-times ``control_dt``, plus the peak contact pressure's relative excess over
+times ``control_dt``, plus the contact pressure's relative excess over
 ``settings.safe_pressure`` times ``control_dt``. The safe pressure is 4.3 kPa (32 mmHg),
 the capillary closing pressure (Landis, Heart 15, 1930, 209-228): above it the tissue
 under the blade is starved of blood. ``info["pressure_cost"]`` and ``info["strain_cost"]``
-are its two parts. The contact pressure (``info["paddle_contact_pressure"]``, Pa) is each
-touching surface vertex's penalty force over its share of the surface, the largest;
-on vertices, it resolves the blade's edges only to the mesh's cells.
+are its two parts. The contact pressure (``info["paddle_contact_pressure"]``, Pa) is the
+blade's push over the area of tissue it touches (a mean over the contact: on the mesh's
+vertices, the blade's edges are resolved only to the cells, so a peak would not converge).
 Success: exposure >= 0.8 with the gauge strain below 0.5, held for 2 s (difficulty 1).
 
 ## Starting State
@@ -108,7 +108,7 @@ PADDLE = PaddleSpec(start_low=(-0.115, -0.01, -0.0025), start_high=(-0.105, 0.01
 
 @dataclass(frozen=True)
 class PushSettings(TaskSettings):
-    """TaskSettings and ``safe_pressure`` (Pa): the peak contact pressure above which the
+    """TaskSettings and ``safe_pressure`` (Pa): the contact pressure above which the
     paddle harms the tissue (default: 32 mmHg, the capillary closing pressure)."""
 
     safe_pressure: float = SAFE_PRESSURE
@@ -122,7 +122,7 @@ class PushSettings(TaskSettings):
 
 @dataclass(frozen=True)
 class PushWeights(RewardWeights):
-    """RewardWeights and ``pressure``: times the peak contact pressure's excess over the
+    """RewardWeights and ``pressure``: times the contact pressure's excess over the
     safe pressure, relative to it, as a penalty each step."""
 
     pressure: float = 5.0
@@ -140,9 +140,9 @@ class BatchedPushRetraction(BatchedRetraction):
             raise SpecError("scene.paddles: PushRetraction needs at least one paddle")
 
     def _pressure_excess(self) -> np.ndarray:
-        """The peak contact pressure's relative excess over the safe pressure, per world (the largest over paddles)."""
-        peak = np.max([p.pressure for p in self.paddles], axis=0)
-        return np.maximum(0.0, peak / self.settings.safe_pressure - 1.0)
+        """The contact pressure's relative excess over the safe pressure, per world (the largest over paddles)."""
+        pressure = np.max([p.pressure for p in self.paddles], axis=0)
+        return np.maximum(0.0, pressure / self.settings.safe_pressure - 1.0)
 
     def step(self, actions, active=None):
         reward, terminated, truncated, info = super().step(actions, active)
