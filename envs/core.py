@@ -43,7 +43,7 @@ STATE_HIGH = np.array([hi for _, _, hi, _ in STATE_SPEC], dtype=np.float32)
 GRASPER_SIZE = len(Grasper.OBSERVATION)
 
 
-def hook_bounds(fields) -> tuple[np.ndarray, np.ndarray]:
+def bounds_by_unit(fields) -> tuple[np.ndarray, np.ndarray]:
     """``(low, high)`` float32 of state entries ``fields`` (``(name, unit)``), by unit."""
     return (np.array([_BOUNDS_BY_UNIT[unit][0] for _, unit in fields], dtype=np.float32),
             np.array([_BOUNDS_BY_UNIT[unit][1] for _, unit in fields], dtype=np.float32))
@@ -142,19 +142,21 @@ class BatchedRetraction(TissueTask):
     and the state observation each one's 7 (position, grasping, force) before the task's
     17. The first grasper is the one the attributes ``gripper``, ``grasping``, ... name."""
 
+    #: a task's own state entries after the exposure (``(name, unit)``; its values:
+    #: :meth:`extra_state_observation`, bounded by their units)
+    EXTRA_STATE: tuple = ()
+
     def __init__(self, scene: BuiltScene, n_worlds: int, settings: TaskSettings | None = None,
                  weights: RewardWeights | None = None, grippers: dict | None = None):
         super().__init__(scene, n_worlds, as_settings(settings, TaskSettings, "settings"), grippers)
         self.weights = as_settings(weights, RewardWeights, "weights")
         n = self.n
-        # the state's bounds: each instrument's entries by their units, then the task's
-        low, high = hook_bounds(self.instrument_fields())
-        self._state_low = np.concatenate([low, STATE_LOW[GRASPER_SIZE:]])
-        self._state_high = np.concatenate([high, STATE_HIGH[GRASPER_SIZE:]])
-        if self.hooks:  # the hooks' entries last
-            low, high = hook_bounds(self.hook_fields())
-            self._state_low = np.concatenate([self._state_low, low])
-            self._state_high = np.concatenate([self._state_high, high])
+        # the state's bounds: each instrument's entries by their units, the task's, a task's own, the hooks'
+        low, high = bounds_by_unit(self.instrument_fields())
+        extra_low, extra_high = bounds_by_unit(self.EXTRA_STATE)
+        hook_low, hook_high = bounds_by_unit(self.hook_fields())
+        self._state_low = np.concatenate([low, STATE_LOW[GRASPER_SIZE:], extra_low, hook_low])
+        self._state_high = np.concatenate([high, STATE_HIGH[GRASPER_SIZE:], extra_high, hook_high])
         self._exposure = Exposure(scene, self.settings.exposure_samples)
         self._fold = FoldLift(scene)
         self.target = np.zeros((n, 3))
@@ -259,14 +261,20 @@ class BatchedRetraction(TissueTask):
         """The state vector of every world, ``(N, STATE_SIZE)`` float32, clipped to its bounds."""
         tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
         obs = np.concatenate([*self.instrument_observation(), self.target, tracked, self.max_strain[:, None],
-                              self.exposure[:, None], *self.hook_observation()], axis=1)
+                              self.exposure[:, None], *self.extra_state_observation(), *self.hook_observation()],
+                             axis=1)
         obs = np.clip(finite(obs, nan=0.0), self._state_low, self._state_high)
         return obs.astype(np.float32)
 
+    def extra_state_observation(self) -> list[np.ndarray]:
+        """A task's own state entries (:attr:`EXTRA_STATE`), each ``(N, 1)``; none here."""
+        return []
+
     def state_fields(self) -> list[tuple[str, str]]:
-        """``(name, unit)`` of each state entry (:data:`STATE_SPEC`'s, a grasper's once per instrument)."""
+        """``(name, unit)`` of each state entry (:data:`STATE_SPEC`'s, a grasper's once per
+        instrument, then a task's own and the hooks')."""
         return (self.instrument_fields() + [(name, unit) for name, _, _, unit in STATE_SPEC[GRASPER_SIZE:]]
-                + self.hook_fields())
+                + list(self.EXTRA_STATE) + self.hook_fields())
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(low, high)`` of the state observation (from :data:`STATE_SPEC`, its grasper's

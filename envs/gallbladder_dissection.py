@@ -97,10 +97,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from .core import GRASPER_SIZE, STATE_HIGH, STATE_LOW, STATE_SPEC, BatchedRetraction, RewardWeights, TaskSettings, \
-    as_settings, hook_bounds
+from .core import BatchedRetraction, RewardWeights, TaskSettings, as_settings
 from .instruments.hook import surface_areas
-from .measures import Exposure
 from .retraction_env import RetractionEnv, RetractionVectorEnv
 from .scene import (AdhesionSpec, CameraSpec, FoldSpec, GripperSpec, HookSpec, PhysicsSpec, RegionSpec, Scene,
                     StructureSpec, SupportSpec, TargetSpec, TissueSpec)
@@ -156,6 +154,8 @@ class BatchedDissection(BatchedRetraction):
     """N gallbladder dissections: the retraction task on the lesser of two ducts' exposure,
     with the lower third's release in the state and the success, and the hook's harm."""
 
+    EXTRA_STATE = (("released_fraction", "-"),)
+
     def __init__(self, scene, n_worlds, settings=None, weights=None, grippers=None):
         if not scene.hooks or scene.spec.critical is None or scene.adhesion_vertices is None:
             raise SpecError("scene: a dissection needs a hook (scene.hooks), adhesion (scene.adhesion) and a "
@@ -168,10 +168,6 @@ class BatchedDissection(BatchedRetraction):
         mesh = scene.mesh
         self._area = surface_areas(mesh.vertices, scene.surface_faces)
         self._lower = mesh.vertices[:, 0] <= scene.hinge[0] + LOWER_THIRD
-        low, high = hook_bounds(self.instrument_fields())
-        hook_low, hook_high = hook_bounds(self.hook_fields())
-        self._state_low = np.concatenate([low, STATE_LOW[GRASPER_SIZE:], [0.0], hook_low]).astype(np.float32)
-        self._state_high = np.concatenate([high, STATE_HIGH[GRASPER_SIZE:], [1.0], hook_high]).astype(np.float32)
 
     # ----------------------------------------------------------- measurements
     def measure_exposure(self, worlds) -> np.ndarray:
@@ -244,16 +240,8 @@ class BatchedDissection(BatchedRetraction):
         return info
 
     # ------------------------------------------------------------ observation
-    def state_observation(self) -> np.ndarray:
-        tracked = self.x[:, self.scene.tracked].reshape(self.n, -1)
-        obs = np.concatenate([*self.instrument_observation(), self.target, tracked, self.max_strain[:, None],
-                              self.exposure[:, None], self.released_fraction[:, None], *self.hook_observation()],
-                             axis=1)
-        return np.clip(np.nan_to_num(obs, nan=0.0), self._state_low, self._state_high).astype(np.float32)
-
-    def state_fields(self) -> list[tuple[str, str]]:
-        return (self.instrument_fields() + [(name, unit) for name, _, _, unit in STATE_SPEC[GRASPER_SIZE:]]
-                + [("released_fraction", "-")] + self.hook_fields())
+    def extra_state_observation(self) -> list[np.ndarray]:
+        return [self.released_fraction[:, None]]
 
 
 def dissection_scene(mesh_size: float = DEFAULT_MESH_SIZE) -> Scene:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core import GRASPER_SIZE, POSITION_BOUND, STATE_HIGH, STATE_LOW, TaskSettings, as_settings, hook_bounds
+from .core import GRASPER_SIZE, POSITION_BOUND, STATE_HIGH, STATE_LOW, TaskSettings, as_settings, bounds_by_unit
 from .measures import finite
 from .scene import BuiltScene
 from .spec import SpecError
@@ -80,7 +80,7 @@ class BatchedManipulation(TissueTask):
         self.success = np.zeros(n, dtype=bool)
         low, high = (np.array([b for _, b, _, _ in MANIPULATION_SPEC], dtype=np.float32),
                      np.array([b for _, _, b, _ in MANIPULATION_SPEC], dtype=np.float32))
-        hook_low, hook_high = hook_bounds(self.hook_fields())  # (the hooks' entries last)
+        hook_low, hook_high = bounds_by_unit(self.hook_fields())  # (the hooks' entries last)
         self._state_low = np.concatenate([np.tile(STATE_LOW[:GRASPER_SIZE], k), low, hook_low])
         self._state_high = np.concatenate([np.tile(STATE_HIGH[:GRASPER_SIZE], k), high, hook_high])
 

@@ -64,7 +64,7 @@ def rollout(env_id: str, seed: int, size, physics=None, actions=None) -> dict:
         force.append(float(np.linalg.norm(np.sum([g.force[0] for g in env.task.instruments], axis=0))))
         progress.append(info["exposure"] if "exposure" in info else np.asarray(obs["achieved_goal"], dtype=float))
         if not info["solver_converged"]:
-            raise RuntimeError(f"{env_id} seed {seed} on {cells}: a step did not converge (step {k})")
+            raise RuntimeError(f"{env_id} seed {seed} on {size}: a step did not converge (step {k})")
         if policy is not None and terminated:
             break
     return {"actions": np.array(taken), "force": np.array(force), "progress": np.array(progress)}
