@@ -29,6 +29,7 @@ from heml_gym.benchmarks.common import IMAGES, RESULTS, ROOT, machine_info, mark
 CONFIGS = {
     "tissue": ("configs/quick.yaml", "configs/tissue_ppo_lagrangian.yaml"),
     "organ": ("configs/organ_ppo.yaml", "configs/organ_ppo_lagrangian.yaml"),
+    "dissection": ("configs/dissection_ppo.yaml", "configs/dissection_ppo_lagrangian.yaml"),
 }
 METHODS = ("PPO", "PPO-Lagrangian")
 
@@ -201,7 +202,9 @@ def main(argv=None) -> int:
     plain, constrained = (ROOT / p for p in CONFIGS[args.env])
     sets = {"algorithm.total_timesteps": args.steps}
     arms = {"PPO": plan_sweep(plain, seeds, sets, {}, out), "PPO-Lagrangian": plan_sweep(constrained, seeds, sets, {}, out)}
-    run_sweep([t for trials in arms.values() for t in trials], out, verbose=True)
+    # seed by seed, both methods (PPO s0, PPO-Lagrangian s0, PPO s1, ...): an interrupted
+    # comparison still pairs its seeds
+    run_sweep([t for pair in zip(*arms.values()) for t in pair], out, verbose=True)
     cfg = load_config(constrained)
     name = f"constrained_{args.env}"
     result = {"name": name, "machine": machine_info(), "env_id": cfg.env.id, "env_steps": args.steps,
