@@ -1,8 +1,9 @@
 """Rigid tools that touch the tissue (heml_gym/tools.py): their signed distances against
 geometry, contact against the support plane it must reproduce, the force they report
 against equilibrium (a slab's weight) and against the analytic uniaxial stress of a
-squeezed slab, the same equilibrium in both solvers that step them, and a one-line error
-from those that do not."""
+squeezed slab, the same equilibrium in every solver, momentum (a tool's impulse) and
+energy (the work it does pressing slowly is what the tissue stores), and a one-line error
+from a solver that does not step them."""
 
 from __future__ import annotations
 
@@ -290,3 +291,45 @@ def test_tools_thrown_about_never_give_a_nan(integrator):
                 np.testing.assert_array_equal(stats.tool_force, 0.0)
             else:
                 assert np.isfinite(stats.tool_force).all()
+
+
+@pytest.mark.parametrize("tool, turn", [(hg.Capsule(0.004, 0.03), rotation(np.array([1.0, 0.0, 0.0]), np.pi / 2)),
+                                        (hg.Box((0.012, 0.02, 0.002)), rotation(np.array([0.0, 1.0, 0.0]), 0.3))])
+def test_the_work_a_tool_does_pressing_slowly_is_the_energy_the_tissue_stores(tool, turn):
+    """Energy: a bar (capsule) and a tilted paddle pressed 1.5 mm into a weightless slab
+    clamped at its base, through static equilibria: the work the tool does on the tissue
+    (its reported push times its displacement, summed by the trapezoid rule) equals the
+    rise of the potential the tissue stores (elastic energy plus the contact penalty's),
+    as it must in a conservative system; pulling back gives it all back."""
+    mesh = hg.box_mesh((0.06, 0.03, 0.008), (12, 6, 4), origin=(0.0, 0.0, 0.0))
+    model = hg.Model(mesh, M.NeoHookean(E=5e3, nu=0.45), density=DENSITY, gravity=(0.0, 0.0, 0.0), damping=0.0,
+                     tools=[tool], fixed=np.flatnonzero(mesh.vertices[:, 2] == 0.0))
+    solver = hg.StaticSolver(model, tol=1e-10)
+    state, control = model.state(), model.control()
+    # the tool's lowest point on the slab's top (at x = 30.5 mm: off the vertex columns)
+    lowest = -np.abs(turn @ np.asarray(getattr(tool, "half_extents", (0.0, 0.0, 0.0)))).sum() \
+        if isinstance(tool, hg.Box) else -tool.radius
+    centre = np.array([0.0305, 0.015, 0.008 - lowest])
+    free = np.ones(model.n_vertices, dtype=bool)
+    free[model.fixed] = False
+
+    def stored(x):
+        pose = control.tool_pose[0]
+        return model.fields[0].energy(x) + model.tools.penalty(x, pose, solver.tool_penalty_stiffness()[0], free).energy
+
+    depths = np.concatenate([np.linspace(0.0, 0.0015, 21), np.linspace(0.0015, 0.0, 21)[1:]])
+    work, force_before, energy = 0.0, np.zeros(3), []
+    for k, depth in enumerate(depths):
+        control.pose_tool(0, 0, centre - (0.0, 0.0, depth), turn)
+        stats = solver.solve(state, control)
+        assert stats.converged.all(), stats.messages
+        force = stats.tool_force[0, 0]
+        if k:
+            work += 0.5 * (force + force_before) @ np.array([0.0, 0.0, depths[k - 1] - depth])
+        force_before = force
+        energy.append(stored(state.x[0]))
+        if k == 20:  # at the bottom
+            assert energy[-1] > 1e-5  # J: it did press
+            assert work == pytest.approx(energy[-1] - energy[0], rel=1e-3)
+    assert work == pytest.approx(0.0, abs=1e-3 * max(energy))  # J: back where it started, all of it given back
+    assert energy[-1] == pytest.approx(energy[0], abs=1e-9 * max(energy))
