@@ -52,6 +52,9 @@ Entities
                               closed on tissue (no label: the state is in ``status``).
 ``world/paddle``              :class:`rerun.Boxes3D`: a paddle retractor's blade, turned by
                               its tilt (scenes with paddles).
+``world/shaft``               :class:`rerun.Capsules3D`: each shaft that touches tissue (a
+                              grasper on a port with ``shaft_radius``), from its end behind
+                              the jaws to its port.
 ``world/held``                :class:`rerun.Points3D`: the tissue vertices the jaws hold
                               (empty when none).
 ``world/grasp_force``         :class:`rerun.Arrows3D`: the force of the tissue on the
@@ -127,7 +130,7 @@ import numpy as np
 from heml_gym.envs.camera import SEGMENT_IDS
 from heml_gym.envs.core import RewardWeights
 from heml_gym.envs.palette import (ATTACHMENT, FORCE, HELD, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET,
-                                   JAWS_CLOSED, JAWS_OPEN, PADDLE, RELEASED, STRAINED, STUCK, SUPPORT, TARGET, TISSUE)
+                                   JAWS_CLOSED, JAWS_OPEN, PADDLE, RELEASED, SHAFT, STRAINED, STUCK, SUPPORT, TARGET, TISSUE)
 
 __all__ = ["ACTION_NAMES", "BLUEPRINT_VIEWS", "CAMERA_SIZE", "FORCE_ARROW_FRACTION", "OUTCOME_VALUES", "REWARD_TERMS",
            "SEGMENT_COLOURS", "SERIES", "THRESHOLDS", "record_rollouts", "series_entity", "strain_colours"]
@@ -300,6 +303,14 @@ def _blueprint(rrb, geometry):
     )
 
 
+
+def _turn_z_to(rr, direction) -> "rr.RotationAxisAngle":
+    """The turn that takes +z onto ``direction`` (a capsule's axis in rerun)."""
+    axis = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    turn = np.cross([0.0, 0.0, 1.0], axis)
+    return rr.RotationAxisAngle(axis=turn if np.linalg.norm(turn) > 1e-12 else [1.0, 0.0, 0.0],
+                                radians=float(np.arccos(np.clip(axis[2], -1.0, 1.0))))
+
 class _StrainField:
     """Per surface vertex, the gauge strain of :class:`~heml_gym.envs.strain_gauges.StrainGauges`
     ``gauges``: a gauge point's strain is the largest of its segments'; a vertex shows its
@@ -361,11 +372,7 @@ class _SceneLogger:
         critical = getattr(self.env.task.scene.spec, "critical", None)
         if critical is not None:  # a structure no energised instrument may come near (drawn with its margin)
             start, end = np.asarray(critical.start, dtype=np.float64), np.asarray(critical.end, dtype=np.float64)
-            axis = (end - start) / np.linalg.norm(end - start)
-            turn = np.cross([0.0, 0.0, 1.0], axis)
-            angle = float(np.arccos(np.clip(axis[2], -1.0, 1.0)))
-            rotation = rr.RotationAxisAngle(axis=turn if np.linalg.norm(turn) > 1e-12 else [1.0, 0.0, 0.0],
-                                            radians=angle)
+            rotation = _turn_z_to(rr, end - start)
             rec.log("world/critical", rr.Capsules3D(
                 lengths=[float(np.linalg.norm(end - start))] * 2, radii=[critical.radius, critical.radius + critical.margin],
                 translations=[start, start], rotation_axis_angles=[rotation, rotation],
@@ -460,6 +467,14 @@ class _SceneLogger:
                 centers=grippers[paddles], half_sizes=[b.spec.half_extents for b in blades],
                 rotation_axis_angles=[rr.RotationAxisAngle(axis=[0.0, 1.0, 0.0], radians=float(b.tilt[0]))
                                       for b in blades], colors=[PADDLE] * len(blades), fill_mode="solid"))
+        shafts = [(k, g) for k, g in enumerate(self.env.task.instruments) if getattr(g, "shaft_tool", None) is not None]
+        if shafts:  # each shaft that touches tissue, from its end behind the jaws to its port
+            ends = [g.port.shaft_ends(grippers[k])[0] for k, g in shafts]
+            axes = [g.port.port - end for (_, g), end in zip(shafts, ends)]
+            rec.log("world/shaft", rr.Capsules3D(
+                lengths=[float(np.linalg.norm(a)) for a in axes], radii=[g.spec.shaft_radius for _, g in shafts],
+                translations=ends, rotation_axis_angles=[_turn_z_to(rr, a) for a in axes],
+                colors=[SHAFT] * len(shafts)))
         held = x[snap.held]
         rec.log("world/held", rr.Points3D(held.reshape(-1, 3), radii=0.002, colors=HELD))
         if len(snap.stuck) or len(snap.released):  # the adhesion: what remains, and what a hook freed

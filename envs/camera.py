@@ -1,7 +1,8 @@
 """Camera observations: RGB, depth and segmentation of N worlds in one parallel Numba call.
 
 The task camera (the scene's ``camera``: the one the target's exposure is measured from)
-sees the tissue surface, the target, the gripper's jaws and the support. Every world is
+sees the tissue surface, the target, the instruments (jaws, a paddle's blade, a hook's tip,
+a shaft that touches tissue) and the support. Every world is
 drawn by :func:`render_worlds` (z-buffered triangles, flat headlight shading: the
 rasteriser of :mod:`heml_gym.envs.render`), worlds over threads, no GPU and no OpenGL.
 
@@ -26,8 +27,8 @@ import numba as nb
 import numpy as np
 from numba import prange
 
-from .palette import (BACKGROUND, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, PADDLE, SUPPORT,
-                      TARGET, TISSUE, unit)
+from .palette import (BACKGROUND, HOOK_OFF, HOOK_ON, JAW_HALF_SIZE, JAW_OFFSET, JAWS_CLOSED, JAWS_OPEN, PADDLE, SHAFT,
+                      SUPPORT, TARGET, TISSUE, unit)
 from .render import box, draw_triangles, icosphere, look_at
 from .spec import invalid
 
@@ -266,6 +267,14 @@ class CameraRenderer:
             scales = np.concatenate([scales[:, keep]] + tiles, axis=1)
             jaw = np.concatenate([jaw[:, keep]] + [np.broadcast_to(np.array(unit(PADDLE)), b.shape) for b in blades],
                                  axis=1)
+        for g in t.instruments:  # a shaft that touches tissue drawn as cubes from its end to its port
+            shaft = g.shaft_tiles() if g.kind == "grasper" else None
+            if shaft is not None:
+                centres, radius = shaft
+                cube = np.broadcast_to(radius / np.asarray(JAW_HALF_SIZE), centres.shape)
+                places = np.concatenate([places, centres - cube * np.asarray(JAW_OFFSET)], axis=1)
+                scales = np.concatenate([scales, cube], axis=1)
+                jaw = np.concatenate([jaw, np.broadcast_to(np.array(unit(SHAFT)), centres.shape)], axis=1)
         if getattr(t, "hooks", None):  # each hook's tip drawn as the jaws are, orange when energised
             places = np.concatenate([places, t.hook_tips], axis=1)
             scales = np.concatenate([scales, np.ones_like(t.hook_tips)], axis=1)

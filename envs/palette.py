@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["TISSUE", "STRAINED", "TARGET", "JAWS_OPEN", "JAWS_CLOSED", "SUPPORT", "BACKGROUND", "ATTACHMENT",
-           "HELD", "STUCK", "RELEASED", "HOOK_ON", "HOOK_OFF", "PADDLE", "FORCE", "JAW_HALF_SIZE", "JAW_OFFSET", "unit"]
+           "HELD", "STUCK", "RELEASED", "HOOK_ON", "HOOK_OFF", "PADDLE", "SHAFT", "FORCE", "JAW_HALF_SIZE", "JAW_OFFSET", "unit"]
 
 TISSUE = np.array([235, 170, 150])  # fat: pale pink
 STRAINED = np.array([200, 30, 30])  # tissue at the damage threshold
@@ -23,6 +23,7 @@ RELEASED = np.array([60, 220, 220])  # tissue a hook has freed this episode
 HOOK_ON = np.array([255, 90, 20])  # an energised hook
 HOOK_OFF = np.array([120, 120, 130])
 PADDLE = np.array([70, 110, 170])  # a paddle retractor's blade
+SHAFT = np.array([130, 115, 100])  # an instrument's shaft that touches tissue (on a port)
 FORCE = np.array([255, 140, 0])  # the grasp force
 JAW_HALF_SIZE = (0.003, 0.006, 0.006)  # m: the jaws drawn as a box
 JAW_OFFSET = (0.0, 0.0, 0.006)  # m: the box centre above the grasp point

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .instruments.paddle import tilt_rotation
-from .palette import HOOK_OFF, HOOK_ON, JAWS_CLOSED, JAWS_OPEN, PADDLE, STRAINED, TARGET, TISSUE
+from .palette import HOOK_OFF, HOOK_ON, JAWS_CLOSED, JAWS_OPEN, PADDLE, SHAFT, STRAINED, TARGET, TISSUE
 from .render import Camera, box, compose, icosphere, rasterize
 
 _COUNTER = itertools.count()
@@ -52,6 +52,12 @@ class SceneRenderer:
                 continue
             jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
             parts.append((jaws[0], jaws[1], JAWS_CLOSED if closed else JAWS_OPEN))
+            if getattr(g, "shaft_tool", None) is not None:  # a shaft that touches tissue, from its end to its port
+                end = g.port.shaft_ends(position)[0]
+                _, turn = g.port.shaft_poses(position)
+                length = float(np.linalg.norm(g.port.port - end))
+                shaft = box(0.5 * (end + g.port.port), (g.spec.shaft_radius, g.spec.shaft_radius, 0.5 * length), turn[0])
+                parts.append((shaft[0], shaft[1], SHAFT))
         for tip, on in zip(t.hook_tips[i], t.hooks_energised[i]):  # every hook's tip
             hook = icosphere(0.003, tip, subdivisions=1)
             parts.append((hook[0], hook[1], HOOK_ON if on else HOOK_OFF))

@@ -149,3 +149,41 @@ def test_a_bad_shaft_is_one_line_naming_it(changes, message):
     assert "\n" not in str(caught.value)
 
 
+
+
+def _shaft_hue(pixels, colour):
+    """Which ``pixels (k, 3)`` (uint8) are ``colour`` under any shade (the camera's
+    headlight scales it)."""
+    shade = pixels.astype(float)
+    return np.abs(shade / np.maximum(shade.max(axis=1, keepdims=True), 1) - colour / colour.max()).max(axis=1) < 0.05
+
+
+def test_the_task_camera_and_render_draw_a_shaft_that_touches_tissue():
+    """A grasper on a port above the flap with ``shaft_radius``: points along its shaft
+    (between its end behind the jaws and the port), projected into the task camera, fall
+    on instrument pixels of the shaft's colour, and ``render()`` draws it; without
+    ``shaft_radius`` (a shaft that does not touch) nothing of that colour is drawn."""
+    from heml_gym.envs.camera import SEGMENT_IDS
+    from heml_gym.envs.palette import SHAFT
+    from heml_gym.envs.render import Camera
+
+    drawn = {}
+    for radius in (0.004, None):
+        env = gym.make(envs.TISSUE_RETRACTION, obs_mode="rgbd", render_mode="rgb_array",
+                       scene={"gripper": {"port": PORT, "shaft_radius": radius}})
+        env.reset(seed=HELD_OUT)
+        renderer, grasper = env.unwrapped.camera_renderer, env.unwrapped.task.instruments[0]
+        rgb, seg = renderer.rgb[0], renderer.segmentation[0, ..., 0]
+        drawn[radius] = _shaft_hue(rgb[seg == SEGMENT_IDS["instrument"]], SHAFT).sum()
+        frame = env.render()
+        drawn[radius, "render"] = _shaft_hue(frame.reshape(-1, 3), SHAFT).sum()
+        if radius is None:
+            continue
+        end, port = grasper.port.shaft_ends(grasper.position)[0], grasper.port.port
+        camera = Camera(renderer.eyes[0], renderer.rots[0], renderer.fov_y)
+        uv, _ = camera.project(end + np.linspace(0.1, 0.4, 4)[:, None] * (port - end), renderer.width, renderer.height)
+        for u, v in np.round(uv).astype(int):
+            window = (slice(max(v - 1, 0), v + 2), slice(max(u - 1, 0), u + 2))
+            assert _shaft_hue(rgb[window][seg[window] == SEGMENT_IDS["instrument"]], SHAFT).any(), (u, v)
+    assert drawn[0.004] > 10 and drawn[0.004, "render"] > 10
+    assert drawn[None] == 0 and drawn[None, "render"] == 0

@@ -428,3 +428,23 @@ def test_a_push_recording_draws_the_paddles_blade_where_it_is(tmp_path):
     np.testing.assert_allclose(np.array(data["/world/paddle"]["Boxes3D:half_sizes"][-1]).reshape(-1, 3),
                                [paddle.spec.half_extents], rtol=1e-6)
     assert all(len(c or []) == 0 for c in data["/world/gripper"]["Boxes3D:centers"])
+
+
+def test_a_recording_draws_a_shaft_that_touches_tissue_from_its_end_to_its_port(tmp_path):
+    """A grasper on a port with ``shaft_radius``: its shaft is logged as a capsule of that
+    radius from its end behind the jaws to the port, where the jaws are."""
+    import gymnasium as gym
+
+    port = [0.06, 0.04, 0.15]
+    env = gym.make("heml_gym/TissueRetraction-v1", settings={"max_steps": 3}, max_episode_steps=3,
+                   scene={"gripper": {"port": port, "shaft_radius": 0.004}})
+    path = tmp_path / "shaft.rrd"
+    record_rollouts(env, lambda obs: np.array([0.5, 0.0, -0.5, -1.0], dtype=np.float32), path=path, episodes=1,
+                    seed=SEED)
+    data = _temporal(RrdReader(path).stream().collect())["/world/shaft"]
+    jaws = env.unwrapped.task.instruments[0].position[0]
+    along = (jaws - port) / np.linalg.norm(jaws - port)
+    end = jaws - 0.015 * along  # the shaft ends 15 mm behind the jaws
+    np.testing.assert_allclose(np.array(data["Capsules3D:translations"][-1]).reshape(3), end, atol=1e-6)
+    np.testing.assert_allclose(data["Capsules3D:lengths"][-1], np.linalg.norm(np.subtract(port, end)), rtol=1e-6)
+    np.testing.assert_allclose(data["Capsules3D:radii"][-1], 0.004, rtol=1e-6)

@@ -166,6 +166,18 @@ class Grasper:
         for k, i in enumerate(worlds):
             self.world.control.pose_tool(i, self.shaft_tool, centres[k], rotations[k])
 
+    def shaft_tiles(self) -> tuple[np.ndarray, float] | None:
+        """A touching shaft where it is now in each world, for cameras that draw boxes:
+        cubes along it from its end to the port, ``(N, k, 3)`` centres (m) no further apart
+        than their half size (m, the shaft's radius); None without a touching shaft."""
+        if self.shaft_tool is None:
+            return None
+        radius = float(self.spec.shaft_radius)
+        ends = self.port.shaft_ends(self.position)
+        longest = float(np.linalg.norm(ends - self.port.port, axis=1).max())
+        t = np.linspace(0.0, 1.0, max(2, int(np.ceil(longest / radius)) + 1))
+        return ends[:, None, :] + t[None, :, None] * (self.port.port - ends)[:, None, :], radius
+
     def after_step(self, reaction: np.ndarray, failed: np.ndarray, tool_force: np.ndarray | None = None) -> None:
         """Take the step's outcome: where a free wrist turned the held patch, the tissue's
         pull on the jaws (the held vertices' reactions, 0 where the step failed) and, for a

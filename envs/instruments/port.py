@@ -87,12 +87,18 @@ class Port:
         ``(N, 3, 3)`` whose third column is the shaft's direction (the capsule's axis)."""
         d = np.atleast_2d(tips) - self.port
         u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        centres = np.atleast_2d(tips) - (SHAFT_GAP + SHAFT_HALF_LENGTH) * u
+        centres = self.shaft_ends(tips) - SHAFT_HALF_LENGTH * u
         helper = np.where(np.abs(u[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
         a = np.cross(helper, u)
         a /= np.linalg.norm(a, axis=1, keepdims=True)
         b = np.cross(u, a)
         return centres, np.stack([a, b, u], axis=2)
+
+    def shaft_ends(self, tips: np.ndarray) -> np.ndarray:
+        """The end of the shaft ``(N, 3)`` (m) for tips ``(N, 3)`` (m): :data:`SHAFT_GAP`
+        behind each tip on the line from the port (the shaft runs from there to the port)."""
+        d = np.atleast_2d(tips) - self.port
+        return np.atleast_2d(tips) - SHAFT_GAP * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
     def commands_for(self, tips: np.ndarray, velocity: np.ndarray, max_speed: float) -> np.ndarray:
         """The port commands ``(N, 3)`` in [-1, 1] that move tips ``(N, 3)`` (m) at
