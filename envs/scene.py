@@ -383,7 +383,14 @@ class GripperSpec:
     (:class:`~heml_gym.envs.instruments.port.Port`); null: velocities along x, y, z.
     ``shaft_radius`` (m; a port only): the shaft, from the port to ``SHAFT_GAP`` behind the
     jaws, is a rigid capsule the tissue cannot enter (:mod:`heml_gym.tools`; its push in
-    ``info`` as ``shaft_force``); null: it passes through the tissue."""
+    ``info`` as ``shaft_force``); null: it passes through the tissue. ``roll_speed``
+    (rad/s; a port and ``jaw_length`` only): the jaws roll about the shaft at this rate
+    for a roll command of 1, at most a quarter turn either way from the grasp region's
+    axis; the action gains a fifth entry ``roll_rate`` (after ``grasp``), the state an
+    entry ``jaw_roll`` (rad); closing, the jaws take the region's vertices within
+    ``jaw_length / 2`` along their axis and ``settings.jaw_radius`` across it; rolling
+    while they hold turns the held tissue with them (Grasper); null: the jaws lie along
+    the grasp region's axis."""
 
     start_low: Vec3 = (0.0, 0.0, 0.0)
     start_high: Vec3 = (0.0, 0.0, 0.0)
@@ -396,6 +403,7 @@ class GripperSpec:
     angular_speed: float = 0.5
     max_tilt: float = 1.2
     shaft_radius: float | None = None
+    roll_speed: float | None = None
 
     def __post_init__(self):
         if self.jaw_ends not in ("vertex", "weighted"):
@@ -421,6 +429,12 @@ class GripperSpec:
             raise invalid(self, "shaft_radius", f"must be a positive length in metres or null, got {r!r}")
         if r is not None and self.port is None:
             raise invalid(self, "shaft_radius", "a shaft that touches tissue needs a port (give port)")
+        w = self.roll_speed
+        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w)
+                              or w <= 0):
+            raise invalid(self, "roll_speed", f"must be a positive angular speed in rad/s or null, got {w!r}")
+        if w is not None and (self.port is None or self.jaw_length is None):
+            raise invalid(self, "roll_speed", "jaws that roll about their shaft need a port and a jaw_length")
         if self.port is not None:
             if not isinstance(self.port, (list, tuple)) or len(self.port) != 3 or not _finite(self.port):
                 raise invalid(self, "port", f"must be three finite coordinates in metres or null, got {self.port!r}")

@@ -234,24 +234,37 @@ class PortCommands:
     each such grasper's velocity command (its first 3 entries, in units of ``max_speed``)
     becomes the port's tilt and insertion commands that move its tip so to first order
     (:meth:`~heml_gym.envs.instruments.port.Port.commands_for`; ``ports``: one
-    :class:`~heml_gym.envs.instruments.port.Port` or None per grasper, in action order)."""
+    :class:`~heml_gym.envs.instruments.port.Port` or None per grasper, in action order).
+    Jaws that roll (``rolls``: a flag per grasper) keep their roll: ``policy`` sees the
+    state without their ``jaw_roll`` entries, and their roll rate is 0."""
 
-    def __init__(self, policy, ports, max_speed: float = 0.05):
+    def __init__(self, policy, ports, max_speed: float = 0.05, rolls=None):
         self.policy, self.ports, self.max_speed = policy, list(ports), float(max_speed)
+        self.rolls = [False] * len(self.ports) if rolls is None else [bool(r) for r in rolls]
+        # each grasper's first state entry in the full state; the roll entries the policy does not see
+        starts = np.cumsum([0] + [GRASPER_SIZE + r for r in self.rolls])
+        self._starts = starts[:-1]
+        self._rolls_at = [int(start + GRASPER_SIZE) for start, r in zip(self._starts, self.rolls) if r]
 
     def reset(self):
         self.policy.reset()
 
     def __call__(self, obs) -> np.ndarray:
+        key = ("observation" if "observation" in obs else "state") if isinstance(obs, dict) else None
+        state = np.asarray(obs[key] if key else obs, dtype=np.float64)
+        if self._rolls_at:  # the state as a grasper that does not roll gives it
+            seen = np.delete(state, self._rolls_at).astype(np.float32)
+            obs = {**obs, key: seen} if key else seen
         action = np.array(self.policy(obs), dtype=np.float32)
-        state = obs.get("observation", obs.get("state")) if isinstance(obs, dict) else obs
-        state = np.asarray(state, dtype=np.float64)
         for k, port in enumerate(self.ports):
             if port is not None:
-                tip = state[GRASPER_SIZE * k:GRASPER_SIZE * k + 3]
+                tip = state[self._starts[k]:self._starts[k] + 3]
                 velocity = action[4 * k:4 * k + 3] * self.max_speed
                 action[4 * k:4 * k + 3] = port.commands_for(tip, velocity, self.max_speed)[0]
-        return action
+        for k in reversed(range(len(self.ports))):  # a roll rate of 0 after each rolling grasper's grasp entry
+            if self.rolls[k]:
+                action = np.insert(action, 4 * k + 4, 0.0)
+        return action.astype(np.float32)
 
 
 class HooksIdle:
@@ -302,7 +315,8 @@ def scripted_policy(scene):
     else:
         policy = _fold_policy(scene, specs[0])
     ports = [Port.of(spec) for spec in specs]
-    policy = policy if all(p is None for p in ports) else PortCommands(policy, ports)
+    rolls = [spec.roll_speed is not None for spec in specs]
+    policy = policy if all(p is None for p in ports) else PortCommands(policy, ports, rolls=rolls)
     return HooksIdle(policy, len(scene.hooks)) if getattr(scene, "hooks", None) else policy
 
 

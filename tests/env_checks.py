@@ -14,7 +14,7 @@ def assert_random_steps_stay_finite(env, steps: int, seed: int) -> None:
     rng = np.random.default_rng(seed)
     moved = 0.0
     for _ in range(steps):
-        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 4).astype(np.float32))
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
         assert np.all(np.isfinite(obs)) and np.isfinite(reward) and env.observation_space.contains(obs)
         assert all(np.isfinite(v) for v in info.values())
         assert not info["simulation_diverged"] and info["solver_converged"]

@@ -85,6 +85,7 @@ def test_a_grasper_on_a_port_keeps_its_tip_under_zero_commands_and_names_its_act
 
 @pytest.mark.parametrize("env_id, scene", [
     (envs.TISSUE_RETRACTION, {"gripper": {"port": PORT}}),
+    (envs.TISSUE_RETRACTION, {"gripper": {"port": PORT, "jaw_length": 0.03, "jaw_ends": "weighted", "roll_speed": 1.0}}),
     (envs.BIMANUAL_RETRACTION, {"graspers": {"left": {"port": [0.06, -0.02, 0.16]},
                                              "right": {"port": [0.06, 0.26, 0.16]}}}),
 ])
@@ -187,3 +188,82 @@ def test_the_task_camera_and_render_draw_a_shaft_that_touches_tissue():
             assert _shaft_hue(rgb[window][seg[window] == SEGMENT_IDS["instrument"]], SHAFT).any(), (u, v)
     assert drawn[0.004] > 10 and drawn[0.004, "render"] > 10
     assert drawn[None] == 0 and drawn[None, "render"] == 0
+
+
+#: a grasp region on the flap's top, 40 mm along x by 20 mm along y (5 x 3 vertices, 10 mm
+#: apart), and jaws 25 mm long on a port straight above it that roll at 4 rad/s
+ROLLING = {"grasp": {"low": [0.08, 0.05, 0.008], "high": [0.12, 0.07, None], "surface": True},
+           "gripper": {"port": [0.10, 0.06, 0.15], "jaw_length": 0.025, "roll_speed": 4.0}}
+
+
+def _rolling_env():
+    env = gym.make(envs.TISSUE_RETRACTION, scene=ROLLING)
+    env.reset(seed=HELD_OUT)
+    grasper = env.unwrapped.task.instruments[0]
+    grasper.place(0, (0.10, 0.06, 0.010))
+    return env, grasper
+
+
+def test_jaws_that_roll_take_the_region_along_their_axis_and_a_quarter_turn_takes_it_across():
+    """Unrolled, the jaws lie along the region's long axis (x) and take 25 mm of one row
+    (3 vertices at one y, 20 mm apart in x); rolled a quarter turn about the shaft (at
+    most that far), 25 mm of one column (3 at one x, 20 mm apart in y). The jaws' axis
+    stays across the shaft; the action and state name the roll."""
+    rest = None
+    taken = {}
+    for turns in (0, 4):  # 4 steps at 0.4 rad: past a quarter turn, held there
+        env, grasper = _rolling_env()
+        rest = env.unwrapped.task.scene.mesh.vertices
+        assert grasper.ACTION[-1] == "roll_rate" and grasper.OBSERVATION[-1] == ("jaw_roll", "rad")
+        for _ in range(turns):
+            env.step(np.array([0.0, 0.0, 0.0, -1.0, 1.0], dtype=np.float32))
+        obs, _, _, _, _ = env.step(np.array([0.0, 0.0, 0.0, 1.0, 0.0], dtype=np.float32))
+        assert obs[7] == pytest.approx(min(turns * 0.4, np.pi / 2), abs=1e-6)  # jaw_roll, after the grasper's 7
+        assert abs(grasper.jaw_axes()[0] @ grasper.shaft_directions()[0]) < 1e-12
+        taken[turns] = rest[np.flatnonzero(grasper.held[0])]
+    row, column = taken[0], taken[4]
+    assert len(row) == 3 and np.ptp(row[:, 1]) == 0 and np.ptp(row[:, 0]) == pytest.approx(0.02)
+    assert len(column) == 3 and np.ptp(column[:, 0]) == 0 and np.ptp(column[:, 1]) == pytest.approx(0.02)
+
+
+def test_rolling_while_holding_turns_the_held_tissue_about_the_shaft():
+    """Jaws closed on a row, then rolled 0.8 rad: the held vertices (held exactly) turn
+    with them about the shaft through the jaws, by that angle, at their distances."""
+    env, grasper = _rolling_env()
+    env.step(np.array([0.0, 0.0, 0.0, 1.0, 0.0], dtype=np.float32))
+    held = np.flatnonzero(grasper.held[0])
+    x = env.unwrapped.task.x
+    before = x[0, held] - grasper.position[0]
+    for _ in range(2):
+        env.step(np.array([0.0, 0.0, 0.0, 1.0, 1.0], dtype=np.float32))
+    after = x[0, held] - grasper.position[0]
+    u = grasper.shaft_directions()[0]
+    a = before - np.outer(before @ u, u)
+    b = after - np.outer(after @ u, u)
+    far = np.linalg.norm(a, axis=1) > 1e-3  # the vertices off the shaft's line
+    assert far.sum() >= 2
+    turned = np.arctan2(np.cross(a[far], b[far]) @ u, (a[far] * b[far]).sum(axis=1))
+    np.testing.assert_allclose(turned, 0.8, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(after, axis=1), np.linalg.norm(before, axis=1), atol=1e-9)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"roll_speed": 1.0, "jaw_length": 0.02}, r"scene\.gripper\.roll_speed: jaws that roll about their shaft need a port"),
+    ({"port": PORT, "roll_speed": 1.0}, r"scene\.gripper\.roll_speed: jaws that roll about their shaft need a port and a jaw_length"),
+    ({"port": PORT, "jaw_length": 0.02, "roll_speed": -1.0}, r"scene\.gripper\.roll_speed: must be a positive angular speed"),
+])
+def test_a_bad_roll_is_one_line_naming_it(changes, message):
+    with pytest.raises(SpecError, match=message) as caught:
+        envs.check_env_kwargs(envs.TISSUE_RETRACTION, {"scene": {"gripper": changes}})
+    assert "\n" not in str(caught.value)
+
+
+def test_a_task_with_rolling_jaws_passes_gymnasiums_env_checker_and_stays_finite():
+    from gymnasium.utils.env_checker import check_env
+
+    from env_checks import assert_random_steps_stay_finite
+
+    env = gym.make(envs.TISSUE_RETRACTION, scene=ROLLING)
+    check_env(env.unwrapped, skip_render_check=True)
+    assert env.action_space.shape == (5,)
+    assert_random_steps_stay_finite(env, steps=60, seed=HELD_OUT)

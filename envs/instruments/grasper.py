@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from heml_gym.control import rotation
+
 from ..geometry import nearest_triangle_distance
 from ..spec import SpecError
 from .port import Port
@@ -29,6 +31,9 @@ class Grasper:
     jaws (all of it, or what jaws of ``jaw_length`` cover, their ends by springs when
     ``jaw_ends`` is ``weighted``), or without a region the surface vertices within
     ``jaw_radius``; tissue that is stuck or held by another instrument is not taken.
+    Jaws that roll (``spec.roll_speed``, on a port) lie across the shaft, turned by
+    :attr:`roll` (rad) about it from the grasp region's axis, and take what lies within
+    ``jaw_length / 2`` along them and ``jaw_radius`` across them.
     """
 
     kind = "grasper"
@@ -67,6 +72,17 @@ class Grasper:
         self.shaft_force = np.zeros((world.n, 3))  # the shaft's push on the tissue, mean over the last step (N)
         if self.port is not None:
             self.ACTION = self.PORT_ACTION
+        #: rad/s of the jaws' roll about the shaft at a command of 1 (None: they do not roll)
+        self.roll_speed = gripper.roll_speed
+        #: rad: the jaws' turn about the shaft from the grasp region's axis, in [-pi/2, pi/2]
+        self.roll = np.zeros(world.n)
+        if self.roll_speed is not None:
+            if scene.grasp_patch is None:
+                raise SpecError("scene.gripper.roll_speed: jaws that roll take part of a grasp region: give the "
+                                "scene a grasp region (scene.grasp)")
+            self.ACTION = self.PORT_ACTION + ("roll_rate",)
+            self.OBSERVATION = self.OBSERVATION + (("jaw_roll", "rad"),)
+            self.action_size = len(self.ACTION)
         self.workspace_low, self.workspace_high = np.asarray(gripper.workspace_low), np.asarray(gripper.workspace_high)
         n, nv = world.n, mesh.n_vertices
         self.position = np.zeros((n, 3))
@@ -89,6 +105,7 @@ class Grasper:
         self.grasped_once[i] = False
         self.force[i] = 0.0
         self.shaft_force[i] = 0.0
+        self.roll[i] = 0.0
         self._pose_shaft([i])
 
     def place(self, i: int, position) -> None:
@@ -141,6 +158,10 @@ class Grasper:
         insertion rates) over one control step, within the workspace, and drive the tissue
         they hold there (held tissue cannot be pressed below where it rests on a support)."""
         st, s, control = self.settings, self.scene, self.world.control
+        if self.roll_speed is not None:  # roll first, about the shaft through the jaws
+            rolled = np.clip(self.roll + actions[:, 4] * self.roll_speed * st.control_dt, -np.pi / 2, np.pi / 2)
+            self._turn_held(rolled - self.roll)
+            self.roll = rolled
         if self.port is None:
             moved = self.position + actions[:, :3] * st.max_speed * st.control_dt
         else:
@@ -157,6 +178,34 @@ class Grasper:
             if control.turns[i].any():
                 control.drive_wrist(i, self.position[i] + self.pivot_offset[i])
         self._pose_shaft(range(self.world.n))
+
+    def shaft_directions(self) -> np.ndarray:
+        """``(N, 3)`` unit: the shaft's direction from the port to the jaws (a port only)."""
+        d = self.position - self.port.port
+        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+    def jaw_axes(self) -> np.ndarray:
+        """``(N, 3)`` unit: the axis of jaws that roll, across the shaft, turned by
+        :attr:`roll` about it from the grasp region's axis (its part across the shaft; the
+        port's first tilt direction where the region's axis runs along the shaft)."""
+        u = self.shaft_directions()
+        ref = self._patch_axis[None, :] - (u @ self._patch_axis)[:, None] * u
+        along_shaft = np.linalg.norm(ref, axis=1) < 1e-6
+        if along_shaft.any():
+            e1 = self.port.e1[None, :] - (u @ self.port.e1)[:, None] * u
+            ref[along_shaft] = e1[along_shaft]
+        ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+        return np.cos(self.roll)[:, None] * ref + np.sin(self.roll)[:, None] * np.cross(u, ref)
+
+    def _turn_held(self, angles: np.ndarray) -> None:
+        """Turn the tissue held in each world by ``angles`` (rad) about the shaft through
+        the jaws (jaws that roll while they hold)."""
+        u = self.shaft_directions()
+        for i in np.flatnonzero(self.grasping & (angles != 0.0)):
+            turn = rotation(u[i], float(angles[i]))
+            held = self.held[i]
+            self.offsets[i, held] = self.offsets[i, held] @ turn.T
+            self.pivot_offset[i] = turn @ self.pivot_offset[i]
 
     def _pose_shaft(self, worlds) -> None:
         """Pose the shaft's rigid tool for the jaws where they are (a touching shaft only)."""
@@ -192,8 +241,10 @@ class Grasper:
 
     # --------------------------------------------------------- what it reports
     def observation(self) -> list[np.ndarray]:
-        """Its part of the state observation: position (m), grasping (0/1), force (N)."""
-        return [self.position, self.grasping[:, None].astype(np.float64), self.force]
+        """Its part of the state observation: position (m), grasping (0/1), force (N), and
+        for jaws that roll their roll (rad)."""
+        parts = [self.position, self.grasping[:, None].astype(np.float64), self.force]
+        return parts + [self.roll[:, None]] if self.roll_speed is not None else parts
 
     def key(self, name: str) -> str:
         return name if self.name is None else f"{self.name}_{name}"
@@ -258,6 +309,8 @@ class Grasper:
             if nearest > st.grasp_reach:
                 return patch[:0], np.zeros(0)
             gripper = self.spec
+            if self.roll_speed is not None:
+                return self._rolled_jaw_vertices(i)
             if gripper.jaw_length is None:
                 return patch, np.ones(len(patch))
             if gripper.jaw_ends == "weighted":
@@ -273,14 +326,34 @@ class Grasper:
         picked = self._graspable[held & (d <= st.grasp_reach)]
         return picked, np.ones(len(picked))
 
-    def _jaw_shares(self, i: int, jaw_length: float) -> np.ndarray:
+    def _rolled_jaw_vertices(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """What rolled jaws take of the grasp region in world ``i``: they close on the
+        region's part nearest them across their axis, its vertices within ``jaw_radius``
+        across of it; of those the ones within ``jaw_length / 2`` along them (weighted
+        ends: by their share; at least the nearest along), and each one's share."""
+        patch, gripper = self.scene.grasp_patch, self.spec
+        axis = self.jaw_axes()[i]
+        r = self.world.state.x[i, patch] - self.position[i]
+        across = r @ np.cross(self.shaft_directions()[i], axis)
+        between = np.abs(across - across[np.argmin(np.abs(across))]) <= self.settings.jaw_radius
+        along = np.abs(r @ axis)
+        if gripper.jaw_ends == "weighted":
+            share = np.where(between, self._jaw_shares(i, gripper.jaw_length, axis), 0.0)
+        else:
+            share = (between & (along <= gripper.jaw_length / 2)).astype(np.float64)
+        if not (share > 0).any():  # at least the vertex between the jaws nearest their middle
+            share[np.flatnonzero(between)[np.argmin(along[between])]] = 1.0
+        return patch[share > 0], share[share > 0]
+
+    def _jaw_shares(self, i: int, jaw_length: float, axis: np.ndarray | None = None) -> np.ndarray:
         """Each grasp-patch vertex's share (0..1) inside jaws ``jaw_length`` (m) long centred
         on world ``i``'s jaws: the overlap of its row's span along the patch's axis (from
         midway to the previous row to midway to the next; at the patch's ends, as far out as
         in) with the jaws, over the span. Rows: the vertices' rest places along the axis,
-        to 1e-6 m."""
+        to 1e-6 m. ``axis``: the jaws' (unit; None: the patch's long axis)."""
         patch = self.scene.grasp_patch
-        rest = self.scene.mesh.vertices[patch] @ self._patch_axis
+        axis = self._patch_axis if axis is None else axis
+        rest = self.scene.mesh.vertices[patch] @ axis
         rows, row_of = np.unique(np.round(rest, 6), return_inverse=True)
         if len(rows) == 1:
             return np.ones(len(patch))
@@ -290,7 +363,7 @@ class Grasper:
         # the jaws' centre along the axis, in the rest frame: their offset from the patch's
         # current centre, added to the patch's rest centre
         x = self.world.state.x[i, patch]
-        centre = rest.mean() + (self.position[i] - x.mean(axis=0)) @ self._patch_axis
+        centre = rest.mean() + (self.position[i] - x.mean(axis=0)) @ axis
         overlap = np.clip(np.minimum(high, centre + jaw_length / 2) - np.maximum(low, centre - jaw_length / 2), 0.0,
                           None)
         share = (overlap / (high - low))[row_of]
