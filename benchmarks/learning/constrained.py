@@ -32,6 +32,18 @@ CONFIGS = {
     "dissection": ("configs/dissection_ppo.yaml", "configs/dissection_ppo_lagrangian.yaml"),
 }
 METHODS = ("PPO", "PPO-Lagrangian")
+#: per env: what its harm (the summed ``info["cost"]``) is counted in, and what it counts
+HARM = {
+    "tissue": ("strain x s", "strain x s above the safe strain"),
+    "organ": ("strain x s", "strain x s above the safe strain"),
+    "dissection": ("harm", "strain x s above the safe strain, plus 0.01 per joule of collateral heat, plus 10 "
+                           "for energy near the common bile duct"),
+}
+
+
+def harm_of(result: dict) -> tuple[str, str]:
+    """``(unit, what it counts)`` of a stored comparison's harm."""
+    return HARM[result["name"].removeprefix("constrained_")]
 
 
 def collect_seed(trial) -> dict:
@@ -76,12 +88,14 @@ def summarise(seeds: list[dict]) -> dict:
 
 def table(result: dict) -> str:
     m = result["machine"]
-    head = (f"PPO and PPO-Lagrangian (damage budget {result['budget']:g} strain x s per episode) on "
+    unit, counts = harm_of(result)
+    counts = counts.replace("safe strain", f"safe strain {result['safe_strain']:g}")
+    head = (f"PPO and PPO-Lagrangian (damage budget {result['budget']:g} {unit} per episode) on "
             f"`{result['env_id']}`, {len(result['methods']['PPO']['seeds'])} seeds, {result['env_steps']:,} env "
             f"steps each, on {m['cpu']} ({m['cores']} cores), {m['date']}, one CPU per run "
             f"(`{result['command']}`). Final success and damage: 20 fresh seeded evaluation episodes, "
-            "deterministic policy; damage is the episode's summed `info[\"cost\"]` (strain x s above the safe "
-            f"strain {result['safe_strain']:g}), averaged over the episodes.\n\n")
+            f"deterministic policy; damage is the episode's summed `info[\"cost\"]` ({counts}), averaged over the "
+            "episodes.\n\n")
     rows = []
     for method in METHODS:
         for s in result["methods"][method]["seeds"]:
@@ -103,11 +117,11 @@ def table(result: dict) -> str:
                              f"{r['damage_while_training_iqm']:.3f} ({r['damage_while_training_iqm_ci95'][0]:.3f}-"
                              f"{r['damage_while_training_iqm_ci95'][1]:.3f})"])
     verdict = result["verdict"]
-    text = (head + markdown_table(["method", "seed", "final success", "mean damage (strain x s)",
+    text = (head + markdown_table(["method", "seed", "final success", f"mean damage ({unit})",
                                    "damage while training (mean over the evaluations)",
                                    "episodes with damage", "final multiplier", "wall min"], rows)
             + "\n\nAcross seeds (IQM, 95 % bootstrap interval):\n\n"
-            + markdown_table(["method", "seeds >= 90 %", "success", "final damage (strain x s)",
+            + markdown_table(["method", "seeds >= 90 %", "success", f"final damage ({unit})",
                               "final episodes with damage, all seeds", "damage while training"], summary_rows)
             + f"\n\n**{verdict['text']}**\n"
             + f"\n![success vs damage per seed; damage and success vs env steps](../img/{result['name']}.png)\n")
@@ -121,8 +135,9 @@ def verdict(result: dict) -> dict:
     close = lag["success_iqm"] >= ppo["success_iqm"] - 0.10
     ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
     learning = lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]
+    unit = harm_of(result)[0]
     text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the final damage (IQM {lag['damage_iqm']:.4f} vs "
-            f"{ppo['damage_iqm']:.4f} strain x s) at success {lag['success_iqm']:.0%} vs "
+            f"{ppo['damage_iqm']:.4f} {unit}) at success {lag['success_iqm']:.0%} vs "
             f"{ppo['success_iqm']:.0%} ({'within' if close else 'not within'} 10 points): the bar is "
             f"{'met' if lower and close else 'missed'}; while training it "
             f"{'lowers' if learning else 'does not lower'} the damage (IQM {lag['damage_while_training_iqm']:.3f} vs "
@@ -161,9 +176,10 @@ def chart(result: dict, path: Path) -> None:
     damage_ax.axhline(result["budget"], color="grey", ls="--", label=f"budget {result['budget']:g}")
     pareto.set_xlim(left=0)
     damage_ax.set_ylim(bottom=0)
-    pareto.set(xlabel="mean episode damage (strain x s)", ylabel="final success rate", ylim=(-0.05, 1.05),
+    unit = harm_of(result)[0]
+    pareto.set(xlabel=f"mean episode damage ({unit})", ylabel="final success rate", ylim=(-0.05, 1.05),
                title="success vs damage (up and left is better)")
-    damage_ax.set(xlabel="env steps (k)", ylabel="mean episode damage (strain x s)", title="damage while training")
+    damage_ax.set(xlabel="env steps (k)", ylabel=f"mean episode damage ({unit})", title="damage while training")
     success_ax.set(xlabel="env steps (k)", ylabel="success rate", ylim=(-0.05, 1.05), title="success while training")
     for ax in axes:
         ax.grid(alpha=0.3)
