@@ -304,8 +304,8 @@ def _blueprint(rrb, geometry):
 
 
 
-def _turn_z_to(rr, direction) -> "rr.RotationAxisAngle":
-    """The turn that takes +z onto ``direction`` (a capsule's axis in rerun)."""
+def _turn_z_to(rr, direction):
+    """The ``rerun.RotationAxisAngle`` that takes +z onto ``direction`` (a capsule's axis)."""
     axis = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
     turn = np.cross([0.0, 0.0, 1.0], axis)
     return rr.RotationAxisAngle(axis=turn if np.linalg.norm(turn) > 1e-12 else [1.0, 0.0, 0.0],

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -198,3 +199,14 @@ def test_the_task_camera_draws_the_hook_orange_when_energised():
         orange = np.abs(hue - np.asarray(HOOK_ON, dtype=float) / max(HOOK_ON)).max(axis=1) < 0.05
         assert orange.any() == lit  # orange pixels while energised only (the grasper's jaws are grey)
         assert instrument.sum() > orange.sum() > 0 if lit else instrument.any()
+
+
+def test_a_hook_placed_outside_its_workspace_is_one_line_naming_it():
+    env = gym.make("heml_gym/GallbladderDissection-v0")
+    env.reset(seed=0)
+    hook = env.unwrapped.task.hooks[0]
+    for bad, message in (((0.0, 0.0, -0.01), r"^hook: \[0\.0, 0\.0, -0\.01\] lies outside the workspace"),
+                         ((0.0, np.nan, 0.0), r"^hook: must be 3 finite coordinates")):
+        with pytest.raises(SpecError, match=message) as caught:
+            hook.place(0, bad)
+        assert "\n" not in str(caught.value)

@@ -15,6 +15,7 @@ from heml_gym.control import rotation
 
 from ..geometry import nearest_triangle_distance
 from ..spec import SpecError
+from .placing import checked_position
 from .port import Port
 
 
@@ -110,13 +111,7 @@ class Grasper:
 
     def place(self, i: int, position) -> None:
         """Start world ``i``'s jaws at ``position`` (m, (3,), inside the workspace)."""
-        g = np.asarray(position, dtype=np.float64)
-        if g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise SpecError(f"gripper: must be 3 finite coordinates (m), got {position!r}")
-        if np.any(g < self.workspace_low - 1e-12) or np.any(g > self.workspace_high + 1e-12):
-            raise SpecError(f"gripper: {g.tolist()} lies outside the workspace "
-                            f"{list(self.workspace_low)}..{list(self.workspace_high)} m")
-        self.position[i] = g
+        self.position[i] = checked_position(position, self.workspace_low, self.workspace_high, "gripper")
         self._pose_shaft([i])
 
     # --------------------------------------------------------------------- step

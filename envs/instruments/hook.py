@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .placing import checked_position
 from .port import Port
 
 
@@ -70,8 +71,8 @@ class Hook:
         self.released_area[i] = 0.0
 
     def place(self, i: int, position) -> None:
-        """World ``i``'s tip at ``position`` (m, (3,))."""
-        self.position[i] = np.asarray(position, dtype=np.float64)
+        """World ``i``'s tip at ``position`` (m, (3,), inside the workspace)."""
+        self.position[i] = checked_position(position, self.workspace_low, self.workspace_high, self.name or "hook")
 
     # --------------------------------------------------------------------- step
     def act(self, actions: np.ndarray) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 
 from heml_gym.tools import Box
 
-from ..spec import SpecError
+from .placing import checked_position
 
 #: m: the depth below the blade's face that is solid to the solver (at least the blade's thickness)
 BACKING = 0.03
@@ -102,13 +102,7 @@ class Paddle:
 
     def place(self, i: int, position) -> None:
         """Start world ``i``'s blade centre at ``position`` (m, (3,), inside the workspace)."""
-        p = np.asarray(position, dtype=np.float64)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise SpecError(f"gripper: the paddle's start must be 3 finite coordinates (m), got {position!r}")
-        if np.any(p < self.workspace_low - 1e-12) or np.any(p > self.workspace_high + 1e-12):
-            raise SpecError(f"gripper: {p.tolist()} lies outside the paddle's workspace "
-                            f"{list(self.workspace_low)}..{list(self.workspace_high)} m")
-        self.position[i] = p
+        self.position[i] = checked_position(position, self.workspace_low, self.workspace_high, "gripper")
         self._pose([i])
 
     def _pose(self, worlds) -> None:
