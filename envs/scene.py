@@ -435,6 +435,9 @@ class GripperSpec:
             raise invalid(self, "roll_speed", f"must be a positive angular speed in rad/s or null, got {w!r}")
         if w is not None and (self.port is None or self.jaw_length is None):
             raise invalid(self, "roll_speed", "jaws that roll about their shaft need a port and a jaw_length")
+        if w is not None and self.wrist_reach is not None:
+            raise invalid(self, "roll_speed", "jaws on a free wrist turn with the tissue: give roll_speed or "
+                                              "wrist_reach, not both")
         if self.port is not None:
             if not isinstance(self.port, (list, tuple)) or len(self.port) != 3 or not _finite(self.port):
                 raise invalid(self, "port", f"must be three finite coordinates in metres or null, got {self.port!r}")

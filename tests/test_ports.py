@@ -251,6 +251,8 @@ def test_rolling_while_holding_turns_the_held_tissue_about_the_shaft():
     ({"roll_speed": 1.0, "jaw_length": 0.02}, r"scene\.gripper\.roll_speed: jaws that roll about their shaft need a port"),
     ({"port": PORT, "roll_speed": 1.0}, r"scene\.gripper\.roll_speed: jaws that roll about their shaft need a port and a jaw_length"),
     ({"port": PORT, "jaw_length": 0.02, "roll_speed": -1.0}, r"scene\.gripper\.roll_speed: must be a positive angular speed"),
+    ({"port": PORT, "jaw_length": 0.02, "roll_speed": 1.0, "wrist_reach": 0.01},
+     r"scene\.gripper\.roll_speed: jaws on a free wrist turn with the tissue"),
 ])
 def test_a_bad_roll_is_one_line_naming_it(changes, message):
     with pytest.raises(SpecError, match=message) as caught:
