@@ -36,6 +36,8 @@ __all__ = ["ImageSpec", "CameraRenderer", "SEGMENT_IDS", "render_worlds"]
 
 #: Segmentation labels.
 SEGMENT_IDS = {"background": 0, "tissue": 1, "target": 2, "instrument": 3, "support": 4}
+#: m: the half size of the cubes that draw jaws that roll (along their axis) and shafts
+JAW_TILE = 0.003
 
 
 
@@ -248,38 +250,48 @@ class CameraRenderer:
         self.eyes[i] = eye
         self.rots[i] = look_at(eye, self.look_at, self.up)
 
+    def instrument_boxes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every instrument of every world as boxes: places ``(N, B, 3)`` (m), scales ``(N,
+        B, 3)`` of the jaw box (each drawn its scaled ``JAW_OFFSET`` above its place) and
+        colours ``(N, B, 3)`` in [0, 1]. Jaws are one box at the grasp point, grey when
+        open and green when closed (jaws that roll: cubes along their axis); a paddle's
+        blade is flat boxes tiling its face; a shaft that touches tissue cubes from its end
+        to its port; a hook's tip the jaw box, orange when energised."""
+        t = self.task
+        closed = np.where(t.grasping_all[:, :, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
+        places, scales, colours = [], [], []
+
+        def add(centres, half, colour):  # boxes centred on ``centres`` (N, k, 3), of half sizes ``half`` (m)
+            scale = np.broadcast_to(np.asarray(half, dtype=np.float64) / np.asarray(JAW_HALF_SIZE), centres.shape)
+            places.append(centres - scale * np.asarray(JAW_OFFSET))
+            scales.append(scale)
+            colours.append(np.broadcast_to(colour, centres.shape))
+
+        for k, g in enumerate(t.instruments):
+            if g.kind == "paddle":
+                add(*g.blade_tiles(), np.array(unit(PADDLE)))
+            elif getattr(g, "roll_speed", None) is not None:
+                add(g.jaw_tiles(JAW_TILE), JAW_TILE, closed[:, k:k + 1])
+            else:
+                places.append(t.grippers[:, k:k + 1])
+                scales.append(np.ones((t.n, 1, 3)))
+                colours.append(closed[:, k:k + 1])
+        for g in t.instruments:
+            shaft = g.shaft_tiles() if g.kind == "grasper" else None
+            if shaft is not None:
+                add(*shaft, np.array(unit(SHAFT)))
+        if getattr(t, "hooks", None):
+            places.append(t.hook_tips)
+            scales.append(np.ones_like(t.hook_tips))
+            colours.append(np.where(t.hooks_energised[:, :, None], np.array(unit(HOOK_ON)), np.array(unit(HOOK_OFF))))
+        if not places:  # (nothing to draw)
+            return np.zeros((t.n, 0, 3)), np.zeros((t.n, 0, 3)), np.zeros((t.n, 0, 3))
+        return np.concatenate(places, axis=1), np.concatenate(scales, axis=1), np.concatenate(colours, axis=1)
+
     def render(self):
         """``(rgb, depth, segmentation)`` of every world (arrays owned by the renderer)."""
         t = self.task
-        jaw = np.where(t.grasping_all[:, :, None], np.array(unit(JAWS_CLOSED)), np.array(unit(JAWS_OPEN)))
-        places = t.grippers
-        scales = np.ones_like(places)
-        paddles = [k for k, g in enumerate(t.instruments) if g.kind == "paddle"]
-        if paddles:  # a paddle's blade drawn as flat boxes tiling its face, in place of jaws at its centre
-            keep = [k for k in range(len(t.instruments)) if k not in paddles]
-            blades, tiles = [], []
-            for k in paddles:
-                centres, half = t.instruments[k].blade_tiles()
-                tile = np.broadcast_to(np.asarray(half) / np.asarray(JAW_HALF_SIZE), centres.shape)
-                blades.append(centres - tile * np.asarray(JAW_OFFSET))  # (the box is drawn JAW_OFFSET, scaled, above)
-                tiles.append(tile)
-            places = np.concatenate([places[:, keep]] + blades, axis=1)
-            scales = np.concatenate([scales[:, keep]] + tiles, axis=1)
-            jaw = np.concatenate([jaw[:, keep]] + [np.broadcast_to(np.array(unit(PADDLE)), b.shape) for b in blades],
-                                 axis=1)
-        for g in t.instruments:  # a shaft that touches tissue drawn as cubes from its end to its port
-            shaft = g.shaft_tiles() if g.kind == "grasper" else None
-            if shaft is not None:
-                centres, radius = shaft
-                cube = np.broadcast_to(radius / np.asarray(JAW_HALF_SIZE), centres.shape)
-                places = np.concatenate([places, centres - cube * np.asarray(JAW_OFFSET)], axis=1)
-                scales = np.concatenate([scales, cube], axis=1)
-                jaw = np.concatenate([jaw, np.broadcast_to(np.array(unit(SHAFT)), centres.shape)], axis=1)
-        if getattr(t, "hooks", None):  # each hook's tip drawn as the jaws are, orange when energised
-            places = np.concatenate([places, t.hook_tips], axis=1)
-            scales = np.concatenate([scales, np.ones_like(t.hook_tips)], axis=1)
-            jaw = np.concatenate([jaw, np.where(t.hooks_energised[:, :, None], np.array(unit(HOOK_ON)),
-                                                np.array(unit(HOOK_OFF)))], axis=1)
+        places, scales, jaw = self.instrument_boxes()
         kernel = render_worlds if t.n > 1 and nb.get_num_threads() > 1 else render_worlds_serial
         poses = WorldPoses(np.ascontiguousarray(t.x), np.ascontiguousarray(t.target), np.ascontiguousarray(places),
                            np.ascontiguousarray(jaw), np.ascontiguousarray(scales, dtype=np.float64), self.eyes,

@@ -50,7 +50,11 @@ class SceneRenderer:
                 blade = box(position, g.spec.half_extents, tilt_rotation(g.tilt[i]))
                 parts.append((blade[0], blade[1], PADDLE))
                 continue
-            jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
+            if getattr(g, "roll_speed", None) is not None:  # along their axis, up the shaft from the grasp point
+                frame = g.jaw_frames()[i]
+                jaws = box(position + 0.006 * frame[:, 2], (0.003, 0.5 * g.spec.jaw_length, 0.006), frame)
+            else:
+                jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
             parts.append((jaws[0], jaws[1], JAWS_CLOSED if closed else JAWS_OPEN))
             if getattr(g, "shaft_tool", None) is not None:  # a shaft that touches tissue, from its end to its port
                 end = g.port.shaft_ends(position)[0]

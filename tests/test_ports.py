@@ -152,7 +152,7 @@ def test_a_bad_shaft_is_one_line_naming_it(changes, message):
 
 
 
-def _shaft_hue(pixels, colour):
+def _of_colour(pixels, colour):
     """Which ``pixels (k, 3)`` (uint8) are ``colour`` under any shade (the camera's
     headlight scales it)."""
     shade = pixels.astype(float)
@@ -175,9 +175,9 @@ def test_the_task_camera_and_render_draw_a_shaft_that_touches_tissue():
         env.reset(seed=HELD_OUT)
         renderer, grasper = env.unwrapped.camera_renderer, env.unwrapped.task.instruments[0]
         rgb, seg = renderer.rgb[0], renderer.segmentation[0, ..., 0]
-        drawn[radius] = _shaft_hue(rgb[seg == SEGMENT_IDS["instrument"]], SHAFT).sum()
+        drawn[radius] = _of_colour(rgb[seg == SEGMENT_IDS["instrument"]], SHAFT).sum()
         frame = env.render()
-        drawn[radius, "render"] = _shaft_hue(frame.reshape(-1, 3), SHAFT).sum()
+        drawn[radius, "render"] = _of_colour(frame.reshape(-1, 3), SHAFT).sum()
         if radius is None:
             continue
         end, port = grasper.port.shaft_ends(grasper.position)[0], grasper.port.port
@@ -185,7 +185,7 @@ def test_the_task_camera_and_render_draw_a_shaft_that_touches_tissue():
         uv, _ = camera.project(end + np.linspace(0.1, 0.4, 4)[:, None] * (port - end), renderer.width, renderer.height)
         for u, v in np.round(uv).astype(int):
             window = (slice(max(v - 1, 0), v + 2), slice(max(u - 1, 0), u + 2))
-            assert _shaft_hue(rgb[window][seg[window] == SEGMENT_IDS["instrument"]], SHAFT).any(), (u, v)
+            assert _of_colour(rgb[window][seg[window] == SEGMENT_IDS["instrument"]], SHAFT).any(), (u, v)
     assert drawn[0.004] > 10 and drawn[0.004, "render"] > 10
     assert drawn[None] == 0 and drawn[None, "render"] == 0
 
@@ -269,3 +269,33 @@ def test_a_task_with_rolling_jaws_passes_gymnasiums_env_checker_and_stays_finite
     check_env(env.unwrapped, skip_render_check=True)
     assert env.action_space.shape == (5,)
     assert_random_steps_stay_finite(env, steps=60, seed=HELD_OUT)
+
+
+def test_the_task_camera_and_render_draw_jaws_that_roll_along_their_axis():
+    """Jaws that roll are drawn along their axis: points 10 mm out along it either side of
+    the grasp point, projected into the task camera, fall on instrument pixels of the open
+    jaws' colour, unrolled (along x) and rolled a quarter turn (along y); ``render()``
+    draws them too."""
+    from heml_gym.envs.camera import SEGMENT_IDS
+    from heml_gym.envs.palette import JAWS_OPEN
+    from heml_gym.envs.render import Camera
+
+    for turns in (0, 4):
+        env = gym.make(envs.TISSUE_RETRACTION, obs_mode="rgbd", render_mode="rgb_array", scene=ROLLING)
+        env.reset(seed=HELD_OUT)
+        grasper = env.unwrapped.task.instruments[0]
+        grasper.place(0, (0.10, 0.06, 0.02))  # above the flap: nothing hides the jaws
+        for _ in range(turns):
+            env.step(np.array([0.0, 0.0, 0.0, -1.0, 1.0], dtype=np.float32))
+        env.step(np.zeros(5, dtype=np.float32))
+        renderer = env.unwrapped.camera_renderer
+        rgb, seg = renderer.rgb[0], renderer.segmentation[0, ..., 0]
+        axis = grasper.jaw_axes()[0]
+        assert abs(axis[0 if turns == 0 else 1]) > 0.99  # along x unrolled, along y a quarter turn on
+        camera = Camera(renderer.eyes[0], renderer.rots[0], renderer.fov_y)
+        ends = grasper.position[0] - 0.003 * grasper.shaft_directions()[0] + np.outer([-0.01, 0.01], axis)
+        uv, _ = camera.project(ends, renderer.width, renderer.height)
+        for u, v in np.round(uv).astype(int):
+            window = (slice(max(v - 1, 0), v + 2), slice(max(u - 1, 0), u + 2))
+            assert _of_colour(rgb[window][seg[window] == SEGMENT_IDS["instrument"]], JAWS_OPEN).any(), (turns, u, v)
+        assert _of_colour(env.render().reshape(-1, 3), JAWS_OPEN).sum() > 10

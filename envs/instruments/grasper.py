@@ -192,6 +192,21 @@ class Grasper:
         ref /= np.linalg.norm(ref, axis=1, keepdims=True)
         return np.cos(self.roll)[:, None] * ref + np.sin(self.roll)[:, None] * np.cross(u, ref)
 
+    def jaw_frames(self) -> np.ndarray:
+        """``(N, 3, 3)``: the frames of jaws that roll, columns across them, along them
+        (:meth:`jaw_axes`) and back up the shaft (a drawing's box: long along the jaws)."""
+        u, axis = self.shaft_directions(), self.jaw_axes()
+        return np.stack([np.cross(u, axis), axis, -u], axis=2)
+
+    def jaw_tiles(self, half: float = 0.003) -> np.ndarray:
+        """Jaws that roll, where they are now in each world, for cameras that draw boxes:
+        ``(N, k, 3)`` centres (m) of cubes of half size ``half`` (m) along their axis over
+        their length, one half size back up the shaft from the grasp point."""
+        length = float(self.spec.jaw_length)
+        t = np.linspace(-0.5, 0.5, max(2, int(np.ceil(length / half)) + 1)) * length
+        centres = self.position - half * self.shaft_directions()
+        return centres[:, None, :] + t[None, :, None] * self.jaw_axes()[:, None, :]
+
     def _turn_held(self, angles: np.ndarray) -> None:
         """Turn the tissue held in each world by ``angles`` (rad) about the shaft through
         the jaws (jaws that roll while they hold)."""
