@@ -63,7 +63,8 @@ def collect_seed(trial) -> dict:
            "damage_while_training": float(np.mean([e["mean_damage"] for e in history])),
            "episodes": final["episodes"],
            "evaluations": [{"env_steps": e["timesteps"], "success_rate": e["success_rate"],
-                            "mean_damage": e["mean_damage"]} for e in history]}
+                            "mean_damage": e["mean_damage"], "mean_episode_length": e.get("mean_episode_length"),
+                            "mean_final_exposure": e.get("mean_final_exposure")} for e in history]}
     constraint = trial.run_dir / "constraint.json"
     if constraint.is_file():
         steps = json.loads(constraint.read_text())["history"]
