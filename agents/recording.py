@@ -49,7 +49,8 @@ Entities
 ``world/critical``            static :class:`rerun.Capsules3D`: a scene's critical structure
                               (``Scene.critical``) and, translucent, its margin.
 ``world/gripper``             :class:`rerun.Boxes3D`: the jaws, grey when open, green when
-                              closed on tissue (no label: the state is in ``status``).
+                              closed on tissue (no label: the state is in ``status``);
+                              jaws that roll turned along their axis.
 ``world/paddle``              :class:`rerun.Boxes3D`: a paddle retractor's blade, turned by
                               its tilt (scenes with paddles).
 ``world/shaft``               :class:`rerun.Capsules3D`: each shaft that touches tissue (a
@@ -304,6 +305,17 @@ def _blueprint(rrb, geometry):
 
 
 
+def _quaternion(rotation: np.ndarray) -> list[float]:
+    """The unit quaternion ``[x, y, z, w]`` of a ``(3, 3)`` rotation matrix."""
+    r = np.asarray(rotation, dtype=np.float64)
+    w = 0.5 * np.sqrt(max(0.0, 1.0 + np.trace(r)))
+    x = 0.5 * np.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) * np.sign(r[2, 1] - r[1, 2] or 1.0)
+    y = 0.5 * np.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) * np.sign(r[0, 2] - r[2, 0] or 1.0)
+    z = 0.5 * np.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) * np.sign(r[1, 0] - r[0, 1] or 1.0)
+    q = np.array([x, y, z, w])
+    return (q / np.linalg.norm(q)).tolist()
+
+
 def _turn_z_to(rr, direction):
     """The ``rerun.RotationAxisAngle`` that takes +z onto ``direction`` (a capsule's axis)."""
     axis = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
@@ -457,8 +469,15 @@ class _SceneLogger:
         grippers = np.asarray(snap.grippers, dtype=np.float64).reshape(-1, 3)  # every instrument's place
         paddles = [k for k, g in enumerate(self.env.task.instruments) if g.kind == "paddle"]
         jaws = [k for k in range(len(grippers)) if k not in paddles]
-        rec.log("world/gripper", rr.Boxes3D(centers=grippers[jaws] + np.array(JAW_OFFSET),
-                                            half_sizes=[np.array(JAW_HALF_SIZE)] * len(jaws),
+        centres, halves, turns = grippers[jaws] + np.array(JAW_OFFSET), [np.array(JAW_HALF_SIZE)] * len(jaws), []
+        for j, which in enumerate(jaws):  # jaws that roll: along their axis, up the shaft from the grasp point
+            g = self.env.task.instruments[which]
+            frame = g.jaw_frames()[0] if getattr(g, "roll_speed", None) is not None else np.eye(3)
+            if getattr(g, "roll_speed", None) is not None:
+                centres[j] = grippers[which] + JAW_OFFSET[2] * frame[:, 2]
+                halves[j] = np.array([JAW_HALF_SIZE[0], 0.5 * g.spec.jaw_length, JAW_HALF_SIZE[2]])
+            turns.append(rr.Quaternion(xyzw=_quaternion(frame)))
+        rec.log("world/gripper", rr.Boxes3D(centers=centres, half_sizes=halves, quaternions=turns,
                                             colors=[JAWS_CLOSED if snap.closed[k] else JAWS_OPEN for k in jaws],
                                             fill_mode="solid"))
         if paddles:  # each paddle's blade, turned by its tilt (about y)
@@ -541,10 +560,13 @@ class _SceneLogger:
             lines.append(f"- held **{hold:.1f} s** of {st.hold_time:g} s")
         closed = ", ".join("closed" if c else "open" for c in snap.closed)
         lines.append(f"- jaws {closed}, holding {len(snap.held)} vertices, force {float(info['grasp_force']):.2f} N")
-        if action is not None:
-            a = np.asarray(action, dtype=np.float64).reshape(-1, 4)
-            moves = "; ".join(f"move ({m[0]:+.2f}, {m[1]:+.2f}, {m[2]:+.2f}), grip {m[3]:+.2f}" for m in a)
-            lines.append(f"- action: {moves}; reward {float(reward):+.3f}, return {ret:+.3f}")
+        if action is not None:  # each instrument's entries by name (a grasper's 4, or 5 when its jaws roll; ...)
+            a, parts, start = np.asarray(action, dtype=np.float64).reshape(-1), [], 0
+            for instrument in [*self.env.task.instruments, *getattr(self.env.task, "hooks", [])]:
+                names = instrument.ACTION
+                parts.append(", ".join(f"{n} {v:+.2f}" for n, v in zip(names, a[start:start + len(names)])))
+                start += len(names)
+            lines.append(f"- action: {'; '.join(parts)}; reward {float(reward):+.3f}, return {ret:+.3f}")
         return "\n".join(lines)
 
     def _progress_line(self, info, ok) -> str:

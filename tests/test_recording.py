@@ -448,3 +448,25 @@ def test_a_recording_draws_a_shaft_that_touches_tissue_from_its_end_to_its_port(
     np.testing.assert_allclose(np.array(data["Capsules3D:translations"][-1]).reshape(3), end, atol=1e-6)
     np.testing.assert_allclose(data["Capsules3D:lengths"][-1], np.linalg.norm(np.subtract(port, end)), rtol=1e-6)
     np.testing.assert_allclose(data["Capsules3D:radii"][-1], 0.004, rtol=1e-6)
+
+
+def test_a_recording_turns_jaws_that_roll_along_their_axis(tmp_path):
+    """Jaws on a port that roll are logged as a box long along their axis: the box's turn
+    (its quaternion, read back) takes its y axis onto the jaws' axis where they are."""
+    import gymnasium as gym
+
+    scene = {"grasp": {"low": [0.08, 0.05, 0.008], "high": [0.12, 0.07, None], "surface": True},
+             "gripper": {"port": [0.10, 0.06, 0.15], "jaw_length": 0.025, "roll_speed": 4.0}}
+    env = gym.make("heml_gym/TissueRetraction-v1", settings={"max_steps": 3}, max_episode_steps=3, scene=scene)
+    path = tmp_path / "roll.rrd"
+    record_rollouts(env, lambda obs: np.array([0.0, 0.0, 0.0, -1.0, 1.0], dtype=np.float32), path=path, episodes=1,
+                    seed=SEED)
+    data = _temporal(RrdReader(path).stream().collect())["/world/gripper"]
+    x, y, z, w = np.array(data["Boxes3D:quaternions"][-1]).reshape(4)
+    turn = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    grasper = env.unwrapped.task.instruments[0]
+    assert grasper.roll[0] == pytest.approx(1.2)  # 3 steps at 0.4 rad
+    np.testing.assert_allclose(turn[:, 1], grasper.jaw_axes()[0], atol=1e-6)
+    np.testing.assert_allclose(np.array(data["Boxes3D:half_sizes"][-1]).reshape(3)[1], 0.0125, rtol=1e-6)
