@@ -47,6 +47,7 @@ SWEEPS = [
     ("push_bc_sweep", "configs/push_bc.yaml", "BC", "heml_gym/PushRetraction-v0", 1, "0,1,2,3,4"),
     ("push_ppo_sweep", "configs/push_ppo.yaml", "PPO", "heml_gym/PushRetraction-v0", 1, "0,1,2,3,4"),
     ("dissection_bc_sweep", "configs/dissection_bc.yaml", "BC", "heml_gym/GallbladderDissection-v0", 1, "0,1,2,3,4"),
+    ("dissection_ppo_sweep", "configs/dissection_ppo.yaml", "PPO", "heml_gym/GallbladderDissection-v0", 1, "0,1,2,3,4"),
 ]
 #: algorithms that learn from demonstrations, without env steps (no learning curve: a line at their IQM)
 OFFLINE = ("BC",)

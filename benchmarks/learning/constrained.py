@@ -130,8 +130,18 @@ def table(result: dict) -> str:
 
 
 def verdict(result: dict) -> dict:
-    """The issue's bar: PPO-Lagrangian lowers the mean damage against PPO at success within 10 points."""
+    """The issue's bar: PPO-Lagrangian lowers the mean damage against PPO at success within 10 points
+    (missed where neither method learns the task: success IQM below 50 %)."""
     ppo, lag = result["methods"]["PPO"], result["methods"]["PPO-Lagrangian"]
+    if max(lag["success_iqm"], ppo["success_iqm"]) < 0.5:  # neither learned: harm is compared between failures
+        text = (f"Neither method learns the task (success IQM {ppo['success_iqm']:.0%} with PPO, "
+                f"{lag['success_iqm']:.0%} with PPO-Lagrangian): the bar is missed, and their harms (IQM "
+                f"{ppo['damage_iqm']:.4f} and {lag['damage_iqm']:.4f} {harm_of(result)[0]}) are those of policies "
+                "that fail")
+        return {"damage_lower": bool(lag["damage_iqm"] < ppo["damage_iqm"]), "success_within_10_points": False,
+                "met": False, "learned": False,
+                "damage_while_training_lower": bool(lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]),
+                "damage_ratio": float("nan"), "text": text}
     lower = lag["damage_iqm"] < ppo["damage_iqm"]
     close = lag["success_iqm"] >= ppo["success_iqm"] - 0.10
     ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
