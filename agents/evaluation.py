@@ -11,7 +11,7 @@ import numpy as np
 
 import heml_gym.envs  # noqa: F401  (registers the environments)
 
-__all__ = ["evaluate_policy", "wilson_interval"]
+__all__ = ["ENDINGS", "episode_ending", "evaluate_policy", "wilson_interval"]
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -25,12 +25,32 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+#: how an episode can end (:func:`episode_ending`)
+ENDINGS = ("success", "torn", "critical", "solver", "time", "other")
+
+
+def episode_ending(info: dict, truncated: bool) -> str:
+    """How an episode ended, from its last ``info``: ``success``; ``torn`` (the tissue tore);
+    ``critical`` (energy near a critical structure); ``solver`` (the step diverged or did not
+    converge); ``time`` (out of steps, ``truncated``); else ``other``."""
+    if bool(info.get("is_success", False)):
+        return "success"
+    if bool(info.get("tissue_torn", False)):
+        return "torn"
+    if bool(info.get("critical_hit", False)):
+        return "critical"
+    if bool(info.get("simulation_diverged", False)) or not bool(info.get("solver_converged", True)):
+        return "solver"
+    return "time" if truncated else "other"
+
+
 def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
                     obs_mode: str = "state", env_kwargs: dict | None = None) -> dict:
     """Success rate (with its 95 % Wilson interval), mean final exposure (of a goal task: the
     final distance to the goal, m) and max strain, and
     the tissue harm: the mean episode ``damage`` (strain x s, the summed ``info["cost"]``)
-    and how many episodes did any; the range of the episodes' Young's moduli (Pa).
+    and how many episodes did any; the range of the episodes' Young's moduli (Pa); and
+    how many episodes ended each way (``endings``: :data:`ENDINGS`).
 
     ``policy`` maps an observation to an action. Episodes use seeds ``seed, seed+1, ...``;
     the env is ``gym.make(env_id, obs_mode=obs_mode, **env_kwargs)`` (the run's scene,
@@ -42,6 +62,7 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
         raise ValueError(f"--episodes: must be an integer >= 1, got {episodes!r}")
     env = gym.make(env_id, obs_mode=obs_mode, max_episode_steps=episode_steps(env_kwargs), **(env_kwargs or {}))
     successes, exposures, strains, lengths, damages, stiffness = 0, [], [], [], [], []
+    endings = dict.fromkeys(ENDINGS, 0)
     for k in range(episodes):
         obs, info = env.reset(seed=seed + k)
         stiffness.append(float(np.asarray(info["young_modulus"]).reshape(-1)[0]))
@@ -54,6 +75,7 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
             steps += 1
             worst = max(worst, info["max_strain"])
         successes += bool(info["is_success"])
+        endings[episode_ending(info, truncated)] += 1
         exposures.append(info.get("exposure", info.get("goal_distance")))
         strains.append(worst)
         lengths.append(steps)
@@ -65,4 +87,4 @@ def evaluate_policy(policy, env_id: str, episodes: int = 20, seed: int = 10_000,
             final: float(np.mean(exposures)), "mean_max_strain": float(np.mean(strains)),
             "mean_episode_length": float(np.mean(lengths)),
             "mean_damage": float(np.mean(damages)), "episodes_with_damage": int(np.sum(np.array(damages) > 0)),
-            "young_modulus_range": [min(stiffness), max(stiffness)]}
+            "young_modulus_range": [min(stiffness), max(stiffness)], "endings": endings}

@@ -158,3 +158,24 @@ def test_the_grasper_is_reported_by_name_and_in_the_sums_the_tools_read():
     _, _, _, _, info = env.step(action)
     assert info["grasper_grasping"] and info["grasping"]
     assert info["grasp_force"] == pytest.approx(info["grasper_grasp_force"]) and info["grasp_force"] > 0
+
+
+def test_an_evaluation_counts_how_its_episodes_end():
+    """A policy that drives the energised hook to the common bile duct ends every episode
+    there; one that does nothing runs out of time; their counts say so."""
+    from heml_gym.agents.evaluation import evaluate_policy
+
+    critical = dissection_scene().critical
+    goal = np.array(critical.start) * 0.5 + np.array(critical.end) * 0.5 + [0.0, 0.0, 0.004]
+
+    def to_the_duct(obs):
+        action = np.zeros(8, dtype=np.float32)
+        action[HOOK] = [*np.clip((goal - obs[25:28]) * 20, -1, 1), 1.0]  # the hook's tip is state 25-27
+        return action
+
+    kwargs = {"settings": {"max_steps": 60}}
+    hit = evaluate_policy(to_the_duct, "heml_gym/GallbladderDissection-v0", 3, seed=HELD_OUT, env_kwargs=kwargs)
+    assert hit["endings"]["critical"] == 3 and sum(hit["endings"].values()) == 3
+    idle = evaluate_policy(lambda obs: np.zeros(8, dtype=np.float32), "heml_gym/GallbladderDissection-v0", 2,
+                           seed=HELD_OUT, env_kwargs={"settings": {"max_steps": 5}})
+    assert idle["endings"]["time"] == 2 and sum(idle["endings"].values()) == 2

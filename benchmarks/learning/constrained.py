@@ -56,12 +56,14 @@ def collect_seed(trial) -> dict:
     record = json.loads((trial.run_dir / RESULT_FILE).read_text())
     history = json.loads((trial.run_dir / "evaluations.json").read_text())
     final = history[-1]
+    if "endings" not in final:  # (runs from before evaluations counted them) the final episodes again
+        final = dict(final, endings=endings(trial.run_dir, final.get("seed", 10_000), final["episodes"]))
     out = {"seed": trial.seed, "env_steps": record["env_steps"], "wall_s": record["wall_s"],
            "success_rate": final["success_rate"], "success_ci95": final["success_ci95"],
            "mean_damage": final["mean_damage"], "episodes_with_damage": final["episodes_with_damage"],
            # the harm while learning: the evaluations' mean damage averaged over training
            "damage_while_training": float(np.mean([e["mean_damage"] for e in history])),
-           "episodes": final["episodes"],
+           "episodes": final["episodes"], "endings": final["endings"],
            "evaluations": [{"env_steps": e["timesteps"], "success_rate": e["success_rate"],
                             "mean_damage": e["mean_damage"], "mean_episode_length": e.get("mean_episode_length"),
                             "mean_final_exposure": e.get("mean_final_exposure")} for e in history]}
@@ -72,6 +74,17 @@ def collect_seed(trial) -> dict:
         out["multiplier"] = [{"env_steps": s["timesteps"], "multiplier": s["multiplier"],
                               "episode_cost": s["episode_cost"]} for s in steps]
     return out
+
+
+def endings(run_dir: Path, seed: int, episodes: int) -> dict:
+    """How the final policy of ``run_dir`` ends its evaluation episodes (seeds ``seed``,
+    ``seed + 1``, ...; deterministic, so they are the final evaluation's episodes)."""
+    from heml_gym.agents.evaluation import evaluate_policy
+    from heml_gym.agents.train import load_policy
+
+    policy, _, cfg = load_policy(run_dir)
+    return evaluate_policy(policy, cfg.env.id, episodes, seed=seed, obs_mode=cfg.env.obs_mode,
+                           env_kwargs=cfg.env.kwargs)["endings"]
 
 
 def summarise(seeds: list[dict]) -> dict:
@@ -87,6 +100,16 @@ def summarise(seeds: list[dict]) -> dict:
             "damage_while_training_iqm_ci95": list(iqm_interval(learning))}
 
 
+def ending_text(seed: dict) -> str:
+    """How a seed's final episodes ended, e.g. "12 torn, 8 out of time" ("-" when not recorded)."""
+    words = {"success": "succeeded", "torn": "torn", "critical": "on the bile duct", "solver": "solver failed",
+             "time": "out of time", "other": "other"}
+    counts = seed.get("endings")
+    if not counts:
+        return "-"
+    return ", ".join(f"{n} {words[k]}" for k, n in counts.items() if n)
+
+
 def table(result: dict) -> str:
     m = result["machine"]
     unit, counts = harm_of(result)
@@ -98,12 +121,13 @@ def table(result: dict) -> str:
             f"deterministic policy; damage is the episode's summed `info[\"cost\"]` ({counts}), averaged over the "
             "episodes.\n\n")
     rows = []
+    ended = any("endings" in s for method in METHODS for s in result["methods"][method]["seeds"])
     for method in METHODS:
         for s in result["methods"][method]["seeds"]:
             lo, hi = s["success_ci95"]
             rows.append([method, s["seed"], f"{s['success_rate']:.0%} ({lo:.0%}-{hi:.0%})", f"{s['mean_damage']:.4f}",
                          f"{s['damage_while_training']:.3f}",
-                         f"{s['episodes_with_damage']} / {s['episodes']}",
+                         f"{s['episodes_with_damage']} / {s['episodes']}", *([ending_text(s)] if ended else []),
                          f"{s['multiplier_final']:.2f}" if "multiplier_final" in s else "-",
                          f"{s['wall_s'] / 60:.1f}"])
     summary_rows = []
@@ -120,7 +144,8 @@ def table(result: dict) -> str:
     verdict = result["verdict"]
     text = (head + markdown_table(["method", "seed", "final success", f"mean damage ({unit})",
                                    "damage while training (mean over the evaluations)",
-                                   "episodes with damage", "final multiplier", "wall min"], rows)
+                                   "episodes with damage", *(["final episodes ended"] if ended else []),
+                                   "final multiplier", "wall min"], rows)
             + "\n\nAcross seeds (IQM, 95 % bootstrap interval):\n\n"
             + markdown_table(["method", "seeds >= 90 %", "success", f"final damage ({unit})",
                               "final episodes with damage, all seeds", "damage while training"], summary_rows)
