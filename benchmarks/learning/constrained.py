@@ -102,7 +102,7 @@ def summarise(seeds: list[dict]) -> dict:
 
 def ending_text(seed: dict) -> str:
     """How a seed's final episodes ended, e.g. "12 torn, 8 out of time" ("-" when not recorded)."""
-    words = {"success": "succeeded", "torn": "torn", "critical": "on the bile duct", "solver": "solver failed",
+    words = {"success": "succeeded", "torn": "torn", "critical": "at the critical structure", "solver": "solver failed",
              "time": "out of time", "other": "other"}
     counts = seed.get("endings")
     if not counts:
@@ -158,29 +158,27 @@ def verdict(result: dict) -> dict:
     """The issue's bar: PPO-Lagrangian lowers the mean damage against PPO at success within 10 points
     (missed where neither method learns the task: success IQM below 50 %)."""
     ppo, lag = result["methods"]["PPO"], result["methods"]["PPO-Lagrangian"]
-    if max(lag["success_iqm"], ppo["success_iqm"]) < 0.5:  # neither learned: harm is compared between failures
+    unit = harm_of(result)[0]
+    learned = max(lag["success_iqm"], ppo["success_iqm"]) >= 0.5  # else harm would be compared between failures
+    lower = lag["damage_iqm"] < ppo["damage_iqm"]
+    close = learned and lag["success_iqm"] >= ppo["success_iqm"] - 0.10
+    ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
+    ratio = ratio if learned else None  # (no ratio of the harms of failures)
+    learning = lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]
+    if not learned:
         text = (f"Neither method learns the task (success IQM {ppo['success_iqm']:.0%} with PPO, "
                 f"{lag['success_iqm']:.0%} with PPO-Lagrangian): the bar is missed, and their harms (IQM "
-                f"{ppo['damage_iqm']:.4f} and {lag['damage_iqm']:.4f} {harm_of(result)[0]}) are those of policies "
-                "that fail")
-        return {"damage_lower": bool(lag["damage_iqm"] < ppo["damage_iqm"]), "success_within_10_points": False,
-                "met": False, "learned": False,
-                "damage_while_training_lower": bool(lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]),
-                "damage_ratio": float("nan"), "text": text}
-    lower = lag["damage_iqm"] < ppo["damage_iqm"]
-    close = lag["success_iqm"] >= ppo["success_iqm"] - 0.10
-    ratio = lag["damage_iqm"] / ppo["damage_iqm"] if ppo["damage_iqm"] > 0 else float("nan")
-    learning = lag["damage_while_training_iqm"] < ppo["damage_while_training_iqm"]
-    unit = harm_of(result)[0]
-    text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the final damage (IQM {lag['damage_iqm']:.4f} vs "
-            f"{ppo['damage_iqm']:.4f} {unit}) at success {lag['success_iqm']:.0%} vs "
-            f"{ppo['success_iqm']:.0%} ({'within' if close else 'not within'} 10 points): the bar is "
-            f"{'met' if lower and close else 'missed'}; while training it "
-            f"{'lowers' if learning else 'does not lower'} the damage (IQM {lag['damage_while_training_iqm']:.3f} vs "
-            f"{ppo['damage_while_training_iqm']:.3f})")
+                f"{ppo['damage_iqm']:.4f} and {lag['damage_iqm']:.4f} {unit}) are those of policies that fail")
+    else:
+        text = (f"PPO-Lagrangian {'lowers' if lower else 'does not lower'} the final damage (IQM "
+                f"{lag['damage_iqm']:.4f} vs {ppo['damage_iqm']:.4f} {unit}) at success {lag['success_iqm']:.0%} vs "
+                f"{ppo['success_iqm']:.0%} ({'within' if close else 'not within'} 10 points): the bar is "
+                f"{'met' if lower and close else 'missed'}; while training it "
+                f"{'lowers' if learning else 'does not lower'} the damage (IQM "
+                f"{lag['damage_while_training_iqm']:.3f} vs {ppo['damage_while_training_iqm']:.3f})")
     return {"damage_lower": bool(lower), "success_within_10_points": bool(close), "met": bool(lower and close),
-            "damage_while_training_lower": bool(learning),
-            "damage_ratio": ratio, "text": text}
+            "damage_while_training_lower": bool(learning), "damage_ratio": ratio, "text": text,
+            **({} if learned else {"learned": False})}
 
 
 def chart(result: dict, path: Path) -> None:
