@@ -471,11 +471,10 @@ class _SceneLogger:
         jaws = [k for k in range(len(grippers)) if k not in paddles]
         centres, halves, turns = grippers[jaws] + np.array(JAW_OFFSET), [np.array(JAW_HALF_SIZE)] * len(jaws), []
         for j, which in enumerate(jaws):  # jaws that roll: along their axis, up the shaft from the grasp point
-            g = self.env.task.instruments[which]
-            frame = g.jaw_frames()[0] if getattr(g, "roll_speed", None) is not None else np.eye(3)
+            g, frame = self.env.task.instruments[which], np.eye(3)
             if getattr(g, "roll_speed", None) is not None:
-                centres[j] = grippers[which] + JAW_OFFSET[2] * frame[:, 2]
-                halves[j] = np.array([JAW_HALF_SIZE[0], 0.5 * g.spec.jaw_length, JAW_HALF_SIZE[2]])
+                box_centres, halves[j], box_frames = g.jaw_boxes()
+                centres[j], frame = box_centres[0], box_frames[0]
             turns.append(rr.Quaternion(xyzw=_quaternion(frame)))
         rec.log("world/gripper", rr.Boxes3D(centers=centres, half_sizes=halves, quaternions=turns,
                                             colors=[JAWS_CLOSED if snap.closed[k] else JAWS_OPEN for k in jaws],

@@ -51,8 +51,8 @@ class SceneRenderer:
                 parts.append((blade[0], blade[1], PADDLE))
                 continue
             if getattr(g, "roll_speed", None) is not None:  # along their axis, up the shaft from the grasp point
-                frame = g.jaw_frames()[i]
-                jaws = box(position + 0.006 * frame[:, 2], (0.003, 0.5 * g.spec.jaw_length, 0.006), frame)
+                centres, halves, frames = g.jaw_boxes()
+                jaws = box(centres[i], halves, frames[i])
             else:
                 jaws = box(position + np.array([0.0, 0.0, 0.006]), (0.003, 0.006, 0.006))
             parts.append((jaws[0], jaws[1], JAWS_CLOSED if closed else JAWS_OPEN))

@@ -14,6 +14,7 @@ import numpy as np
 from heml_gym.control import rotation
 
 from ..geometry import nearest_triangle_distance
+from ..palette import JAW_HALF_SIZE, JAW_OFFSET
 from ..spec import SpecError
 from .placing import checked_position
 from .port import Port
@@ -197,6 +198,15 @@ class Grasper:
         (:meth:`jaw_axes`) and back up the shaft (a drawing's box: long along the jaws)."""
         u, axis = self.shaft_directions(), self.jaw_axes()
         return np.stack([np.cross(u, axis), axis, -u], axis=2)
+
+    def jaw_boxes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jaws that roll as the box a drawing shows, in each world: centres ``(N, 3)`` (m),
+        its half sizes ``(3,)`` (m: the drawn jaws' across and up, half the jaws' length
+        along them) and turns ``(N, 3, 3)`` (:meth:`jaw_frames`); the box stands its half
+        height up the shaft from the grasp point, as level jaws stand above it."""
+        frames = self.jaw_frames()
+        halves = np.array([JAW_HALF_SIZE[0], 0.5 * self.spec.jaw_length, JAW_HALF_SIZE[2]])
+        return self.position + JAW_OFFSET[2] * frames[:, :, 2], halves, frames
 
     def jaw_tiles(self, half: float = 0.003) -> np.ndarray:
         """Jaws that roll, where they are now in each world, for cameras that draw boxes:
